@@ -1,0 +1,125 @@
+"""Paper II's joint-dependent 6-DOF error transforms E_i(q_i, s_i), eqs. (19)-(24).
+
+Each of the six small error terms of E_i (20) is an order-m Chebyshev series
+(23) of the normalized joint variable (24); backlash (13)-(14) adds
+``s_i * b_i(q_i)`` to eps_z, the rotation about the joint's own axis. Joint i's
+E_i sits in the joint frame before the joint moves, so its constant terms are
+the assembly errors of link i-1 (18) and there is none after the last joint
+(19): that one belongs to the tool.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+
+from ..basis import chebyshev, normalize
+from ..kinematics.transforms import twist_to_transform
+
+TERMS = ("eps_x", "eps_y", "eps_z", "delta_x", "delta_y", "delta_z")
+"""The six error terms of (20), in twist order: rotations (rad) then translations (m)."""
+
+MAX_ORDER = 10
+
+
+def joint_error_twists(
+    coef: torch.Tensor,
+    basis: torch.Tensor,
+    backlash_coef: torch.Tensor | None = None,
+    backlash_basis: torch.Tensor | None = None,
+    direction: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Six error terms per pose and joint, eq. (23) plus backlash (13).
+
+    coef: (n, 6, K) Chebyshev coefficients (K = max order + 1; unused orders are zero);
+    basis: (B, n, K) Chebyshev values at each normalized joint variable;
+    backlash_coef: (n, Kb); backlash_basis: (B, n, Kb); direction: (B, n) in {-1, 0, +1}.
+    -> (B, n, 6) = (eps_x, eps_y, eps_z, delta_x, delta_y, delta_z).
+    """
+    e = torch.einsum("bnk,ntk->bnt", basis, coef)
+    if backlash_coef is not None and direction is not None and backlash_coef.shape[-1] > 0:
+        b = (backlash_basis * backlash_coef).sum(-1) * direction
+        e = e + torch.nn.functional.pad(b[..., None], (2, 3))
+    return e
+
+
+def _order_table(orders, n: int) -> torch.Tensor:
+    """Per-joint, per-term order table (n, 6) from an int, a per-joint list or an (n, 6) table."""
+    t = torch.as_tensor(orders, dtype=torch.long)
+    if t.ndim == 0:
+        t = t.expand(n, 6)
+    elif t.ndim == 1:
+        if t.numel() != n:
+            raise ValueError(f"model order: expected {n} per-joint orders, got {t.numel()}")
+        t = t[:, None].expand(n, 6)
+    if t.shape != (n, 6):
+        raise ValueError(f"model order: expected shape ({n}, 6), got {tuple(t.shape)}")
+    if (t < -1).any() or (t > MAX_ORDER).any():
+        raise ValueError(f"model order must be in 0..{MAX_ORDER} (or -1 to switch a term off)")
+    return t.clone()
+
+
+class JointErrors(nn.Module):
+    """Learnable E_i(q_i, s_i) for every joint of a chain.
+
+    ranges: (n, 2) range of each joint variable used for normalization (24);
+    orders: int, per-joint list, or (n, 6) table (-1 switches a term off);
+    backlash: None/False (off), True (same order as eps_z) or an int / per-joint list.
+    """
+
+    def __init__(self, ranges: torch.Tensor, orders=6, backlash=None, joint_names: Sequence[str] | None = None):
+        super().__init__()
+        n = ranges.shape[0]
+        table = _order_table(orders, n)
+        K = int(table.max().clamp(min=0)) + 1
+        k = torch.arange(K)
+        self.joint_names = list(joint_names or [f"joint{i + 1}" for i in range(n)])
+        self.register_buffer("ranges", ranges.to(torch.float64).clone())
+        self.register_buffer("orders", table)
+        self.register_buffer("mask", k[None, None, :] <= table[..., None])
+        self.coef = nn.Parameter(torch.zeros(n, 6, K, dtype=torch.float64))
+        if backlash is None or backlash is False:
+            b_orders = torch.full((n,), -1, dtype=torch.long)
+        elif backlash is True:
+            b_orders = table[:, 2].clone()
+        else:
+            b_orders = torch.as_tensor(backlash, dtype=torch.long).expand(n).clone()
+        Kb = int(b_orders.max().clamp(min=-1)) + 1
+        self.register_buffer("backlash_orders", b_orders)
+        self.register_buffer("backlash_mask", torch.arange(Kb)[None, :] <= b_orders[:, None])
+        self.backlash = nn.Parameter(torch.zeros(n, Kb, dtype=torch.float64))
+
+    @property
+    def n(self) -> int:
+        return self.coef.shape[0]
+
+    @property
+    def has_backlash(self) -> bool:
+        return bool(self.backlash_mask.any())
+
+    def normalized(self, theta: torch.Tensor) -> torch.Tensor:
+        """Joint variables (B, n) -> lam (B, n) in [-1, 1] over the model's ranges."""
+        return normalize(theta, self.ranges[:, 0], self.ranges[:, 1])
+
+    def twists(self, theta: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, n) joint variables (+ (B, n) directions) -> (B, n, 6) error terms."""
+        lam = self.normalized(theta)
+        basis = chebyshev(lam, self.coef.shape[-1] - 1)
+        coef = self.coef * self.mask
+        if self.has_backlash and direction is not None:
+            bb = chebyshev(lam, self.backlash.shape[-1] - 1)
+            return joint_error_twists(coef, basis, self.backlash * self.backlash_mask, bb, direction.to(theta))
+        return joint_error_twists(coef, basis)
+
+    def forward(self, theta: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
+        """Error transforms E_i: (B, n) -> (B, n, 4, 4)."""
+        return twist_to_transform(self.twists(theta, direction))
+
+    def parameter_names(self) -> tuple[list[str], list[str]]:
+        """Names of every entry of ``coef`` and ``backlash`` (row-major), e.g. 'joint3.eps_z.c2'."""
+        n, _, K = self.coef.shape
+        coef = [f"{self.joint_names[i]}.{t}.c{k}" for i in range(n) for t in TERMS for k in range(K)]
+        bl = [f"{self.joint_names[i]}.backlash.c{k}" for i in range(n) for k in range(self.backlash.shape[1])]
+        return coef, bl

@@ -1,0 +1,116 @@
+"""Rigid-body transforms as pure tensor functions (float64, any batch shape).
+
+Conventions: rotation matrices act on column vectors; homogeneous transforms
+are (..., 4, 4); a *twist* here is the paper's six small error terms
+``(eps_x, eps_y, eps_z, delta_x, delta_y, delta_z)`` (rotation first).
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """Skew-symmetric matrix S(v) with S(v) w = v x w.  v: (..., 3) -> (..., 3, 3)."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack(
+        [torch.stack([o, -z, y], -1), torch.stack([z, o, -x], -1), torch.stack([-y, x, o], -1)], -2
+    )
+
+
+def axis_angle_to_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Rotation about a unit axis (Rodrigues).  axis: (..., 3) unit, angle: (...) -> (..., 3, 3)."""
+    k = skew(axis)
+    s = torch.sin(angle)[..., None, None]
+    c = torch.cos(angle)[..., None, None]
+    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
+    return eye + s * k + (1.0 - c) * (k @ k)
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Exact rotation matrix exp(S(w)) of a rotation vector.  w: (..., 3) -> (..., 3, 3).
+
+    Uses a Taylor series for tiny angles so that values and autograd
+    derivatives stay exact at and near zero (error terms live there).
+    """
+    theta2 = (w * w).sum(-1)
+    small = theta2 < 1e-8
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, (1.0 - torch.cos(t)) / t2)
+    k = skew(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def so3_log(R: torch.Tensor) -> torch.Tensor:
+    """Rotation vector of a rotation matrix (inverse of so3_exp for angles < pi).  (..., 3, 3) -> (..., 3)."""
+    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    theta = torch.acos(cos)
+    vee = torch.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    small = theta < 1e-6
+    sin = torch.sin(theta)
+    factor = torch.where(small, 0.5 + theta * theta / 12.0, theta / (2.0 * torch.where(small, torch.ones_like(sin), sin)))
+    return factor[..., None] * vee
+
+
+def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
+    """URDF roll-pitch-yaw (fixed axes X, then Y, then Z) to a rotation.  (..., 3) -> (..., 3, 3)."""
+    r, p, y = rpy.unbind(-1)
+    ex = torch.zeros(rpy.shape[:-1] + (3,), dtype=rpy.dtype, device=rpy.device)
+    ax = ex.clone()
+    ax[..., 0] = 1.0
+    ay = ex.clone()
+    ay[..., 1] = 1.0
+    az = ex.clone()
+    az[..., 2] = 1.0
+    return axis_angle_to_matrix(az, y) @ axis_angle_to_matrix(ay, p) @ axis_angle_to_matrix(ax, r)
+
+
+def matrix_to_rpy(R: torch.Tensor) -> torch.Tensor:
+    """Inverse of rpy_to_matrix (away from pitch = +-90 deg).  (..., 3, 3) -> (..., 3)."""
+    roll = torch.atan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = torch.atan2(-R[..., 2, 0], torch.sqrt(R[..., 2, 1] ** 2 + R[..., 2, 2] ** 2))
+    yaw = torch.atan2(R[..., 1, 0], R[..., 0, 0])
+    return torch.stack([roll, pitch, yaw], -1)
+
+
+def homogeneous(R: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Assemble (..., 4, 4) from a rotation (..., 3, 3) and a translation (..., 3)."""
+    shape = torch.broadcast_shapes(R.shape[:-2], p.shape[:-1])
+    top = torch.cat([R.expand(shape + (3, 3)), p.expand(shape + (3,))[..., None]], -1)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(shape + (1, 4))
+    return torch.cat([top, bottom], -2)
+
+
+def invert(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of a rigid transform.  (..., 4, 4) -> (..., 4, 4)."""
+    Rt = T[..., :3, :3].transpose(-1, -2)
+    return homogeneous(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+
+
+def twist_to_transform(e: torch.Tensor) -> torch.Tensor:
+    """The paper's small error transform E of (20), kept exactly rigid.
+
+    e: (..., 6) = (eps_x, eps_y, eps_z, delta_x, delta_y, delta_z) -> (..., 4, 4)
+    with rotation exp(S(eps)) and translation delta. To first order this is
+    matrix (20); unlike (20) it stays a rigid motion for any size of error.
+    """
+    return homogeneous(so3_exp(e[..., :3]), e[..., 3:])
+
+
+def transform_to_twist(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of twist_to_transform.  (..., 4, 4) -> (..., 6)."""
+    return torch.cat([so3_log(T[..., :3, :3]), T[..., :3, 3]], -1)
+
+
+def pose_error(T_from: torch.Tensor, T_to: torch.Tensor) -> torch.Tensor:
+    """Error vector de of (47)-(48): translation and half-skew rotation of inv(T_from) @ T_to.
+
+    Returns (..., 6) = (dx, dy, dz, rx, ry, rz) expressed in T_from's frame.
+    """
+    W = invert(T_from) @ T_to
+    rot = 0.5 * torch.stack([W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]], -1)
+    return torch.cat([W[..., :3, 3], rot], -1)

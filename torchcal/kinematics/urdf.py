@@ -1,0 +1,149 @@
+"""URDF -> :class:`Chain` in float64, validated with yourdfpy.
+
+pytorch-kinematics' parser reads the XML; we build our own float64 tensors
+because its chain builder rounds joint origins to float32 (FK off by ~3e-8 m
+even after ``.to(float64)``) and its static offsets cannot carry per-pose
+error transforms. pytorch-kinematics' chain stays a cross-check in the tests.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+from pathlib import Path
+
+import torch
+
+from .chain import Chain
+from .transforms import homogeneous, rpy_to_matrix
+
+
+class URDFError(ValueError):
+    """A URDF that cannot be used; the message names the file and the joints at fault."""
+
+
+def _read(source: str | Path) -> tuple[str, str]:
+    """(xml text, label for messages) from a path or an XML string."""
+    if isinstance(source, Path) or (isinstance(source, str) and not source.lstrip().startswith("<")):
+        path = Path(source)
+        if not path.is_file():
+            raise URDFError(f"{path}: URDF file not found")
+        return path.read_text(), str(path)
+    return str(source), "<urdf string>"
+
+
+def validate_urdf(xml: str, label: str = "<urdf string>") -> list[str]:
+    """Problems found by yourdfpy's validator plus our own kinematic checks, each naming its joint."""
+    import yourdfpy
+
+    problems: list[str] = []
+    try:
+        # yourdfpy logs parse warnings for every missing optional tag; keep the console quiet
+        logging.getLogger("yourdfpy").setLevel(logging.ERROR)
+        model = yourdfpy.URDF.load(io.StringIO(xml), build_scene_graph=False, load_meshes=False)
+    except Exception as exc:  # lxml / yourdfpy raise many types for malformed XML
+        return [f"not a readable URDF ({type(exc).__name__}: {exc})"]
+    robot = model.robot
+    for joint in robot.joints:
+        model._errors = []
+        model._validate_joint(joint)
+        problems += [f"joint '{joint.name}': {err}" for err in model._errors]
+        if joint.type in ("revolute", "prismatic", "continuous") and joint.axis is not None:
+            if float(sum(a * a for a in joint.axis)) < 1e-24:
+                problems.append(f"joint '{joint.name}': axis is the zero vector")
+        if joint.type in ("floating", "planar"):
+            problems.append(f"joint '{joint.name}': type '{joint.type}' is not a serial-chain joint torchcal supports")
+        if joint.mimic is not None:
+            problems.append(f"joint '{joint.name}': <mimic> joints are not supported; express coupling in the joint map")
+    for link in robot.links:
+        model._errors = []
+        model._validate_link(link)
+        problems += [f"link '{link.name}': {err}" for err in model._errors if "geometry" not in str(err).lower()]
+    names = [j.name for j in robot.joints]
+    dup = {n for n in names if names.count(n) > 1}
+    problems += [f"joint '{n}': name used more than once" for n in sorted(dup)]
+    return problems
+
+
+def _origin(joint) -> torch.Tensor:
+    xyz = torch.tensor(joint.origin.xyz if joint.origin is not None and joint.origin.xyz is not None else [0.0, 0.0, 0.0], dtype=torch.float64)
+    rpy = torch.tensor(joint.origin.rpy if joint.origin is not None and joint.origin.rpy is not None else [0.0, 0.0, 0.0], dtype=torch.float64)
+    return homogeneous(rpy_to_matrix(rpy), xyz)
+
+
+def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | None = None) -> Chain:
+    """Parse and validate a URDF into a float64 :class:`Chain`.
+
+    source: path to a .urdf file or the XML text. end_link: the link the chain
+    ends at (default: the only leaf). root_link: default the tree's root.
+    Raises URDFError naming the file and each faulty joint.
+    """
+    from pytorch_kinematics.urdf_parser_py.urdf import URDF
+
+    xml, label = _read(source)
+    problems = validate_urdf(xml, label)
+    if problems:
+        raise URDFError(f"{label}: URDF failed validation:\n  " + "\n  ".join(problems))
+    robot = URDF.from_xml_string(xml)
+    by_child = {j.child: j for j in robot.joints}
+    links = [l.name for l in robot.links]
+    roots = [l for l in links if l not in by_child]
+    if root_link is None:
+        if len(roots) != 1:
+            raise URDFError(f"{label}: expected one root link, found {roots}")
+        root_link = roots[0]
+    parents = {j.parent for j in robot.joints}
+    if end_link is None:
+        leaves = [l for l in links if l not in parents and l != root_link]
+        if len(leaves) != 1:
+            raise URDFError(f"{label}: several leaf links {leaves}; name the end link")
+        end_link = leaves[0]
+    if end_link not in links:
+        raise URDFError(f"{label}: end link '{end_link}' not in the URDF (links: {links})")
+    path = []
+    link = end_link
+    while link != root_link:
+        if link not in by_child:
+            raise URDFError(f"{label}: link '{end_link}' is not below root link '{root_link}'")
+        joint = by_child[link]
+        path.append(joint)
+        link = joint.parent
+        if len(path) > len(robot.joints):
+            raise URDFError(f"{label}: kinematic loop through joint '{joint.name}'")
+    path.reverse()
+
+    names, origins, axes, prismatic, limits = [], [], [], [], []
+    pending = torch.eye(4, dtype=torch.float64)  # fixed joints fold into the next origin
+    link_names = []
+    for joint in path:
+        T = pending @ _origin(joint)
+        if joint.type == "fixed":
+            pending = T
+            continue
+        axis = torch.tensor(joint.axis if joint.axis is not None else [1.0, 0.0, 0.0], dtype=torch.float64)
+        axes.append(axis / axis.norm())
+        origins.append(T)
+        names.append(joint.name)
+        link_names.append(joint.child)
+        prismatic.append(joint.type == "prismatic")
+        lim = getattr(joint, "limit", None)
+        lo = lim.lower if lim is not None and lim.lower is not None and joint.type != "continuous" else float("nan")
+        hi = lim.upper if lim is not None and lim.upper is not None and joint.type != "continuous" else float("nan")
+        if lo == lo and hi == hi and lo >= hi:
+            raise URDFError(f"{label}: joint '{joint.name}': lower limit {lo} is not below upper limit {hi}")
+        limits.append([lo, hi])
+        pending = torch.eye(4, dtype=torch.float64)
+    if not names:
+        raise URDFError(f"{label}: no movable joint between '{root_link}' and '{end_link}'")
+    return Chain(
+        joint_names=names,
+        origins=torch.stack(origins),
+        axes=torch.stack(axes),
+        prismatic=torch.tensor(prismatic, dtype=torch.bool),
+        limits=torch.tensor(limits, dtype=torch.float64),
+        tip=pending,
+        root_link=root_link,
+        end_link=end_link,
+        name=robot.name,
+        link_names=link_names,
+    )

@@ -1,0 +1,82 @@
+"""A set of position measurements, in SI, ready for identification or evaluation.
+
+One row per measured point: pose id, tool index, controller command q, approach
+direction s (0 where unknown), measured xyz in the measurement frame. The CSV
+contract (mm, deg) is read and written by :mod:`torchcal.io.csv`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import torch
+
+
+@dataclass
+class Measurements:
+    """Rows of (pose, tool, q, direction, xyz); SI units, float64.
+
+    q: (R, n) controller commands (rad / m); tool: (R,) long; xyz: (R, 3) m
+    (NaN where only predicting); direction: (R, n) in {-1, 0, +1};
+    pose: (R,) long; rows: (R,) row numbers in the source file (1-based data
+    rows, for messages); source: file name or description.
+    """
+
+    q: torch.Tensor
+    tool: torch.Tensor
+    xyz: torch.Tensor
+    direction: torch.Tensor
+    pose: torch.Tensor
+    rows: torch.Tensor
+    has_direction: bool = False
+    source: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        R = self.q.shape[0]
+        for name in ("tool", "xyz", "direction", "pose", "rows"):
+            t = getattr(self, name)
+            if t.shape[0] != R:
+                raise ValueError(f"Measurements.{name} has {t.shape[0]} rows, q has {R}")
+
+    def __len__(self) -> int:
+        return self.q.shape[0]
+
+    @property
+    def n_joints(self) -> int:
+        return self.q.shape[1]
+
+    @property
+    def n_poses(self) -> int:
+        return int(torch.unique(self.pose).numel())
+
+    @classmethod
+    def from_tensors(cls, q, tool, xyz=None, direction=None, pose=None, source: str = "") -> "Measurements":
+        """Build from plain tensors; missing pose ids / directions get defaults."""
+        q = torch.as_tensor(q, dtype=torch.float64)
+        R = q.shape[0]
+        tool = torch.as_tensor(tool, dtype=torch.long).expand(R).clone()
+        xyz = torch.full((R, 3), float("nan"), dtype=torch.float64) if xyz is None else torch.as_tensor(xyz, dtype=torch.float64)
+        has_dir = direction is not None
+        direction = torch.zeros_like(q) if direction is None else torch.as_tensor(direction, dtype=torch.float64)
+        pose = torch.arange(R) if pose is None else torch.as_tensor(pose, dtype=torch.long)
+        return cls(q, tool, xyz.to(q.device), direction.to(q.device), pose.to(q.device), torch.arange(1, R + 1), has_dir, source)
+
+    def to(self, device) -> "Measurements":
+        return replace(self, q=self.q.to(device), tool=self.tool.to(device), xyz=self.xyz.to(device),
+                       direction=self.direction.to(device), pose=self.pose.to(device))
+
+    def subset(self, index) -> "Measurements":
+        """Rows selected by a bool mask or an index tensor."""
+        index = torch.as_tensor(index)
+        if index.dtype == torch.bool:
+            index = index.nonzero()[:, 0]
+        index = index.to(self.q.device)
+        return replace(self, q=self.q[index], tool=self.tool[index], xyz=self.xyz[index],
+                       direction=self.direction[index], pose=self.pose[index], rows=self.rows[index.cpu()],
+                       extra={k: v[index] for k, v in self.extra.items()})
+
+    def poses_subset(self, pose_ids) -> "Measurements":
+        """All rows whose pose id is in pose_ids."""
+        ids = torch.as_tensor(pose_ids, dtype=torch.long, device=self.pose.device)
+        return self.subset(torch.isin(self.pose, ids))

@@ -1,0 +1,202 @@
+"""The calibrated robot: nominal chain + joint error modules + base frame + tools.
+
+``RobotModel`` is the measurement model of Paper II (25): the position of tool
+t measured in the measurement frame for controller command q,
+
+    p = T_0^m  F_a(q + v, s)  p_T,t            (25)-(27)
+    F_a = Π_i origin_i · E_i(θ_i, s_i) · joint_i(θ_i),   θ = joint_map(q)   (19)
+
+Everything is SI inside (m, rad); convert at the file boundary with
+:mod:`torchcal.units`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from .errors.frame import FrameError, ToolSet
+from .errors.joint import JointErrors
+from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
+from .kinematics.fk import chain_frames
+from .kinematics.robot import Robot
+from .kinematics.transforms import twist_to_transform
+
+
+class RobotModel(nn.Module):
+    """Paper II's generalized kinematic error model (19)-(27) for one robot.
+
+    robot: nominal machine (chain + joint map); tools: (T, 3) nominal tool
+    vectors in the flange frame (m); orders: Chebyshev order per joint (int,
+    list or (n, 6) table, see :class:`JointErrors`); backlash: direction term
+    on eps_z; base_nominal: (4, 4) first guess of the measurement frame ->
+    robot base (identity when the tracker frame is the base frame).
+    """
+
+    def __init__(self, robot: Robot, tools, orders=6, backlash=None, base_nominal: torch.Tensor | None = None):
+        super().__init__()
+        self.robot = robot
+        chain, jm = robot.chain, robot.joint_map
+        self.register_buffer("origins", chain.origins.clone())
+        self.register_buffer("axes", chain.axes.clone())
+        self.register_buffer("prismatic", chain.prismatic.clone())
+        self.register_buffer("tip", chain.tip.clone())
+        self.register_buffer("coupling", jm.coupling.clone())
+        self.register_buffer("offset", jm.offset.clone())
+        self.register_buffer("command_limits", jm.limits.clone())
+        self.joint_errors = JointErrors(jm.joint_ranges(), orders, backlash, chain.joint_names)
+        self.base = FrameError(base_nominal)
+        self.tools = ToolSet(tools)
+        self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
+
+    # ------------------------------------------------------------------ shapes
+    @property
+    def n(self) -> int:
+        return self.origins.shape[0]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.origins.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.origins.device
+
+    # -------------------------------------------------------------- kinematics
+    def joint_variables(self, q: torch.Tensor) -> torch.Tensor:
+        """Controller commands (B, n) -> URDF joint variables (B, n)."""
+        return q @ self.coupling.T + self.offset
+
+    def frames(self, q: torch.Tensor, direction: torch.Tensor | None = None, v: torch.Tensor | None = None, base: bool = True):
+        """Joint frames and flange pose with all errors, see :func:`chain_frames`.
+
+        q: (B, n) commands; direction: (B, n) approach directions s_i or None;
+        v: (B, n) joint positioning errors (controller space) or None;
+        base: include T_0^m (measurement frame) or work in the robot's nominal base frame.
+        """
+        qv = q if v is None else q + v
+        theta = self.joint_variables(qv)
+        E = self.joint_errors(theta, direction)
+        T0 = self.base() if base else self.base.correction()
+        return chain_frames(self.origins, self.axes, self.prismatic, theta, E, self.tip, T0)
+
+    def flange(self, q, direction=None, v=None, base: bool = True) -> torch.Tensor:
+        """Modeled flange pose (B, 4, 4) in the measurement frame (base=True) or the robot's nominal base frame."""
+        return self.frames(q, direction, v, base)[2]
+
+    def nominal_flange(self, q: torch.Tensor) -> torch.Tensor:
+        """Nominal flange pose F_n(q) (B, 4, 4) in the robot's nominal base frame: no error terms."""
+        return chain_frames(self.origins, self.axes, self.prismatic, self.joint_variables(q), None, self.tip)[2]
+
+    def tool_points(self, flange: torch.Tensor, tool: torch.Tensor) -> torch.Tensor:
+        """Tool positions (B, 3) for flange poses (B, 4, 4) and tool indices (B,)."""
+        p_t = self.tools()[tool]
+        return (flange[:, :3, :3] @ p_t[..., None])[..., 0] + flange[:, :3, 3]
+
+    def forward(self, q, tool, direction=None, v=None) -> torch.Tensor:
+        """Same as :meth:`points`."""
+        return self.points(q, tool, direction, v)
+
+    def points(self, q, tool, direction=None, v=None) -> torch.Tensor:
+        """Measured-point model (25): tool t's position (B, 3) in the measurement frame."""
+        return self.tool_points(self.flange(q, direction, v), tool)
+
+    def nominal_points(self, q, tool) -> torch.Tensor:
+        """Nominal prediction (B, 3): nominal chain, nominal tools, nominal measurement frame."""
+        F = self.base.nominal @ self.nominal_flange(q)
+        p_t = self.tools.nominal[tool]
+        return (F[:, :3, :3] @ p_t[..., None])[..., 0] + F[:, :3, 3]
+
+    # --------------------------------------------------------------- Jacobians
+    def _parts(self, q, direction, v, base: bool = True):
+        """Forward pass keeping what the closed-form Jacobians need."""
+        je = self.joint_errors
+        theta = self.joint_variables(q if v is None else q + v)
+        lam = je.normalized(theta)
+        K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
+        scale = 2.0 / (je.ranges[:, 1] - je.ranges[:, 0])
+        basis, dbasis = chebyshev_design(lam, max(K, Kb), scale)
+        coef = je.coef * je.mask
+        e = torch.einsum("bnk,ntk->bnt", basis[..., :K], coef)
+        de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
+        s = None
+        if je.has_backlash and direction is not None:
+            s = direction.to(theta)
+            bl = je.backlash * je.backlash_mask
+            zpad = (2, 3)
+            e = e + torch.nn.functional.pad(((basis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
+            de = de + torch.nn.functional.pad(((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
+        T0 = self.base() if base else self.base.correction()
+        jR, jp, F = chain_frames(self.origins, self.axes, self.prismatic, theta, twist_to_transform(e), self.tip, T0)
+        return dict(theta=theta, basis=basis, e=e, de=de, s=s, jR=jR, jp=jp, F=F, K=K, Kb=Kb)
+
+    def point_jacobians(self, q, tool, direction=None, v=None):
+        """Tool points and their Jacobians w.r.t. every parameter group and the joint errors v.
+
+        q: (B, n); tool: (B,) long; direction: (B, n) or None; v: (B, n) or None.
+        -> p: (B, 3) and a dict of Jacobians d p / d(.) keyed like named_parameters():
+           'joint_errors.coef' (B, 3, n, 6, K), 'joint_errors.backlash' (B, 3, n, Kb),
+           'base.twist' (B, 3, 6), 'tools.delta' (B, 3, T, 3), and 'v' (B, 3, n)
+           (controller space, error-term slopes included).
+        """
+        d = self._parts(q, direction, v)
+        F = d["F"]
+        p = self.tool_points(F, tool)
+        B, n = q.shape
+        Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :])[:, :, :3, :]  # (B, n, 3, 6)
+        Jth = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :3, :]  # (B, 3, n)
+        Jth = Jth + torch.einsum("bnct,bnt->bcn", Je, d["de"])
+        J = {"joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
+        if d["s"] is not None:
+            J["joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None], d["basis"][..., : d["Kb"]])
+        else:
+            J["joint_errors.backlash"] = torch.zeros(B, 3, n, d["Kb"], dtype=q.dtype, device=q.device)
+        nominal = self.base.nominal.expand(B, 4, 4)
+        T0 = nominal @ twist_to_transform(self.base.twist)
+        J["base.twist"] = twist_jacobian(T0[:, :3, :3], T0[:, :3, 3], self.base.twist.expand(B, 6), p)[:, :3, :]
+        Jt = torch.zeros(B, 3, self.tools.count, 3, dtype=q.dtype, device=q.device)
+        Jt[torch.arange(B, device=q.device), :, tool, :] = F[:, :3, :3]
+        J["tools.delta"] = Jt
+        J["v"] = Jth @ self.coupling
+        return p, J
+
+    def flange_jacobian(self, q, direction=None, base: bool = False):
+        """Flange pose and its body-frame Jacobian w.r.t. the controller commands, error slopes included.
+
+        -> F: (B, 4, 4) (robot nominal base frame unless base=True) and J: (B, 6, n)
+        mapping dq to (v, w) of the flange expressed in the flange frame, the
+        frame of the pose error (47)-(48).
+        """
+        d = self._parts(q, direction, None, base)
+        F = d["F"]
+        o = F[:, :3, 3]
+        Je = twist_jacobian(d["jR"], d["jp"], d["e"], o[:, None, :])  # (B, n, 6, 6)
+        Js = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, o)
+        Js = Js + torch.einsum("bnct,bnt->bcn", Je, d["de"])
+        Rt = F[:, :3, :3].transpose(1, 2)
+        Jb = torch.cat([Rt @ Js[:, :3], Rt @ Js[:, 3:]], 1)
+        return F, Jb @ self.coupling
+
+    # ------------------------------------------------------------ persistence
+    def spec(self) -> dict[str, Any]:
+        """What it takes to rebuild this model's structure (the state dict holds the values)."""
+        return {
+            "robot": self.robot.source or self.robot.name,
+            "tools": self.tools.nominal.tolist(),
+            "orders": self._spec["orders"],
+            "backlash": self._spec["backlash"],
+            "base_nominal": self.base.nominal.tolist(),
+        }
+
+    @classmethod
+    def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> "RobotModel":
+        """Rebuild an (all-zero) model from :meth:`spec`; load the state dict to restore values."""
+        from .kinematics.robot import load_robot
+
+        robot = robot or load_robot(spec["robot"])
+        b = spec.get("backlash")
+        backlash = None if b is None or max(b) < 0 else b
+        return cls(robot, torch.tensor(spec["tools"], dtype=torch.float64), spec["orders"], backlash,
+                   torch.tensor(spec["base_nominal"], dtype=torch.float64))

@@ -1,0 +1,63 @@
+"""The one place where industry units meet SI.
+
+Files, configs and the CLI speak millimetres and degrees (the calibration
+engineer's units); everything inside torchcal, like every URDF, is SI: metres
+and radians. Convert here and nowhere else.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+MM = 1e-3
+"""Metres per millimetre."""
+
+DEG = math.pi / 180.0
+"""Radians per degree."""
+
+
+def mm_to_m(x):
+    """Millimetres to metres (tensor, array or float)."""
+    return x * MM
+
+
+def m_to_mm(x):
+    """Metres to millimetres (tensor, array or float)."""
+    return x / MM
+
+
+def deg_to_rad(x):
+    """Degrees to radians (tensor, array or float)."""
+    return x * DEG
+
+
+def rad_to_deg(x):
+    """Radians to degrees (tensor, array or float)."""
+    return x / DEG
+
+
+def joint_scale(prismatic) -> torch.Tensor:
+    """SI units per file unit for each joint: DEG for revolute, MM for prismatic.
+
+    prismatic: (n,) bool. Returns (n,) float64.
+    """
+    prismatic = torch.as_tensor(prismatic, dtype=torch.bool)
+    return torch.where(prismatic, torch.tensor(MM, dtype=torch.float64), torch.tensor(DEG, dtype=torch.float64))
+
+
+def joints_to_si(q, prismatic):
+    """Joint values in file units (deg / mm) to SI (rad / m). q: (..., n)."""
+    q = torch.as_tensor(q, dtype=torch.float64)
+    return q * joint_scale(prismatic).to(q.device)
+
+
+def joints_from_si(q, prismatic):
+    """Joint values in SI (rad / m) to file units (deg / mm). q: (..., n)."""
+    return q / joint_scale(prismatic).to(q.device)
+
+
+def joint_unit_names(prismatic) -> list[str]:
+    """'deg' or 'mm' per joint, for messages and headers."""
+    return ["mm" if bool(p) else "deg" for p in prismatic]

@@ -5,6 +5,7 @@ from .gauge import dependent_columns, fix_gauge
 from .layout import ParameterLayout
 from .lbfgs import lbfgs
 from .lm import levenberg_marquardt
+from .order import OrderSelection, pose_folds, score_orders, select_orders
 from .problem import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, CalibrationProblem, NoiseModel, Prior
 from .result import FitResult
 
@@ -15,6 +16,7 @@ __all__ = [
     "CalibrationProblem",
     "FitResult",
     "NoiseModel",
+    "OrderSelection",
     "ParameterLayout",
     "Prior",
     "dependent_columns",
@@ -22,4 +24,7 @@ __all__ = [
     "fix_gauge",
     "lbfgs",
     "levenberg_marquardt",
+    "pose_folds",
+    "score_orders",
+    "select_orders",
 ]

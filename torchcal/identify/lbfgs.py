@@ -1,10 +1,12 @@
 """L-BFGS (strong Wolfe) on the implicit-loop MLE, gradients by autograd.
 
 All unknowns (model parameters b and every row's joint errors v) are optimized
-together, as (33) is written. Variables are whitened first (v by its standard
-deviation, b by the inverse square root of the Gauss-Newton diagonal) because
-the raw problem mixes radians, metres and 1e-5 rad joint errors, and L-BFGS is
-not scale invariant. torch's default tolerances stop far too early for this
+together, as (33) is written. L-BFGS is not invariant to scaling and the raw
+problem mixes radians, metres and 1e-5 rad joint errors with parameters that
+are strongly correlated, so the variables are preconditioned once at the start
+with the block structure of the Gauss-Newton matrix: b through the Cholesky
+factor of its Schur complement, each row's v through the Cholesky factor of
+its own n x n block. torch's default tolerances stop far too early for this
 problem; ours are driven by the relative change of V.
 """
 
@@ -37,18 +39,32 @@ def lbfgs(
     model = problem.model
     data = problem.data
     x0 = layout.get().to(model.device)
-    _, A, _ = problem.linearize(x0, problem.v_zero())
-    diag = (A * A).sum((0, 1)) + problem.prior_precision
-    scale_b = 1.0 / diag.clamp(min=1e-300).sqrt()
-    scale_v = 1.0 / problem.w_v.sqrt() if problem.estimate_v else torch.zeros_like(problem.w_v)
-    P = x0.numel()
-    z = torch.zeros(P + data.q.numel(), dtype=torch.float64, device=model.device, requires_grad=True)
+    f, A, C = problem.linearize(x0, problem.v_zero())
+    R, _, P = A.shape
+    n = C.shape[-1]
+    H_vv = C.transpose(1, 2) @ C + torch.diag_embed(problem.w_v)
+    L_v = torch.linalg.cholesky(H_vv)
+    Y = torch.linalg.solve_triangular(L_v, C.transpose(1, 2) @ A, upper=False).reshape(R * n, P)
+    Af = A.reshape(R * 3, P)
+    S = Af.T @ Af + torch.diag(problem.prior_precision) - Y.T @ Y
+    L_b = torch.linalg.cholesky(S + 1e-12 * torch.diag(torch.diagonal(S)))
+    eye_b = torch.eye(P, dtype=S.dtype, device=S.device)
+    M_b = torch.linalg.solve_triangular(L_b.T, eye_b, upper=True)  # x = x0 + L_b^-T z
+    M_v = torch.linalg.solve_triangular(L_v.transpose(1, 2), torch.eye(n, dtype=S.dtype, device=S.device).expand(R, n, n), upper=True)
+    # block-LDL change of variables: v follows b as in the Schur elimination
+    K = torch.cholesky_solve(C.transpose(1, 2) @ A, L_v)  # (R, n, P) = H_vv^-1 H_vb
+    if not problem.estimate_v:
+        M_v = torch.zeros_like(M_v)
+        K = torch.zeros_like(K)
+    z = torch.zeros(P + R * n, dtype=torch.float64, device=model.device, requires_grad=True)
     opt = torch.optim.LBFGS([z], lr=1.0, max_iter=50, history_size=history_size, tolerance_grad=1e-300,
                             tolerance_change=1e-300, line_search_fn="strong_wolfe")
     nfev = 0
 
     def unpack(zz):
-        return x0 + scale_b * zz[:P], scale_v * zz[P:].reshape(data.q.shape)
+        dx = M_b @ zz[:P]
+        v = (M_v @ zz[P:].reshape(R, n, 1))[..., 0] - K @ dx
+        return x0 + dx, v
 
     def objective(zz):
         x, v = unpack(zz)
@@ -81,9 +97,12 @@ def lbfgs(
             break
     x, v = unpack(z.detach())
     layout.set(x)
-    zz = z.detach().clone().requires_grad_(True)
-    g, = torch.autograd.grad(objective(zz), zz)
-    grad = torch.cat([g[:P] / scale_b, g[P:] / scale_v.reshape(-1).clamp(min=1e-300)])
+    # gradient in the original variables (x, v), for a report comparable with LM's
+    xg = x.clone().requires_grad_(True)
+    vg = v.clone().requires_grad_(True)
+    pg = functional_call(model, layout.as_dict(xg), (data.q, data.tool, problem.direction, vg))
+    gx, gvv = torch.autograd.grad(problem.cost_from((pg - data.xyz) * problem.inv_sigma_m, xg, vg), (xg, vg))
+    grad = torch.cat([gx, gvv.reshape(-1) if problem.estimate_v else torch.zeros_like(gvv.reshape(-1))])
     return FitResult(
         x=x.clone(), v=v.clone(), success=success, message=message, nit=int(it), nfev=nfev, fun=history[-1],
         grad_norm=float(grad.norm()), time=time.perf_counter() - t0, method="lbfgs", history=history,

@@ -1,0 +1,67 @@
+"""Shared fixtures: the bundled FANUC, Paper II's tool vectors, an independent DH reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+torch.set_default_dtype(torch.float64)
+
+# Paper II, Table 4 (mm)
+PAPER2_TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]
+
+
+def fanuc_dh_reference(q_deg: np.ndarray) -> np.ndarray:
+    """Flange pose (N, 4, 4), metres, from Paper II Table 2 with plain numpy (independent of torchcal)."""
+    q = np.radians(np.atleast_2d(q_deg))
+    theta = np.stack([q[:, 0], q[:, 1] - np.pi / 2, q[:, 1] + q[:, 2], q[:, 3], q[:, 4], q[:, 5]], 1)
+    d = [0, 0, 0, -290, 0, -80]
+    a = [150, 250, 75, 0, 0, 0]
+    alpha = np.radians([-90, 180, -90, 90, -90, 180])
+    out = np.tile(np.eye(4), (q.shape[0], 1, 1))
+    for i in range(6):
+        ct, st = np.cos(theta[:, i]), np.sin(theta[:, i])
+        ca, sa = np.cos(alpha[i]), np.sin(alpha[i])
+        T = np.zeros((q.shape[0], 4, 4))
+        T[:, 0] = np.stack([ct, -st * ca, st * sa, a[i] * ct], 1)
+        T[:, 1] = np.stack([st, ct * ca, -ct * sa, a[i] * st], 1)
+        T[:, 2, 1], T[:, 2, 2], T[:, 2, 3], T[:, 3, 3] = sa, ca, d[i], 1.0
+        out = out @ T
+    out[:, :3, 3] /= 1000.0
+    return out
+
+
+@pytest.fixture(scope="session")
+def fanuc():
+    from torchcal.kinematics import load_robot
+
+    return load_robot("fanuc_lrmate200i")
+
+
+@pytest.fixture(scope="session")
+def tools_m():
+    return torch.tensor(PAPER2_TOOLS_MM) * 1e-3
+
+
+def random_commands(robot, count: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    lim = robot.joint_map.limits
+    return lim[:, 0] + torch.rand(count, lim.shape[0], generator=g) * (lim[:, 1] - lim[:, 0])
+
+
+def randomize(model, seed: int, rot: float = 2e-3, trans: float = 2e-4, decay: float = 2.0):
+    """Fill a RobotModel with seeded random errors decaying with the Chebyshev order."""
+    g = torch.Generator().manual_seed(seed)
+    je = model.joint_errors
+    with torch.no_grad():
+        k = torch.arange(je.coef.shape[-1])
+        c = torch.randn(je.coef.shape, generator=g) / (1.0 + k) ** decay
+        c[:, :3] *= rot
+        c[:, 3:] *= trans
+        je.coef.copy_(c * je.mask)
+        kb = torch.arange(je.backlash.shape[-1])
+        je.backlash.copy_(torch.randn(je.backlash.shape, generator=g) * rot * 0.1 / (1.0 + kb) ** decay * je.backlash_mask)
+        model.base.twist.copy_(torch.randn(6, generator=g) * torch.tensor([rot] * 3 + [trans * 5] * 3))
+        model.tools.delta.copy_(torch.randn(model.tools.delta.shape, generator=g) * trans)
+    return model

@@ -141,3 +141,29 @@ def test_order_selection_finds_the_joint_that_needs_terms(fanuc, tools_m):
     assert sel.orders[1] == 3
     assert sum(sel.orders) == 3  # every other joint stays constant
     assert sel.criterion == "cv-3"
+
+
+def test_order_selection_window_limits_the_per_joint_search(fanuc, tools_m):
+    """joint_window: stage 2 only tries orders near each joint's current one; the result is still the best tried."""
+    from torchcal.identify import select_orders
+
+    noise = NoiseModel.paper2()
+    truth = randomize(RobotModel(fanuc, tools_m, orders=1), 17)
+    data = simulate(truth, fanuc, 40, 18, noise)
+    val = simulate(truth, fanuc, 30, 19, noise)
+    sel = select_orders(lambda o: RobotModel(fanuc, tools_m, orders=o), data, val, noise,
+                        candidates=[0, 1, 2, 3], joint_window=1, max_passes=1)
+    uniform = [r for r in sel.table if r["stage"] == "uniform"]
+    per_joint = [r for r in sel.table if r["stage"] != "uniform"]
+    assert len(uniform) == 4
+    # replay the search: every per-joint trial moves one joint by at most the window from the best orders so far
+    best = min(uniform, key=lambda r: r["score"])
+    cur, cur_score = list(best["orders"]), best["score"]
+    for r in per_joint:
+        j = int(r["stage"][len("joint"):]) - 1
+        assert [o for i, o in enumerate(r["orders"]) if i != j] == [o for i, o in enumerate(cur) if i != j]
+        assert abs(r["orders"][j] - cur[j]) == 1
+        if r["score"] < cur_score:
+            cur, cur_score = list(r["orders"]), r["score"]
+    assert cur == sel.orders
+    assert sel.score == min(r["score"] for r in sel.table)

@@ -1,0 +1,86 @@
+"""The compensation kernel reproduces RobotModel's flange, Jacobians and pose error; the damped residual Jacobian is exact."""
+
+import pytest
+import torch
+
+from conftest import random_commands, randomize
+from torchcal.compensate.damped import pose_residual, residual_jacobian
+from torchcal.compensate.kernel import FlangeKernel, pose_error_soa
+from torchcal.kinematics.transforms import pose_error
+from torchcal.model import RobotModel
+
+
+def soa(q):
+    return q.T.contiguous()
+
+
+@pytest.fixture(scope="module")
+def model(fanuc, tools_m):
+    # errors far larger than a real robot's so that every term shows
+    return randomize(RobotModel(fanuc, tools_m, orders=6, backlash=True), 11, rot=2e-2, trans=5e-3)
+
+
+@pytest.mark.parametrize("general_axes", [False, True])
+@pytest.mark.parametrize("with_direction", [False, True])
+def test_kernel_matches_model(model, fanuc, general_axes, with_direction):
+    q = random_commands(fanuc, 200, 3)
+    s = torch.sign(torch.randn(200, 6, generator=torch.Generator().manual_seed(4))) if with_direction else None
+    sT = None if s is None else soa(s)
+    k = FlangeKernel(model, general_axes=general_axes)
+    with torch.no_grad():
+        F = model.flange(q, s, base=False)
+        F0, J0 = model.flange_jacobian(q, s)
+        Fn = model.nominal_flange(q)
+    R, p = k.flange(soa(q), sT)
+    assert torch.allclose(R.permute(2, 0, 1), F[:, :3, :3], atol=2e-15, rtol=0)
+    assert torch.allclose(p.T, F[:, :3, 3], atol=2e-15, rtol=0)
+    R, p, J = k.flange_jacobian(soa(q), sT)
+    assert torch.allclose(R.permute(2, 0, 1), F0[:, :3, :3], atol=2e-15, rtol=0)
+    assert torch.allclose(J.permute(2, 0, 1), J0, atol=1e-14, rtol=0)
+    Rn, pn = k.nominal_flange(soa(q))
+    assert torch.allclose(Rn.permute(2, 0, 1), Fn[:, :3, :3], atol=2e-15, rtol=0)
+    assert torch.allclose(pn.T, Fn[:, :3, 3], atol=2e-15, rtol=0)
+
+
+def test_nominal_jacobian_is_the_zero_model_jacobian(fanuc, tools_m):
+    zero = RobotModel(fanuc, tools_m, orders=6, backlash=True)
+    q = random_commands(fanuc, 100, 5)
+    with torch.no_grad():
+        _, J0 = zero.flange_jacobian(q)
+    _, _, J = FlangeKernel(zero).nominal_flange_jacobian(soa(q))
+    assert torch.allclose(J.permute(2, 0, 1), J0, atol=1e-15, rtol=0)
+
+
+def test_pose_error_soa_matches_pose_error(model, fanuc):
+    q = random_commands(fanuc, 100, 6)
+    k = FlangeKernel(model)
+    Ra, pa = k.flange(soa(q))
+    Rn, pn = k.nominal_flange(soa(q + 0.05))
+    with torch.no_grad():
+        ref = pose_error(model.flange(q, base=False), model.nominal_flange(q + 0.05))
+    assert torch.allclose(pose_error_soa(Ra, pa, Rn, pn).T, ref, atol=1e-15, rtol=0)
+
+
+def test_residual_jacobian_matches_finite_differences(model, fanuc):
+    """The damped path's Jacobian of de (47)-(48) away from the solution (Ω far from I)."""
+    q = random_commands(fanuc, 8, 7)
+    s = torch.sign(torch.randn(8, 6, generator=torch.Generator().manual_seed(8)))
+    k = FlangeKernel(model)
+    target = model.nominal_flange(q + 0.1).detach()
+    Rn, pn = target[:, :3, :3], target[:, :3, 3]
+
+    def de_at(x):
+        R, p = k.flange(soa(x), soa(s))
+        return pose_residual(R.permute(2, 0, 1), p.T, Rn, pn)
+
+    R, p, J = k.flange_jacobian(soa(q), soa(s))
+    de, OR = pose_residual(R.permute(2, 0, 1), p.T, Rn, pn)
+    length = 0.7
+    Jr = residual_jacobian(de, OR, J.permute(2, 0, 1), length)
+    h = 1e-6
+    w = torch.tensor([1.0, 1.0, 1.0, length, length, length])
+    for j in range(6):
+        e = torch.zeros(6)
+        e[j] = h
+        fd = (de_at(q + e)[0] - de_at(q - e)[0]) / (2 * h) * w
+        assert torch.allclose(Jr[:, :, j], fd, atol=1e-8, rtol=0), j

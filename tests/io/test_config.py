@@ -1,0 +1,129 @@
+"""Configs: defaults, overrides, path resolution, and unknown keys rejected with file and key named."""
+
+import os
+from pathlib import Path
+
+import pytest
+
+from torchcal.identify import PAPER2_JOINT_VAR_FWD
+from torchcal.io.config import ConfigError, check_config, load_config, make_config
+
+MINIMAL = """\
+robot: fanuc_lrmate200i
+tools:
+  - [33.06, 57.73, 161.22]
+  - [57.26, -33.86, 161.22]
+data:
+  identification: data/ident.csv
+model:
+  order: 3
+"""
+
+
+@pytest.fixture
+def cfg_file(tmp_path):
+    folder = tmp_path / "exp"
+    folder.mkdir()
+    p = folder / "fit.yaml"
+    p.write_text(MINIMAL)
+    return p
+
+
+def test_defaults_and_relative_paths(cfg_file):
+    cfg = load_config(cfg_file)
+    assert cfg.model.order == 3
+    assert cfg.model.backlash is True
+    assert list(cfg.noise.joint_var_fwd) == list(PAPER2_JOINT_VAR_FWD)  # Paper II Table 5 by default
+    assert cfg.noise.sigma_m == 0.005
+    assert cfg.solver.method == "lm"
+    # paths written in the file resolve against the file's folder, not the working directory
+    assert Path(cfg.data.identification) == cfg_file.parent.resolve() / "data" / "ident.csv"
+    assert Path(cfg.out) == cfg_file.parent.resolve() / "runs"
+    assert cfg.robot == "fanuc_lrmate200i"  # a bundled name is not a path
+    assert cfg.data.validation is None
+    assert cfg.config_file == str(cfg_file.resolve())
+
+
+def test_overrides_are_applied(cfg_file, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(cfg_file, ["model.order=[1,2,3,4,5,6]", "solver.method=lbfgs", "noise.sigma_m=0.01",
+                                 "data.validation=val.csv", "model.backlash=false", "seed=7", "solver.max_iter=5"])
+    assert list(cfg.model.order) == [1, 2, 3, 4, 5, 6]
+    assert cfg.solver.method == "lbfgs" and cfg.solver.max_iter == 5
+    assert cfg.noise.sigma_m == 0.01
+    assert cfg.model.backlash is False
+    assert cfg.seed == 7
+    # an override path is a shell argument: relative to the current directory
+    assert Path(cfg.data.validation) == tmp_path.resolve() / "val.csv"
+    assert load_config(cfg_file, ["model.order=auto"]).model.order == "auto"
+
+
+def test_unknown_key_in_file_names_key_and_file(cfg_file):
+    cfg_file.write_text(MINIMAL + "  ordr: 4\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(cfg_file)
+    msg = str(err.value)
+    assert str(cfg_file) in msg and "model.ordr" in msg
+    assert "valid keys under model: order, backlash" in msg
+
+    cfg_file.write_text(MINIMAL + "learning_rate: 3\n")
+    with pytest.raises(ConfigError, match=r"fit\.yaml: unknown config key 'learning_rate'"):
+        load_config(cfg_file)
+
+
+def test_unknown_key_in_override_names_override(cfg_file):
+    with pytest.raises(ConfigError) as err:
+        load_config(cfg_file, ["model.order=2", "solver.maxiter=10"])
+    msg = str(err.value)
+    assert "override 'solver.maxiter=10'" in msg and "unknown config key 'solver.maxiter'" in msg
+    with pytest.raises(ConfigError, match="expected key=value"):
+        load_config(cfg_file, ["model.order"])
+
+
+@pytest.mark.parametrize("override, key", [
+    ("seed=abc", "seed"),
+    ("model.order=11", "model.order"),
+    ("model.order=six", "model.order"),
+    ("solver.method=adam", "solver.method"),
+    ("noise.sigma_m=0", "noise.sigma_m"),
+    ("tools=[[1,2]]", "tools"),
+    ("model.backlash=maybe", "model.backlash"),
+])
+def test_bad_values_name_the_key(cfg_file, override, key):
+    with pytest.raises(ConfigError, match=f"key '{key}'"):
+        load_config(cfg_file, [override])
+
+
+def test_required_keys_and_per_joint_lengths(cfg_file, tmp_path):
+    with pytest.raises(ConfigError, match="key 'robot': is required"):
+        make_config({"tools": [[0, 0, 0.1]], "data": {"identification": "x.csv"}})
+    cfg = load_config(cfg_file, ["model.order=[1,2,3]"])
+    with pytest.raises(ConfigError, match=r"key 'model.order': has 3 entries but the robot has 6 joints"):
+        check_config(cfg, str(cfg_file), n_joints=6)
+    cfg = load_config(cfg_file, ["noise.joint_var_bwd=[1e-6,1e-6]"])
+    with pytest.raises(ConfigError, match=r"key 'noise.joint_var_bwd': has 2 entries"):
+        check_config(cfg, str(cfg_file), n_joints=6)
+
+
+def test_robot_file_paths_resolve_against_config(cfg_file):
+    cfg_file.write_text(MINIMAL.replace("robot: fanuc_lrmate200i", "robot: ../robots/my_robot.yaml"))
+    cfg = load_config(cfg_file)
+    assert Path(cfg.robot) == (cfg_file.parent / ".." / "robots" / "my_robot.yaml").resolve()
+
+
+def test_yaml_syntax_error_names_line(cfg_file):
+    cfg_file.write_text("robot: [unclosed\ntools: 1\n")
+    with pytest.raises(ConfigError, match=r"fit\.yaml: not valid YAML at line"):
+        load_config(cfg_file)
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(cfg_file.parent / "missing.yaml")
+    assert os.path.exists(cfg_file)
+
+
+def test_example_config_loads():
+    """experiments/paper2_fanuc/fit.yaml stays valid against the schema (every key known, values checked)."""
+    path = Path(__file__).resolve().parents[2] / "experiments" / "paper2_fanuc" / "fit.yaml"
+    cfg = load_config(path)
+    check_config(cfg, str(path), n_joints=6)
+    assert cfg.model.order == 6 and cfg.robot == "fanuc_lrmate200i"
+    assert Path(cfg.data.validation).name == "validation.csv"

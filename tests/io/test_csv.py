@@ -1,0 +1,192 @@
+"""The CSV contract: unit conversions, round trips, and one message listing every bad input."""
+
+import math
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from torchcal.io.csv import MAX_LISTED, DataError, read_measurements, read_table, write_measurements
+from torchcal.kinematics import load_robot
+from torchcal.measurements import Measurements
+
+HEADER = "pose,tool,q1,q2,q3,q4,q5,q6,dir1,dir2,dir3,dir4,dir5,dir6,x,y,z,label"
+GOOD = [
+    "0,0,10,20,30,40,50,60,1,1,1,1,1,1,100,200,300,a",
+    "0,1,10,20,30,40,50,60,1,1,1,1,1,1,101,201,301,b",
+    "1,0,-10,-20,-25,-40,-50,-60,-1,-1,-1,-1,-1,-1,400,500,600,c",
+]
+
+
+def write(tmp_path, lines, name="data.csv"):
+    p = tmp_path / name
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+def test_units_against_hand_computed_numbers(tmp_path, fanuc):
+    data = read_measurements(write(tmp_path, [HEADER, *GOOD]), fanuc, n_tools=2)
+    assert len(data) == 3
+    assert data.q[0].tolist() == pytest.approx([math.radians(v) for v in (10, 20, 30, 40, 50, 60)], abs=1e-15)
+    assert data.q[2, 2].item() == pytest.approx(-25 * math.pi / 180, abs=1e-15)
+    assert data.xyz[1].tolist() == pytest.approx([0.101, 0.201, 0.301], abs=1e-15)
+    assert data.tool.tolist() == [0, 1, 0]
+    assert data.pose.tolist() == [0, 0, 1]
+    assert data.direction[2].tolist() == [-1.0] * 6
+    assert data.has_direction
+    assert data.rows.tolist() == [1, 2, 3]
+    assert list(data.extra["label"]) == ["a", "b", "c"]
+
+    # writing converts back: pi/4 rad -> 45 deg, 0.25 m -> 250 mm
+    m = Measurements.from_tensors(torch.full((1, 6), math.pi / 4), [0], torch.tensor([[0.25, -0.5, 1.0]]))
+    out = write_measurements(tmp_path / "w.csv", m, fanuc)
+    row = pd.read_csv(out).iloc[0]
+    assert [row[f"q{i}"] for i in range(1, 7)] == pytest.approx([45.0] * 6, abs=1e-9)
+    assert [row["x"], row["y"], row["z"]] == pytest.approx([250.0, -500.0, 1000.0], abs=1e-9)
+    assert "dir1" not in row.index  # no directions recorded, none written
+
+
+def test_round_trip_reproduces_values_and_extra_columns(tmp_path, fanuc):
+    g = torch.Generator().manual_seed(0)
+    lim = fanuc.joint_map.limits
+    R = 40
+    q = lim[:, 0] + torch.rand(R, 6, generator=g) * (lim[:, 1] - lim[:, 0])
+    xyz = torch.randn(R, 3, generator=g) * 0.5
+    d = torch.where(torch.rand(R, 6, generator=g) > 0.5, 1.0, -1.0)
+    m = Measurements(q, torch.arange(R) % 3, xyz, d, torch.arange(R) // 3, torch.arange(1, R + 1), True, "mem",
+                     extra={"operator": np.array([f"op {i}, shift" for i in range(R)], dtype=object)})
+    path = write_measurements(tmp_path / "rt.csv", m, fanuc)
+    back = read_measurements(path, fanuc, n_tools=3)
+    # 12 significant digits in the file: far below a tracker's 5 um noise
+    assert torch.allclose(back.q, q, rtol=1e-11, atol=1e-13)
+    assert torch.allclose(back.xyz, xyz, rtol=1e-11, atol=1e-13)
+    assert torch.equal(back.tool, m.tool) and torch.equal(back.pose, m.pose) and torch.equal(back.direction, d)
+    assert list(back.extra["operator"]) == list(m.extra["operator"])  # text with a comma survives quoting
+    # and a second round trip is exact: what was read is what gets written
+    again = read_measurements(write_measurements(tmp_path / "rt2.csv", back, fanuc), fanuc, n_tools=3)
+    assert torch.equal(again.q, back.q) and torch.equal(again.xyz, back.xyz)
+
+
+def test_prismatic_joints_are_millimetres(tmp_path):
+    (tmp_path / "slide.urdf").write_text("""<robot name="slide">
+      <link name="a"/><link name="b"/><link name="c"/>
+      <joint name="x" type="prismatic"><parent link="a"/><child link="b"/><axis xyz="1 0 0"/>
+        <limit lower="0" upper="0.8" effort="1" velocity="1"/></joint>
+      <joint name="c" type="revolute"><parent link="b"/><child link="c"/><axis xyz="0 0 1"/>
+        <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+    </robot>""")
+    robot = load_robot(tmp_path / "slide.urdf")
+    data = read_measurements(write(tmp_path, ["pose,tool,q1,q2,x,y,z", "0,0,250,90,1,2,3"]), robot, 1)
+    assert data.q[0].tolist() == pytest.approx([0.25, math.pi / 2], abs=1e-15)
+    with pytest.raises(DataError, match=r"row 1 \(line 2\), column 'q1': 900 mm is outside .*\[0, 800\] mm"):
+        read_measurements(write(tmp_path, ["pose,tool,q1,q2,x,y,z", "0,0,900,0,1,2,3"], "far.csv"), robot, 1)
+
+
+BAD_CELLS = [
+    # (column, bad value, words expected in the message)
+    ("q2", "abc", "'abc' is not a finite number"),
+    ("q3", "nan", "'nan' is not a finite number"),
+    ("x", "", "empty"),
+    ("dir4", "0", "'0' is not an approach direction"),
+    ("dir1", "2", "'2' is not an approach direction"),
+    ("q1", "120", "120 deg is outside the controller range [-100, 100] deg"),
+    ("q5", "-90.5", "-90.5 deg is outside the controller range"),
+    ("tool", "2", "tool 2 is not configured"),
+    ("tool", "-1", "tool -1 is not configured"),
+    ("tool", "0.5", "'0.5' is not an integer"),
+    ("pose", "x7", "'x7' is not a finite number"),
+]
+
+
+@pytest.mark.parametrize("column, value, words", BAD_CELLS)
+def test_each_bad_cell_names_file_row_line_and_column(tmp_path, fanuc, column, value, words):
+    cols = HEADER.split(",")
+    cells = GOOD[2].split(",")
+    cells[cols.index(column)] = value
+    path = write(tmp_path, [HEADER, GOOD[0], GOOD[1], ",".join(cells)])
+    with pytest.raises(DataError) as err:
+        read_measurements(path, fanuc, n_tools=2)
+    msg = str(err.value)
+    assert str(path) in msg
+    assert f"row 3 (line 4), column '{column}': " in msg
+    assert words in msg
+    assert len(err.value.problems) == 1
+
+
+def test_all_problems_listed_not_just_the_first(tmp_path, fanuc):
+    rows = [HEADER,
+            "0,0,10,abc,30,40,50,60,1,1,1,1,1,1,100,200,300,a",      # row 1: q2
+            "0,1,10,20,30,40,50,60,1,1,1,0,1,1,101,201,301,b",       # row 2: dir4
+            "",                                                       # row 3: a blank line inside the data
+            "0,1,10,20,30,40,50,60,1,1,1,1,1,1,1,2,3,dup",           # row 4: duplicate (pose 0, tool 1)
+            "1,5,10,20,300,40,50,60,1,1,1,1,1,1,4,5,,d"]             # row 5: tool, q3 range, z empty
+    path = write(tmp_path, rows)
+    with pytest.raises(DataError) as err:
+        read_measurements(path, fanuc, n_tools=2)
+    msg = str(err.value)
+    for needle in ["row 1 (line 2), column 'q2'", "row 2 (line 3), column 'dir4'", "row 3 (line 4): blank line",
+                   "row 4 (line 5), column 'pose, tool': duplicate of row 2", "row 5 (line 6), column 'tool'",
+                   "row 5 (line 6), column 'q3'", "row 5 (line 6), column 'z'"]:
+        assert needle in msg, needle
+    # the blank line is reported once (not dropped silently, not once per empty cell)
+    assert sum(p.row == 3 for p in err.value.problems) == 1
+    assert len(err.value.problems) == 7
+
+
+def test_long_lists_are_cut_with_a_count(tmp_path, fanuc):
+    rows = [HEADER] + [f"{i},0,500,20,30,40,50,60,1,1,1,1,1,1,1,2,3,a" for i in range(MAX_LISTED + 7)]
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, rows), fanuc, n_tools=1)
+    msg = str(err.value)
+    assert len(err.value.problems) == MAX_LISTED + 7
+    assert "... and 7 more problems" in msg
+    assert len(re.findall(r"column 'q1'", msg)) == MAX_LISTED
+
+
+def test_missing_columns_and_wrong_robot(tmp_path, fanuc):
+    path = write(tmp_path, ["pose,tool,q1,q2,q3,q4,q5,q7,dir1,x,y", "0,0,1,2,3,4,5,6,1,1,2"])
+    with pytest.raises(DataError) as err:
+        read_measurements(path, fanuc, n_tools=1)
+    msg = str(err.value)
+    assert str(path) in msg
+    for needle in ["column 'q6': missing", "column 'z': missing", "dir1..dir6 or none"]:
+        assert needle in msg, needle
+
+
+def test_header_and_shape_errors(tmp_path, fanuc):
+    with pytest.raises(DataError, match="no header"):
+        read_measurements(write(tmp_path, [""], "empty.csv"), fanuc, 1)
+    with pytest.raises(DataError, match="no data rows"):
+        read_measurements(write(tmp_path, [HEADER], "header.csv"), fanuc, 1)
+    with pytest.raises(DataError, match="column 'q2': appears twice"):
+        read_measurements(write(tmp_path, ["pose,tool,q1,q2,q2", "0,0,1,2,3"], "dup.csv"), fanuc, 1)
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, [HEADER, GOOD[0] + ",extra", GOOD[1], "1,2"], "ragged.csv"), fanuc, 2)
+    msg = str(err.value)
+    assert "ragged.csv" in msg
+    assert "row 1 (line 2): has 19 fields, the header has 18" in msg and "row 3 (line 4): has 2 fields" in msg
+    with pytest.raises(DataError, match="file not found"):
+        read_measurements(tmp_path / "nope.csv", fanuc, 1)
+
+
+def test_line_numbers_follow_quoted_newlines(tmp_path, fanuc):
+    # a note spanning two lines shifts every later line: messages must still point at the right line
+    rows = [HEADER, GOOD[0][:-1] + '"two\nlines"', GOOD[1], GOOD[2].replace(",-20,", ",abc,")]
+    data_ok = read_measurements(write(tmp_path, rows[:3], "ok.csv"), fanuc, 2)
+    assert data_ok.extra["label"][0] == "two\nlines"
+    with pytest.raises(DataError, match=r"row 3 \(line 5\), column 'q2'"):
+        read_measurements(write(tmp_path, rows), fanuc, 2)
+
+
+def test_prediction_input_needs_no_pose_or_xyz(tmp_path, fanuc):
+    path = write(tmp_path, ["tool,q1,q2,q3,q4,q5,q6,note", "1,0,0,0,0,0,0,first", "0,5,5,5,5,5,5,second"])
+    data, raw = read_table(path, fanuc, n_tools=2, require_xyz=False)
+    assert torch.isnan(data.xyz).all()
+    assert not data.has_direction
+    assert data.tool.tolist() == [1, 0]
+    assert list(raw.columns) == ["tool", "q1", "q2", "q3", "q4", "q5", "q6", "note"]
+    # compensation input: no tool needed; a tool column is then just carried through
+    data, _ = read_table(path, fanuc, n_tools=None, require_xyz=False)
+    assert data.tool.tolist() == [0, 0] and list(data.extra["tool"]) == ["1", "0"]

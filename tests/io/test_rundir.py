@@ -1,0 +1,71 @@
+"""Run directories: placement, model persistence, strict JSON, versions, the log."""
+
+import json
+import logging
+
+import pytest
+import torch
+
+from conftest import random_commands, randomize
+from torchcal.io.rundir import (RunDirError, collect_versions, load_model, make_run_dir, run_log, save_model,
+                                write_json)
+from torchcal.model import RobotModel
+
+
+def test_run_dir_placement(tmp_path):
+    out = tmp_path / "runs"
+    assert make_run_dir(out) == out  # absent -> itself
+    (tmp_path / "empty").mkdir()
+    assert make_run_dir(tmp_path / "empty") == tmp_path / "empty"  # empty -> itself
+    (out / "model.pt").write_text("earlier run")
+    a, b = make_run_dir(out), make_run_dir(out)
+    # never reuses a folder: two runs in the same second get distinct timestamped folders
+    assert a.parent == out and b.parent == out and a != b
+    assert a.is_dir() and not any(a.iterdir())
+    assert (out / "model.pt").read_text() == "earlier run"
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(RunDirError, match="not a folder"):
+        make_run_dir(tmp_path / "file")
+
+
+def test_model_round_trip(tmp_path, fanuc, tools_m):
+    model = randomize(RobotModel(fanuc, tools_m, orders=[1, 2, 0, 3, 1, 2], backlash=True), seed=4)
+    save_model(tmp_path, model, orders=[1, 2, 0, 3, 1, 2])
+    back = load_model(tmp_path)
+    assert back.spec() == model.spec()
+    q = random_commands(fanuc, 25, 1)
+    tool = torch.arange(25) % 3
+    s = torch.where(torch.rand(25, 6, generator=torch.Generator().manual_seed(2)) > 0.5, 1.0, -1.0)
+    with torch.no_grad():
+        assert torch.equal(back.points(q, tool, s), model.points(q, tool, s))
+        assert torch.equal(back.flange(q, s, base=False), model.flange(q, s, base=False))
+    # the loaded values are not the all-zero defaults of from_spec
+    assert back.joint_errors.coef.abs().max() > 0
+    assert torch.equal(load_model(tmp_path / "model.pt").base.twist, model.base.twist)
+
+
+def test_load_model_errors(tmp_path):
+    with pytest.raises(RunDirError, match="no model here"):
+        load_model(tmp_path)
+    (tmp_path / "model.pt").write_bytes(b"not a torch file")
+    with pytest.raises(RunDirError, match="not a readable torchcal model"):
+        load_model(tmp_path)
+
+
+def test_json_is_strict_and_versions_complete(tmp_path):
+    p = write_json(tmp_path / "m.json", {"a": float("nan"), "b": torch.tensor([1.5, 2.0]), "c": [float("inf"), 1]})
+    assert json.loads(p.read_text()) == {"a": None, "b": [1.5, 2.0], "c": [None, 1]}
+    v = collect_versions("cpu")
+    for key in ("python", "platform", "torchcal", "torch", "numpy", "scipy", "pytorch_kinematics", "yourdfpy", "git", "device"):
+        assert key in v
+    assert v["torch"] == torch.__version__ and v["device"] == "cpu"
+
+
+def test_run_log_records_failures(tmp_path):
+    with pytest.raises(ZeroDivisionError):
+        with run_log(tmp_path) as log:
+            log.info("step one")
+            1 / 0
+    text = (tmp_path / "run.log").read_text()
+    assert "step one" in text and "run failed" in text and "ZeroDivisionError" in text
+    assert not any(isinstance(h, logging.FileHandler) for h in logging.getLogger("torchcal").handlers)

@@ -1,0 +1,238 @@
+"""The console entry end to end on a tiny simulated set: simulate -> fit -> predict -> compensate, and bad inputs."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from torchcal import pipeline
+from torchcal.cli import PAPER2_TOOLS_MM, app
+from torchcal.io.config import load_config
+from torchcal.io.csv import read_measurements
+from torchcal.io.rundir import load_model
+from torchcal.io.truth import load_truth
+from torchcal.sim import TruthRobot
+
+runner = CliRunner()
+POSES, VAL_POSES = 30, 20
+
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    # tiny problems: on a shared 2-core machine torch's intra-op threads make the fit ~10x slower, not faster
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def e2e(tmp_path_factory, one_thread):
+    """One simulate + one fit through the CLI; the spy keeps the fit's in-memory result."""
+    root = tmp_path_factory.mktemp("cli")
+    sim = root / "sim"
+    r = invoke("simulate", sim, "--identification", POSES, "--validation", VAL_POSES, "--seed", 3)
+    assert r.exit_code == 0, r.output
+    captured = {}
+    original = pipeline.run_fit
+
+    def spy(cfg, console=None):
+        captured["result"] = original(cfg, console)
+        return captured["result"]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(pipeline, "run_fit", spy)
+        r = invoke("fit", sim / "fit.yaml", "model.order=1", f"out={root / 'run'}")
+    assert r.exit_code == 0, r.output
+    return {"root": root, "sim": sim, "fit_output": r.output, "result": captured["result"], "run": root / "run"}
+
+
+def test_simulate_writes_contract_files(e2e, fanuc):
+    sim = e2e["sim"]
+    ident = pd.read_csv(sim / "identification.csv")
+    val = pd.read_csv(sim / "validation.csv")
+    cols = ["pose", "tool"] + [f"q{i}" for i in range(1, 7)] + [f"dir{i}" for i in range(1, 7)] + ["x", "y", "z"]
+    assert list(ident.columns) == cols and list(val.columns) == cols
+    assert len(ident) == 3 * POSES and sorted(ident.tool.unique()) == [0, 1, 2]
+    assert len(val) == VAL_POSES and set(val.tool) == {2}
+    # truth.json rebuilds exactly the robot the data came from
+    truth = load_truth(sim / "truth.json")
+    fresh = TruthRobot.fanuc_paper2(fanuc, torch.tensor(PAPER2_TOOLS_MM) * 1e-3, 3)
+    data = read_measurements(sim / "validation.csv", fanuc, 3)
+    with torch.no_grad():
+        assert torch.equal(truth.points(data.q, data.tool, data.direction), fresh.points(data.q, data.tool, data.direction))
+        # measured = truth + joint and tracker noise: well under a millimetre, never exact
+        d = (truth.points(data.q, data.tool, data.direction) - data.xyz).norm(dim=1)
+    assert 0 < d.max() < 5e-4
+    cfg = load_config(sim / "fit.yaml")
+    assert Path(cfg.data.identification) == (sim / "identification.csv").resolve()
+    assert Path(cfg.data.truth) == (sim / "truth.json").resolve()
+    # refuses to overwrite silently
+    r = invoke("simulate", sim, "--identification", 5, "--validation", 5)
+    assert r.exit_code == 2 and "--force" in r.output
+
+
+def test_fit_writes_the_run_directory(e2e):
+    run, out = e2e["run"], e2e["fit_output"]
+    for name in ("config.yaml", "versions.json", "model.pt", "metrics.json", "fit.json", "run.log", "residuals.csv",
+                 "plots/joint_errors.png", "plots/residuals_identification.png", "plots/residuals_validation.png",
+                 "plots/compensation_validation.png"):
+        assert (run / name).is_file(), name
+    assert f"run directory: {run}" in out
+    assert "Table 6 layout" in out and "Table 7 layout" in out
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert [(r["set"], r["residual"]) for r in metrics["table6"]] == [
+        ("Identification", "Nominal"), ("Identification", "Modeled"), ("Validation", "Nominal"), ("Validation", "Modeled")]
+    assert [r["residual"] for r in metrics["table7"]] == ["Nominal", "Modeled", "Compensated"]
+    nominal, modeled = metrics["table6"][2], metrics["table6"][3]
+    # an order-1 model removes most of the FANUC's millimetres of error on unseen poses
+    assert modeled["mean"] < 0.2 * nominal["mean"]
+    assert modeled["mean_decrease"] == pytest.approx(100 * (1 - modeled["mean"] / nominal["mean"]))
+    fit = json.loads((run / "fit.json").read_text())
+    assert fit["converged"] and fit["pinned"] == len(fit["pinned_names"]) > 0
+    versions = json.loads((run / "versions.json").read_text())
+    assert versions["torch"] == torch.__version__
+    # config.yaml is complete and resolved: it loads as a config of its own and names the same inputs
+    again = load_config(run / "config.yaml")
+    assert Path(again.data.identification) == (e2e["sim"] / "identification.csv").resolve()
+    assert again.model.order == 1 and again.seed == 3
+
+
+def test_reloaded_model_reproduces_in_memory_model(e2e, fanuc):
+    model = e2e["result"].model
+    back = load_model(e2e["run"])
+    data = read_measurements(e2e["sim"] / "identification.csv", fanuc, 3)
+    with torch.no_grad():
+        assert torch.equal(back.points(data.q, data.tool, data.direction), model.points(data.q, data.tool, data.direction))
+        assert torch.equal(back.points(data.q, data.tool), model.points(data.q, data.tool))
+
+
+def test_predict_equals_model_points(e2e, fanuc):
+    root = e2e["root"]
+    val = pd.read_csv(e2e["sim"] / "validation.csv")
+    inp = val.drop(columns=["pose", "x", "y", "z"])
+    inp.insert(0, "label", [f"p{i}" for i in range(len(inp))])
+    inp.to_csv(root / "predict_in.csv", index=False)
+    r = invoke("predict", e2e["run"], root / "predict_in.csv", root / "predicted.csv")
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(root / "predicted.csv")
+    assert list(out.columns) == list(inp.columns) + ["x", "y", "z"]
+    assert list(out.label) == list(inp.label)
+    q = read_measurements(e2e["sim"] / "validation.csv", fanuc, 3)  # same commands, as SI
+    with torch.no_grad():
+        p_mm = e2e["result"].model.points(q.q, q.tool, q.direction) * 1000.0
+    assert np.allclose(out[["x", "y", "z"]].to_numpy(), p_mm.numpy(), rtol=0, atol=1e-7)
+    # and it predicts the measured points far better than the nominal robot (which misses by ~5 mm)
+    with torch.no_grad():
+        nominal_mm = e2e["result"].model.nominal_points(q.q, q.tool).numpy() * 1000.0
+    measured = val[["x", "y", "z"]].to_numpy()
+    err = np.linalg.norm(out[["x", "y", "z"]].to_numpy() - measured, axis=1)
+    err_nominal = np.linalg.norm(nominal_mm - measured, axis=1)
+    assert err.mean() < 0.2 * err_nominal.mean() and err.max() < 0.4 * err_nominal.max()  # order 1 on 30 poses: ~0.5 mm
+    # a measured file works as input too: its x, y, z are replaced in place, everything else kept
+    r = invoke("predict", e2e["run"], e2e["sim"] / "validation.csv", root / "predicted2.csv")
+    assert r.exit_code == 0, r.output
+    out2 = pd.read_csv(root / "predicted2.csv")
+    assert list(out2.columns) == list(val.columns)
+    assert out2.drop(columns=["x", "y", "z"]).equals(val.drop(columns=["x", "y", "z"]))
+    assert np.allclose(out2[["x", "y", "z"]].to_numpy(), p_mm.numpy(), rtol=0, atol=1e-7)
+
+
+def test_compensate_lands_on_the_nominal_flange(e2e, fanuc):
+    root = e2e["root"]
+    val = pd.read_csv(e2e["sim"] / "validation.csv")
+    inp = val[[f"q{i}" for i in range(1, 7)] + [f"dir{i}" for i in range(1, 7)]].copy()
+    inp["id"] = [f"c{i}" for i in range(len(inp))]
+    inp.to_csv(root / "comp_in.csv", index=False)
+    r = invoke("compensate", e2e["run"], root / "comp_in.csv", root / "compensated.csv")
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(root / "compensated.csv")
+    assert len(out) == len(inp) and list(out.id) == list(inp.id)
+    assert {"converged", "iterations", "within_limits"} <= set(out.columns)
+    assert out.converged.all() and (out.iterations >= 1).all()
+    assert "0 commands flagged" in r.output
+    model = e2e["result"].model
+    q_nom = torch.tensor(inp[[f"q{i}" for i in range(1, 7)]].to_numpy()) * torch.pi / 180
+    q_new = torch.tensor(out[[f"q{i}" for i in range(1, 7)]].to_numpy()) * torch.pi / 180
+    s = torch.tensor(inp[[f"dir{i}" for i in range(1, 7)]].to_numpy(), dtype=torch.float64)
+    with torch.no_grad():
+        Fa = model.flange(q_new, s, base=False)
+        Fn = model.nominal_flange(q_nom)
+    assert (Fa[:, :3, 3] - Fn[:, :3, 3]).norm(dim=1).max() < 1e-8  # m, after 12-digit rounding in the file
+    assert (Fa[:, :3, :3] - Fn[:, :3, :3]).abs().max() < 1e-8
+    assert (q_new - q_nom).abs().max() > 1e-5  # the commands did change (rad)
+
+
+def test_compensate_flags_rows_and_keeps_them(e2e):
+    root = e2e["root"]
+    # commands on the controller's limits: corrections that push a joint outside are flagged, not dropped
+    rows = pd.DataFrame([[100, 100, 100, 180, 90, 180], [-100, -30, -30, -180, -90, -180], [10, 20, 30, 40, 50, 60]],
+                        columns=[f"q{i}" for i in range(1, 7)])
+    rows.to_csv(root / "edge.csv", index=False)
+    r = invoke("compensate", e2e["run"], root / "edge.csv", root / "edge_out.csv")
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(root / "edge_out.csv")
+    assert len(out) == 3
+    flagged = (~out.converged.astype(bool)) | (~out.within_limits.astype(bool))
+    assert flagged.sum() >= 1 and not flagged.iloc[2]
+    assert f"{int(flagged.sum())} of 3 commands flagged" in r.output
+
+
+def test_bad_inputs_exit_2_with_one_message(e2e, tmp_path):
+    sim = e2e["sim"]
+    bad = (sim / "identification.csv").read_text().splitlines()
+    cells = bad[5].split(",")
+    cells[3] = "oops"  # q2 of data row 5
+    bad[5] = ",".join(cells)
+    (tmp_path / "bad.csv").write_text("\n".join(bad) + "\n")
+    r = invoke("fit", sim / "fit.yaml", f"data.identification={tmp_path / 'bad.csv'}", f"out={tmp_path / 'r'}")
+    assert r.exit_code == 2
+    assert "bad.csv" in r.output and "row 5 (line 6), column 'q2': 'oops' is not a finite number" in r.output
+    assert "Traceback" not in r.output
+    assert not (tmp_path / "r").exists()  # nothing was started
+
+    r = invoke("fit", sim / "fit.yaml", "robot=no_such_robot")
+    assert r.exit_code == 2 and "unknown robot 'no_such_robot'" in r.output
+    r = invoke("predict", tmp_path, sim / "validation.csv", tmp_path / "p.csv")
+    assert r.exit_code == 2 and "no model here" in r.output
+
+
+def test_console_script_reports_config_errors(tmp_path):
+    """The installed `torchcal` entry point: exit status 2, the key and file named, no traceback."""
+    exe = Path(sys.executable).parent / "torchcal"
+    if not exe.exists():
+        pytest.skip("console script not installed (pip install -e .)")
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text("robot: fanuc_lrmate200i\ntools: [[0, 0, 100]]\ndata: {identification: x.csv}\nsolver: {mehtod: lm}\n")
+    p = subprocess.run([str(exe), "fit", str(cfg)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    assert "unknown config key 'solver.mehtod'" in p.stderr and str(cfg) in p.stderr
+    assert "Traceback" not in p.stderr + p.stdout
+
+
+def test_fit_with_automatic_orders(e2e):
+    """model.order=auto: orders chosen on the validation set, recorded in orders.json, used by the saved model."""
+    out = e2e["root"] / "auto"
+    r = invoke("fit", e2e["sim"] / "fit.yaml", "model.order=auto", "model.candidates=[0,1]", "plots=false",
+               "data.truth=null", f"out={out}", "--quiet")
+    assert r.exit_code == 0, r.output
+    sel = json.loads((out / "orders.json").read_text())
+    assert sel["criterion"] == "validation"
+    assert len(sel["orders"]) == 6 and set(sel["orders"]) <= {0, 1}
+    assert {tuple(row["orders"]) for row in sel["table"]} >= {(0,) * 6, (1,) * 6}
+    best = min(row["score_mm"] for row in sel["table"])
+    assert sel["score_mm"] == pytest.approx(best)
+    assert json.loads((out / "metrics.json").read_text())["orders"] == sel["orders"]
+    model = load_model(out)
+    assert model.joint_errors.orders[:, 0].tolist() == sel["orders"]
+    assert not (out / "plots").exists() and (out / "model.pt").exists()

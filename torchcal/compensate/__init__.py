@@ -1,0 +1,22 @@
+"""Compensation of the modeled errors, Paper II (46)-(52).
+
+``compensate(model, q_nom, direction)`` returns commands q_new with
+``model.flange(q_new, direction, base=False) == model.nominal_flange(q_nom)``
+for many poses at once: the paper's fixed-Jacobian iteration on a fast
+flange-only kernel, damped least squares for the rows that do not contract.
+"""
+
+from .damped import DampedResult, damped_least_squares
+from .kernel import FlangeKernel, pose_error_soa
+from .newton import CompensationResult, compensate, fixed_jacobian_iterations, nominal_sigma_min
+
+__all__ = [
+    "CompensationResult",
+    "DampedResult",
+    "FlangeKernel",
+    "compensate",
+    "damped_least_squares",
+    "fixed_jacobian_iterations",
+    "nominal_sigma_min",
+    "pose_error_soa",
+]

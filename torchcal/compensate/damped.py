@@ -1,0 +1,213 @@
+"""Robust compensation: damped least squares (Levenberg-Marquardt) on the pose error (47)-(48).
+
+The fixed-Jacobian iteration of Paper II (49)-(50) contracts only while the
+Jacobian it holds stays a good model of the actual robot around the
+solution. Near a singularity, or when the modeled robot cannot reach the
+target at all, it stalls or diverges. Those rows come here: Levenberg-
+Marquardt with the *current* model Jacobian (error slopes included), the
+damping adapted per pose (Nielsen's rule), so steps shrink along directions
+whose singular values are small instead of blowing up. Rows that cannot be
+brought to zero error end at their lowest-error iterate and are flagged.
+
+All rows are solved together (a loop over iterations, masks over rows);
+finished rows leave the working set. SI units: m, rad; orientation errors are
+weighted by ``length`` (m) so that both parts of the residual are lengths.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..kinematics.transforms import skew
+from .kernel import FlangeKernel
+
+
+def pose_residual(Ra: torch.Tensor, pa: torch.Tensor, Rn: torch.Tensor, pn: torch.Tensor):
+    """Error transform Ω = inv(F_a) F_n pieces and de of (47)-(48), rows first.
+
+    Ra, Rn: (M, 3, 3); pa, pn: (M, 3) -> de (M, 6) (m, rad) and Ω_R (M, 3, 3).
+    """
+    Rt = Ra.transpose(1, 2)
+    OR = Rt @ Rn
+    dp = (Rt @ (pn - pa)[..., None])[..., 0]
+    dr = 0.5 * torch.stack([OR[:, 2, 1] - OR[:, 1, 2], OR[:, 0, 2] - OR[:, 2, 0], OR[:, 1, 0] - OR[:, 0, 1]], -1)
+    return torch.cat([dp, dr], -1), OR
+
+
+def residual_jacobian(de: torch.Tensor, OR: torch.Tensor, J: torch.Tensor, length: float) -> torch.Tensor:
+    """Exact derivative of r = (de_p, length * de_r) w.r.t. the commands.
+
+    de: (M, 6) and OR: (M, 3, 3) from :func:`pose_residual`; J: (M, 6, n) body
+    Jacobian of F_a. -> (M, 6, n).
+
+    With F_a(q + dq) = F_a(q) exp(ξ), ξ = (v, w) = J dq, the error transform
+    becomes Ω' = exp(-ξ) Ω, so d de_p = -v + S(de_p) w and
+    d de_r = -½ (tr(Ω_R) I - Ω_R) w. At the solution (Ω = I) this is -J; away
+    from it the extra terms keep Gauss-Newton exact for the residual it
+    minimizes, so an unreachable target ends at a true stationary point.
+    """
+    Jv, Jw = J[:, :3], J[:, 3:]
+    tr = OR.diagonal(dim1=-2, dim2=-1).sum(-1)
+    eye = torch.eye(3, dtype=J.dtype, device=J.device)
+    G = 0.5 * (tr[:, None, None] * eye - OR)
+    Jp = -Jv + skew(de[:, :3]) @ Jw
+    Jr = -(G @ Jw)
+    return torch.cat([Jp, length * Jr], 1)
+
+
+def weighted(de: torch.Tensor, length: float) -> torch.Tensor:
+    """(M, 6) -> r (M, 6) = (de_p, length * de_r)."""
+    return torch.cat([de[:, :3], length * de[:, 3:]], -1)
+
+
+@dataclass
+class DampedResult:
+    """Outcome of :func:`damped_least_squares` for M rows.
+
+    q: (M, n) lowest-error iterate; converged: (M,) bool; iterations: (M,) long;
+    pose_error: (M, 6) de at q (m, rad); residual: (M,) weighted norm (m);
+    step: (M,) norm of the last step (rad / m).
+    """
+
+    q: torch.Tensor
+    converged: torch.Tensor
+    iterations: torch.Tensor
+    pose_error: torch.Tensor
+    residual: torch.Tensor
+    step: torch.Tensor
+
+
+class _Eval:
+    """Row-layout adapter around :class:`FlangeKernel`: q (M, n) -> rotations (M, 3, 3), positions (M, 3)."""
+
+    def __init__(self, kernel: FlangeKernel):
+        self.k = kernel
+
+    def flange(self, q, s):
+        R, p = self.k.flange(q.T.contiguous(), None if s is None else s.T.contiguous())
+        return R.permute(2, 0, 1), p.T
+
+    def flange_jacobian(self, q, s):
+        R, p, J = self.k.flange_jacobian(q.T.contiguous(), None if s is None else s.T.contiguous())
+        return R.permute(2, 0, 1), p.T, J.permute(2, 0, 1)
+
+
+@torch.no_grad()
+def damped_least_squares(
+    model,
+    q0: torch.Tensor,
+    target: torch.Tensor,
+    direction: torch.Tensor | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 100,
+    damping: float = 1e-5,
+    length: float = 1.0,
+    residual_tol: float = 1e-12,
+    kernel: FlangeKernel | None = None,
+    stall_rtol: float = 1e-10,
+    window: int = 5,
+    window_rtol: float = 1e-8,
+) -> DampedResult:
+    """Solve model.flange(q, direction, base=False) = target for every row by Levenberg-Marquardt.
+
+    q0: (M, n) start (rad / m); target: (M, 4, 4) in the robot's nominal base
+    frame; direction: (M, n) or None; tol: step norm for convergence (51);
+    max_iter: iterations per row; damping: initial damping relative to the
+    largest diagonal entry of J^T J; length: m per rad for orientation rows;
+    residual_tol: a row only counts as converged when its weighted pose error
+    is below this (m) -- a vanishing step alone also happens at the
+    least-squares optimum of an unreachable target; kernel: a
+    :class:`FlangeKernel` of the model (built when None); stall_rtol: a row
+    whose nearly undamped (Gauss-Newton) step is accepted but lowers the cost
+    by less than this fraction sits at a stationary point with nonzero error:
+    it stops there, not converged. (Towards a reachable target such a step
+    removes most of the cost; near an unreachable optimum Gauss-Newton only
+    converges linearly and would need many more iterations to shrink the
+    step below tol without changing the result.) window, window_rtol: a row
+    whose cost fell by less than this fraction over the last `window`
+    iterations is stuck the same way and stops, flagged.
+    """
+    M, n = q0.shape
+    dtype, device = q0.dtype, q0.device
+    ev = _Eval(kernel if kernel is not None else FlangeKernel(model))
+    q_out = q0.clone()
+    conv_out = torch.zeros(M, dtype=torch.bool, device=device)
+    it_out = torch.zeros(M, dtype=torch.long, device=device)
+    step_out = torch.full((M,), float("inf"), dtype=dtype, device=device)
+    de_out = torch.zeros(M, 6, dtype=dtype, device=device)
+    if M == 0:
+        return DampedResult(q_out, conv_out, it_out, de_out, torch.zeros(0, dtype=dtype, device=device), step_out)
+    eye = torch.eye(n, dtype=dtype, device=device)
+
+    idx = torch.arange(M, device=device)
+    q = q0.clone()
+    s = direction
+    Rn, pn = target[:, :3, :3], target[:, :3, 3]
+    Ra, pa, J = ev.flange_jacobian(q, s)
+    de, OR = pose_residual(Ra, pa, Rn, pn)
+    r = weighted(de, length)
+    Jr = residual_jacobian(de, OR, J, length)
+    cost = 0.5 * (r * r).sum(-1)
+    cost = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf")))
+    A = Jr.transpose(1, 2) @ Jr
+    mu = damping * A.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(1e-12)
+    nu = torch.full_like(mu, 2.0)
+    it = torch.zeros(M, dtype=torch.long, device=device)
+    step = torch.full((M,), float("inf"), dtype=dtype, device=device)
+    cost_ref = cost.clone()
+
+    for k_it in range(max_iter):
+        A = Jr.transpose(1, 2) @ Jr
+        g = (Jr.transpose(1, 2) @ r[..., None])[..., 0]  # gradient of ½|r|²
+        dq, info = torch.linalg.solve_ex(A + mu[:, None, None] * eye, -g)
+        dq = torch.where((info == 0)[:, None] & torch.isfinite(dq), dq, torch.zeros_like(dq))
+        qt = q + dq
+        # evaluate the trial with its Jacobian: most steps are accepted and need it next
+        Rt, pt, Jt = ev.flange_jacobian(qt, s)
+        de_t, OR_t = pose_residual(Rt, pt, Rn, pn)
+        rt = weighted(de_t, length)
+        cost_t = 0.5 * (rt * rt).sum(-1)
+        cost_t = torch.where(torch.isfinite(cost_t), cost_t, torch.full_like(cost_t, float("inf")))
+        pred = 0.5 * (dq * (mu[:, None] * dq - g)).sum(-1)  # Nielsen: decrease the linear model predicts
+        rho = (cost - cost_t) / pred.clamp_min(1e-300)
+        acc = (cost_t < cost) & (rho > 0)
+        # an accepted, nearly undamped step that no longer lowers the cost: stationary point
+        flat = acc & ((cost - cost_t) <= stall_rtol * cost) & (mu <= 1e-3 * A.diagonal(dim1=-2, dim2=-1).amax(-1))
+        a1 = acc[:, None]
+        q = torch.where(a1, qt, q)
+        cost = torch.where(acc, cost_t, cost)
+        r = torch.where(a1, rt, r)
+        de = torch.where(a1, de_t, de)
+        Jr = torch.where(a1[..., None], residual_jacobian(de_t, OR_t, Jt, length), Jr)
+        mu = torch.where(acc, mu * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu * nu)
+        nu = torch.where(acc, torch.full_like(nu, 2.0), 2.0 * nu)
+        it += 1
+        step = dq.norm(dim=-1)
+        small = step < tol
+        conv = small & (torch.sqrt(2.0 * cost) <= residual_tol)
+        # stalled: a vanishing step far from zero error (least-squares optimum of an
+        # unreachable target, or damping so large that nothing moves any more)
+        stall = ((small | flat) & ~conv) | (mu > 1e20) | ~torch.isfinite(cost)
+        if (k_it + 1) % window == 0:
+            # no real progress over the last `window` iterations: stuck at a stationary
+            # point (or crawling along a singular direction); keep the best, flag it
+            stall = stall | (~conv & (cost > (1.0 - window_rtol) * cost_ref))
+            cost_ref = cost
+        done = conv | stall
+        if bool(done.any()):
+            d = done.nonzero()[:, 0]
+            rows = idx[d]
+            q_out[rows], conv_out[rows], it_out[rows], step_out[rows], de_out[rows] = q[d], conv[d], it[d], step[d], de[d]
+            keep = (~done).nonzero()[:, 0]
+            idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref = (
+                x[keep] for x in (idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref)
+            )
+            s = None if s is None else s[keep]
+            if idx.numel() == 0:
+                break
+    if idx.numel():  # iteration limit: keep the lowest-error iterate, not converged
+        q_out[idx], it_out[idx], step_out[idx], de_out[idx] = q, it, step, de
+    res = weighted(de_out, length).norm(dim=-1)
+    return DampedResult(q_out, conv_out, it_out, de_out, res, step_out)

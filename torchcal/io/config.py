@@ -1,0 +1,396 @@
+"""Config-driven runs: a typed OmegaConf schema, YAML files and dotted ``key=value`` overrides.
+
+Every value in a config is in the calibration engineer's units (mm, deg,
+deg²); :mod:`torchcal.pipeline` converts them with :mod:`torchcal.units`.
+Unknown keys, in the file or in an override, are an error naming the key and
+the file (OmegaConf struct mode), so a typo never silently falls back to a
+default.
+
+Relative paths: those written in the config file (``robot`` when it is a
+file, ``data.*``, ``out``, and defaults) resolve against the config file's
+folder, so a config and its data travel together; those given as command-line
+overrides resolve against the current directory, like any other shell argument.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import yaml
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
+
+from .. import units
+from ..errors.joint import MAX_ORDER
+from ..identify import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, SOLVERS, Prior
+
+
+class ConfigError(ValueError):
+    """A config that cannot be used; the message names the file (or override) and the key."""
+
+
+_PRIOR = Prior()
+
+
+@dataclass
+class DataConfig:
+    """CSV files in the contract of :mod:`torchcal.io.csv`."""
+
+    identification: str = MISSING
+    """Measurements to identify the model from (all tools)."""
+    validation: Optional[str] = None
+    """Separate measurements to judge the model on (Tables 6-7); optional."""
+    truth: Optional[str] = None
+    """Simulated runs only: ``truth.json`` from ``torchcal simulate``; enables the compensation check (Table 7, Fig. 16)."""
+
+
+@dataclass
+class ModelConfig:
+    order: Any = 6
+    """Chebyshev order: an int (all joints), a per-joint list, or "auto" (chosen by validation / cross-validation)."""
+    backlash: Any = True
+    """Backlash term on eps_z: true (same order as eps_z), false, or its order (int or per-joint list)."""
+    candidates: list[int] = field(default_factory=lambda: list(range(0, MAX_ORDER + 1)))
+    """Orders tried by order: auto."""
+    folds: int = 5
+    """Cross-validation folds (by pose) for order: auto without a validation set."""
+
+
+@dataclass
+class NoiseConfig:
+    sigma_m: float = 0.005
+    """Tracker standard deviation per axis, mm (Paper II 5.2)."""
+    joint_var_fwd: list[float] = field(default_factory=lambda: list(PAPER2_JOINT_VAR_FWD))
+    """Joint variance per joint, forward approach, deg² (mm² for prismatic joints); default Paper II Table 5."""
+    joint_var_bwd: list[float] = field(default_factory=lambda: list(PAPER2_JOINT_VAR_BWD))
+    """Joint variance per joint, backward approach, deg² (mm²); default Paper II Table 5."""
+
+
+@dataclass
+class PriorConfig:
+    enabled: bool = True
+    """False: no prior (redundant combinations are left to the solver's damping)."""
+    rotation_deg: float = units.rad_to_deg(_PRIOR.rotation)
+    """Prior sigma of the joint error rotation terms, deg."""
+    translation_mm: float = units.m_to_mm(_PRIOR.translation)
+    """Prior sigma of the joint error translation terms, mm."""
+    frame_rotation_deg: float = units.rad_to_deg(_PRIOR.frame_rotation)
+    """Prior sigma of the base-frame and tool rotation corrections, deg."""
+    frame_translation_mm: float = units.m_to_mm(_PRIOR.frame_translation)
+    """Prior sigma of the base-frame and tool translation corrections, mm."""
+
+
+@dataclass
+class SolverConfig:
+    method: str = "lm"
+    """'lm' (Levenberg-Marquardt, joint errors eliminated per row) or 'lbfgs'."""
+    max_iter: Optional[int] = None
+    """Iteration limit; null = the solver's default (lm 100, lbfgs 20000)."""
+    ftol: float = 1e-8
+    """Stop when the relative cost reduction falls below this."""
+
+
+@dataclass
+class CompensationConfig:
+    tol_deg: Optional[float] = None
+    """Stopping tolerance on |dq| (deg; mm for prismatic joints), e.g. the encoder resolution (Paper II (51));
+    null = torchcal.compensate's default."""
+    max_iter: Optional[int] = None
+    """Fixed-Jacobian iterations before a command goes to the damped solver; null = the default."""
+
+
+@dataclass
+class FitConfig:
+    """The schema of ``torchcal fit CONFIG.yaml``."""
+
+    robot: str = MISSING
+    """Bundled robot name (e.g. fanuc_lrmate200i), a joint-map YAML or a URDF."""
+    tools: list[list[float]] = MISSING
+    """Nominal tool vectors [x, y, z] in the flange frame, mm; the CSV 'tool' column indexes this list."""
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    compensation: CompensationConfig = field(default_factory=CompensationConfig)
+    seed: int = 0
+    device: str = "cpu"
+    """torch device, e.g. cpu, cuda, cuda:1."""
+    threads: Optional[int] = None
+    """torch intra-op CPU threads during the run; null = torch's default (1 is often fastest on small, shared machines)."""
+    out: str = "runs"
+    """Run directory; if it exists and is not empty, the run goes to <out>/<timestamp>."""
+    plots: bool = True
+    config_file: Optional[str] = None
+    """Set by load_config: the YAML this config came from (provenance)."""
+
+
+PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out")
+
+
+def schema() -> DictConfig:
+    """A fresh structured (struct-mode) config holding every default."""
+    return OmegaConf.structured(FitConfig)
+
+
+def _keys_at(node_type, parts: list[str]) -> list[str]:
+    """Valid keys of the schema section ``parts`` (for 'did you mean' lists)."""
+    t = node_type
+    for p in parts:
+        match = [f for f in fields(t) if f.name == p]
+        if not match:
+            return []
+        t = match[0].type
+        if isinstance(t, str):  # postponed annotations: resolve by name
+            t = globals().get(t)
+        if t is None or not is_dataclass(t):
+            return []
+    return [f.name for f in fields(t)] if t is not None and is_dataclass(t) else []
+
+
+def _explain(exc: OmegaConfBaseException, where: str) -> ConfigError:
+    """One readable sentence from an OmegaConf error; ``where`` is the file or the override."""
+    key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "?"
+    if isinstance(exc, ConfigKeyError):
+        parts = str(key).split(".")
+        valid = _keys_at(FitConfig, parts[:-1])
+        hint = f"; valid keys{' under ' + '.'.join(parts[:-1]) if len(parts) > 1 else ''}: {', '.join(valid)}" if valid else ""
+        return ConfigError(f"{where}: unknown config key '{key}'{hint}")
+    msg = str(exc).split("\n")[0]
+    return ConfigError(f"{where}: key '{key}': {msg}")
+
+
+def _resolve_path(value: str | None, base: Path) -> str | None:
+    if value is None or value == "":
+        return value
+    p = Path(value).expanduser()
+    return str(p if p.is_absolute() else (base / p).resolve())
+
+
+def _is_robot_file(spec: str) -> bool:
+    """Same rule as :func:`torchcal.kinematics.load_robot`: a name without a suffix is a bundled robot."""
+    return bool(Path(spec).suffix)
+
+
+def _resolve_paths(cfg: DictConfig, base: Path, keys: Sequence[str]) -> None:
+    for key in keys:
+        if key == "robot":
+            if not OmegaConf.is_missing(cfg, "robot") and _is_robot_file(cfg.robot):
+                cfg.robot = _resolve_path(cfg.robot, base)
+            continue
+        section, _, name = key.rpartition(".")
+        node = OmegaConf.select(cfg, section) if section else cfg
+        if not OmegaConf.is_missing(node, name):
+            node[name] = _resolve_path(node[name], base)
+
+
+def _split_override(item: str) -> tuple[str, str]:
+    if "=" not in item:
+        raise ConfigError(f"override '{item}': expected key=value (e.g. model.order=4)")
+    key, _, value = item.partition("=")
+    key = key.strip()
+    if not key:
+        raise ConfigError(f"override '{item}': empty key")
+    return key, value
+
+
+def apply_overrides(cfg: DictConfig, overrides: Sequence[str], base: Path | None = None) -> DictConfig:
+    """Merge dotted ``key=value`` overrides (values parsed as YAML: 4, [1,2], auto, null) into ``cfg``.
+
+    Paths among them resolve against ``base`` (default: the current directory).
+    Raises :class:`ConfigError` naming the override and key.
+    """
+    base = Path.cwd() if base is None else base
+    for item in overrides:
+        key, _ = _split_override(item)
+        try:
+            cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
+        except OmegaConfBaseException as exc:
+            raise _explain(exc, f"override '{item}'") from None
+        touched = [k for k in ("robot",) + PATH_KEYS if k == key or k.startswith(key + ".")]
+        _resolve_paths(cfg, base, touched)
+    return cfg
+
+
+def make_config(values: dict | None = None, overrides: Sequence[str] = (), base_dir=".", label: str = "config") -> DictConfig:
+    """Build a checked config from a mapping (programmatic runs, experiments), like :func:`load_config` does from a file.
+
+    values: nested dict in the schema's keys; base_dir: folder relative paths in
+    ``values`` resolve against; label: names the source in messages.
+    """
+    base = Path(base_dir).resolve()
+    try:
+        cfg = OmegaConf.merge(schema(), OmegaConf.create(values or {}))
+    except OmegaConfBaseException as exc:
+        raise _explain(exc, label) from None
+    _resolve_paths(cfg, base, ("robot",) + PATH_KEYS)
+    cfg = apply_overrides(cfg, overrides)
+    check_config(cfg, label)
+    return cfg
+
+
+def load_config(path, overrides: Sequence[str] = ()) -> DictConfig:
+    """Read a YAML config, merge it over the schema's defaults, then apply ``overrides`` (``["model.order=4"]``).
+
+    -> a struct-mode DictConfig (unknown keys cannot be added later either).
+    Raises :class:`ConfigError` naming the file / override and the key.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    if raw is None:
+        raw = {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: a config must be a mapping of keys (robot:, tools:, data:, ...), got {type(raw).__name__}")
+    try:
+        cfg = OmegaConf.merge(schema(), OmegaConf.create(raw))
+    except OmegaConfBaseException as exc:
+        raise _explain(exc, str(path)) from None
+    _resolve_paths(cfg, path.parent.resolve(), ("robot",) + PATH_KEYS)
+    cfg = apply_overrides(cfg, overrides)
+    cfg.config_file = str(path.resolve())
+    check_config(cfg, str(path))
+    return cfg
+
+
+# ------------------------------------------------------------------------ checks
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _plain(x):
+    return OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x
+
+
+def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = None) -> None:
+    """Values that the types alone do not pin down; ``n_joints`` (once the robot is loaded) checks per-joint lists.
+
+    Raises :class:`ConfigError` naming ``label`` and the key.
+    """
+    def fail(key, msg):
+        raise ConfigError(f"{label}: key '{key}': {msg}")
+
+    for key in ("robot", "tools", "data.identification"):
+        try:
+            OmegaConf.select(cfg, key, throw_on_missing=True)
+        except MissingMandatoryValue:
+            fail(key, "is required but not set")
+        except OmegaConfBaseException as exc:  # interpolation errors and the like
+            raise _explain(exc, label) from None
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as exc:
+        raise _explain(exc, label) from None
+
+    tools = _plain(cfg.tools)
+    if not tools:
+        fail("tools", "needs at least one tool vector [x, y, z] (mm)")
+    for i, t in enumerate(tools):
+        if len(t) != 3:
+            fail("tools", f"tool {i} has {len(t)} values; each tool is [x, y, z] in mm")
+
+    order = _plain(cfg.model.order)
+    if isinstance(order, str):
+        if order != "auto":
+            fail("model.order", f"'{order}' is not an order; give an int 0..{MAX_ORDER}, a per-joint list, or auto")
+    elif _is_int(order):
+        if not 0 <= order <= MAX_ORDER:
+            fail("model.order", f"{order} is outside 0..{MAX_ORDER}")
+    elif isinstance(order, list):
+        if not order or not all(_is_int(o) and 0 <= o <= MAX_ORDER for o in order):
+            fail("model.order", f"{order}: a per-joint list must hold ints in 0..{MAX_ORDER}")
+        if n_joints is not None and len(order) != n_joints:
+            fail("model.order", f"has {len(order)} entries but the robot has {n_joints} joints")
+    else:
+        fail("model.order", f"{order!r}: give an int 0..{MAX_ORDER}, a per-joint list, or auto")
+
+    backlash = _plain(cfg.model.backlash)
+    if isinstance(backlash, list):
+        if not all(_is_int(b) and -1 <= b <= MAX_ORDER for b in backlash):
+            fail("model.backlash", f"{backlash}: a per-joint list must hold orders in -1..{MAX_ORDER} (-1: off)")
+        if n_joints is not None and len(backlash) != n_joints:
+            fail("model.backlash", f"has {len(backlash)} entries but the robot has {n_joints} joints")
+    elif not (isinstance(backlash, bool) or (_is_int(backlash) and -1 <= backlash <= MAX_ORDER)):
+        fail("model.backlash", f"{backlash!r}: give true, false, or an order 0..{MAX_ORDER}")
+
+    cands = _plain(cfg.model.candidates)
+    if not cands or not all(0 <= c <= MAX_ORDER for c in cands):
+        fail("model.candidates", f"{cands}: give a non-empty list of orders in 0..{MAX_ORDER}")
+    if cfg.model.folds < 2:
+        fail("model.folds", f"{cfg.model.folds}: cross-validation needs at least 2 folds")
+
+    if not cfg.noise.sigma_m > 0:
+        fail("noise.sigma_m", f"{cfg.noise.sigma_m}: the tracker sigma (mm) must be positive")
+    for key in ("joint_var_fwd", "joint_var_bwd"):
+        var = _plain(cfg.noise[key])
+        if any(v < 0 for v in var):
+            fail(f"noise.{key}", f"{var}: variances (deg²) cannot be negative")
+        if n_joints is not None and len(var) != n_joints:
+            fail(f"noise.{key}", f"has {len(var)} entries but the robot has {n_joints} joints "
+                                 "(the default is Paper II's 6-joint FANUC table; set one variance per joint)")
+
+    if cfg.prior.enabled:
+        for key in ("rotation_deg", "translation_mm", "frame_rotation_deg", "frame_translation_mm"):
+            if not cfg.prior[key] > 0:
+                fail(f"prior.{key}", f"{cfg.prior[key]}: a prior sigma must be positive (or set prior.enabled=false)")
+
+    if cfg.solver.method not in SOLVERS:
+        fail("solver.method", f"'{cfg.solver.method}' is not a solver; choose from {sorted(SOLVERS)}")
+    if cfg.solver.max_iter is not None and cfg.solver.max_iter < 1:
+        fail("solver.max_iter", f"{cfg.solver.max_iter}: must be at least 1 (or null for the solver's default)")
+    if not cfg.solver.ftol > 0:
+        fail("solver.ftol", f"{cfg.solver.ftol}: must be positive")
+    if cfg.compensation.tol_deg is not None and not cfg.compensation.tol_deg > 0:
+        fail("compensation.tol_deg", f"{cfg.compensation.tol_deg}: must be positive (or null for the default)")
+    if cfg.compensation.max_iter is not None and cfg.compensation.max_iter < 1:
+        fail("compensation.max_iter", f"{cfg.compensation.max_iter}: must be at least 1 (or null for the default)")
+
+    import torch
+
+    try:
+        dev = torch.device(cfg.device)
+    except (RuntimeError, ValueError) as exc:
+        fail("device", f"'{cfg.device}' is not a torch device ({exc})")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        fail("device", f"'{cfg.device}' requested but CUDA is not available here (use device=cpu)")
+    if cfg.threads is not None and cfg.threads < 1:
+        fail("threads", f"{cfg.threads}: must be at least 1 (or null for torch's default)")
+    if cfg.out in (None, ""):
+        fail("out", "needs a folder for the run directory")
+
+
+def to_yaml(cfg: DictConfig) -> str:
+    """The fully resolved config as YAML (what a run directory's config.yaml holds)."""
+    return OmegaConf.to_yaml(cfg, resolve=True)
+
+
+def to_dict(cfg: DictConfig) -> dict:
+    """The fully resolved config as plain Python containers."""
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+__all__ = [
+    "CompensationConfig",
+    "ConfigError",
+    "DataConfig",
+    "FitConfig",
+    "ModelConfig",
+    "NoiseConfig",
+    "PriorConfig",
+    "SolverConfig",
+    "apply_overrides",
+    "check_config",
+    "load_config",
+    "make_config",
+    "schema",
+    "to_dict",
+    "to_yaml",
+]

@@ -1,0 +1,421 @@
+"""The CSV data contract: one row per measured point, millimetres and degrees.
+
+Columns (a header line is required; order is free; names are case-sensitive):
+
+=============  ==============================================================
+``pose``       int; rows of one pose measured with different tools share it
+``tool``       int; 0-based index into the config's tool list
+``q1..qN``     commanded joints in the controller's convention (deg, mm if
+               the joint is prismatic), N = the robot's joint count
+``dir1..dirN`` optional; approach direction of each joint, +1 or -1
+``x, y, z``    measured point in the measurement frame, mm
+anything else  carried through untouched (kept as text, written back as is)
+=============  ==============================================================
+
+Reading validates everything and raises one :class:`DataError` listing every
+problem (up to :data:`MAX_LISTED`, then a count) with the file, the 1-based
+data row and its line in the file (the header is line 1), and the column.
+Rows are never dropped. Units are converted with :mod:`torchcal.units` only.
+"""
+
+from __future__ import annotations
+
+import csv as _csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from .. import units
+from ..measurements import Measurements
+
+MAX_LISTED = 20
+"""How many problems a :class:`DataError` message lists before summarising the rest as a count."""
+
+LIMIT_TOL = 1e-6
+"""Tolerance on the controller joint range, in file units (deg / mm): absorbs rounding in written files."""
+
+FLOAT_FORMAT = "%.12g"
+"""How floats are written: 12 significant digits (1e-9 mm at a metre, far below any tracker's noise)."""
+
+XYZ = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One defect of an input file. row: 1-based data row (None: the whole file); column: name or None."""
+
+    row: int | None
+    column: str | None
+    message: str
+    line: int | None = None
+    """Line in the file where the row starts (header = line 1); default row + 1."""
+
+    def __str__(self) -> str:
+        where = []
+        if self.row is not None:
+            # blank lines are kept as rows, so data row r is line r + 1 unless a quoted field spans lines
+            where.append(f"row {self.row} (line {self.line if self.line is not None else self.row + 1})")
+        if self.column is not None:
+            where.append(f"column '{self.column}'")
+        return (", ".join(where) + ": " if where else "") + self.message
+
+
+class DataError(ValueError):
+    """An input data file that cannot be used; lists every problem with file, row, line and column.
+
+    path: the file; problems: list of :class:`Problem` (all of them, not only the listed ones).
+    """
+
+    def __init__(self, path, problems: list[Problem]):
+        self.path = str(path)
+        self.problems = list(problems)
+        super().__init__(self._format())
+
+    def _format(self) -> str:
+        n = len(self.problems)
+        head = f"{self.path}: {n} problem{'s' if n != 1 else ''} in the data"
+        if any(p.row is not None for p in self.problems):
+            head += " (row = 1-based data row, line = line in the file with the header on line 1)"
+        lines = [head + ":"]
+        ordered = sorted(self.problems, key=lambda p: (-1 if p.row is None else p.row))
+        lines += [f"  - {p}" for p in ordered[:MAX_LISTED]]
+        if n > MAX_LISTED:
+            lines.append(f"  ... and {n - MAX_LISTED} more problems")
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- reading
+def joint_columns(n: int) -> list[str]:
+    """['q1', ..., 'qN']."""
+    return [f"q{i + 1}" for i in range(n)]
+
+
+def direction_columns(n: int) -> list[str]:
+    """['dir1', ..., 'dirN']."""
+    return [f"dir{i + 1}" for i in range(n)]
+
+
+def _scan(path: Path) -> tuple[list[str], list[int], list[int]]:
+    """Header names, first file line and field count of every record (csv module: knows quoted newlines)."""
+    if not path.is_file():
+        raise DataError(path, [Problem(None, None, "file not found")])
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            reader = _csv.reader(fh)
+            header = next(reader, None)
+            starts, widths, prev = [], [], reader.line_num
+            for rec in reader:
+                starts.append(prev + 1)
+                widths.append(len(rec) if any(f.strip() for f in rec) else 0)  # whitespace-only: blank
+                prev = reader.line_num
+    except UnicodeDecodeError as exc:
+        raise DataError(path, [Problem(None, None, f"not a UTF-8 text file ({exc.reason} at byte {exc.start})")]) from None
+    except _csv.Error as exc:
+        raise DataError(path, [Problem(None, None, f"not a well-formed CSV: {exc}")]) from None
+    if not header or all(not h.strip() for h in header):
+        raise DataError(path, [Problem(None, None, "no header line; the first line must name the columns")])
+    return [h.strip() for h in header], starts, widths
+
+
+def _read_raw(path: Path) -> pd.DataFrame:
+    """Every cell as stripped text ('' where empty), one row per record, blank lines kept as rows.
+
+    ``df.attrs['lines']`` holds the file line each row starts on. Structural
+    problems (header, field counts) are all reported before pandas reads.
+    """
+    names, starts, widths = _scan(path)
+    problems = []
+    seen: dict[str, int] = {}
+    for i, name in enumerate(names):
+        if not name:
+            problems.append(Problem(None, None, f"header field {i + 1} is empty"))
+        elif name in seen:
+            problems.append(Problem(None, name, f"appears twice in the header (fields {seen[name] + 1} and {i + 1})"))
+        else:
+            seen[name] = i
+    for r, (line, w) in enumerate(zip(starts, widths)):
+        if w and w != len(names):
+            problems.append(Problem(r + 1, None, f"has {w} fields, the header has {len(names)}", line))
+    if problems:
+        raise DataError(path, problems)
+    try:
+        df = pd.read_csv(path, dtype=str, keep_default_na=False, skip_blank_lines=False, encoding="utf-8-sig",
+                         skipinitialspace=True)
+    except pd.errors.ParserError as exc:
+        raise DataError(path, [Problem(None, None, f"not a well-formed CSV: {exc}".strip())]) from None
+    if len(df) != len(starts):  # the two readers disagree: trust neither with line numbers
+        starts = [None] * len(df)
+    df.columns = names
+    df = df.fillna("")
+    for c in df.columns:
+        df[c] = df[c].astype(str).str.strip()
+    # trailing blank lines are an editor artefact, not rows; blank lines in between are reported
+    blank = (df == "").all(axis=1).to_numpy()
+    end = len(df)
+    while end > 0 and blank[end - 1]:
+        end -= 1
+    df = df.iloc[:end].reset_index(drop=True)
+    if len(df) == 0:
+        raise DataError(path, [Problem(None, None, "no data rows after the header")])
+    df.attrs["lines"] = list(starts[:end])
+    return df
+
+
+def _numbers(df: pd.DataFrame, column: str, problems: list[Problem]) -> np.ndarray:
+    """Column as float64 (R,); every empty, non-numeric or non-finite cell becomes a Problem (value NaN).
+
+    Rows flagged in ``df.attrs['blank']`` (blank lines, reported once each) are not reported again.
+    """
+    text = df[column]
+    values = pd.to_numeric(text, errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
+    bad = ~np.isfinite(values)
+    blank = df.attrs.get("blank")
+    if blank is not None and len(blank) == len(bad):
+        bad &= ~blank
+    for r in np.flatnonzero(bad):
+        t = text.iloc[r]
+        msg = "empty; a number is required" if t == "" else f"{t!r} is not a finite number"
+        problems.append(Problem(int(r) + 1, column, msg))
+    return values
+
+
+def _integers(df: pd.DataFrame, column: str, problems: list[Problem]) -> tuple[np.ndarray, np.ndarray]:
+    """Column as int64 (R,) and (R,) bool valid; non-integer values become Problems (value 0, invalid)."""
+    values = _numbers(df, column, problems)
+    ok = np.isfinite(values)
+    frac = ok & (values != np.round(values))
+    for r in np.flatnonzero(frac):
+        problems.append(Problem(int(r) + 1, column, f"{df[column].iloc[r]!r} is not an integer"))
+    ok &= ~frac
+    return np.where(ok, values, 0.0).astype(np.int64), ok
+
+
+def parse_table(
+    df: pd.DataFrame,
+    path,
+    robot,
+    n_tools: int | None,
+    require_xyz: bool = True,
+    require_pose: bool | None = None,
+) -> Measurements:
+    """Validate a raw text table (as read by :func:`read_table`) and convert it to SI :class:`Measurements`.
+
+    n_tools: number of configured tools (the 'tool' column is required and
+    checked against it), or None when tools do not matter (compensation): then
+    a 'tool' column is carried through as an extra column and every tool is 0.
+    require_xyz: measured data ('x, y, z' required and finite); otherwise xyz
+    is read when all three columns are there (empty cells allowed, NaN) and is
+    NaN where absent. require_pose: default = require_xyz; without a 'pose'
+    column every row is its own pose. Duplicate (pose, tool) rows are an error
+    in measured data only.
+    """
+    path = str(path)
+    n = robot.joint_map.n
+    prismatic = robot.joint_map.prismatic.cpu()
+    unit = units.joint_unit_names(prismatic)
+    require_pose = require_xyz if require_pose is None else require_pose
+    problems: list[Problem] = []
+    cols = set(df.columns)
+    R = len(df)
+    blank = (df == "").all(axis=1).to_numpy()
+    for r in np.flatnonzero(blank):
+        problems.append(Problem(int(r) + 1, None, "blank line between data rows; remove it (rows are never skipped)"))
+    df = df.copy()
+    df.attrs["blank"] = blank
+
+    qcols, dcols = joint_columns(n), direction_columns(n)
+    required = qcols + (["tool"] if n_tools is not None else []) + (["pose"] if require_pose else [])
+    required += list(XYZ) if require_xyz else []
+    found = ", ".join(df.columns)
+    for c in required:
+        if c not in cols:
+            problems.append(Problem(None, c, f"missing (the robot '{robot.name}' has {n} joints; columns found: {found})"))
+    for prefix in ("q", "dir"):
+        extra_joint = f"{prefix}{n + 1}"
+        if extra_joint in cols:
+            problems.append(Problem(None, extra_joint, f"robot '{robot.name}' has only {n} joints; is this file for another robot?"))
+    present_dirs = [c for c in dcols if c in cols]
+    if present_dirs and len(present_dirs) != n:
+        missing = [c for c in dcols if c not in cols]
+        problems.append(Problem(None, None, f"direction columns must be all of dir1..dir{n} or none; missing {missing}"))
+    has_xyz = all(c in cols for c in XYZ)
+    if not require_xyz and any(c in cols for c in XYZ) and not has_xyz:
+        problems.append(Problem(None, None, f"give all of x, y, z or none; found only {[c for c in XYZ if c in cols]}"))
+
+    # joints: numbers inside the controller range
+    q = np.zeros((R, n))
+    limits = units.joints_from_si(robot.joint_map.limits.cpu().T, prismatic).T.numpy()  # (n, 2) deg / mm
+    for i, c in enumerate(qcols):
+        if c not in cols:
+            continue
+        q[:, i] = _numbers(df, c, problems)
+        lo, hi = limits[i]
+        outside = np.isfinite(q[:, i]) & ((q[:, i] < lo - LIMIT_TOL) | (q[:, i] > hi + LIMIT_TOL))
+        for r in np.flatnonzero(outside):
+            problems.append(Problem(int(r) + 1, c, f"{q[r, i]:.6g} {unit[i]} is outside the controller range "
+                                                    f"[{lo:.6g}, {hi:.6g}] {unit[i]} of '{robot.name}'"))
+
+    # approach directions: exactly +1 or -1
+    has_direction = len(present_dirs) == n
+    direction = np.zeros((R, n))
+    if has_direction:
+        for i, c in enumerate(dcols):
+            d = _numbers(df, c, problems)
+            wrong = np.isfinite(d) & (np.abs(d) != 1.0)
+            for r in np.flatnonzero(wrong):
+                problems.append(Problem(int(r) + 1, c, f"{df[c].iloc[r]!r} is not an approach direction (+1 or -1)"))
+            direction[:, i] = np.where(np.isfinite(d) & ~wrong, d, 0.0)
+
+    tool = np.zeros(R, dtype=np.int64)
+    valid_key = np.ones(R, dtype=bool)  # rows whose (pose, tool) can take part in the duplicate check
+    if n_tools is not None and "tool" in cols:
+        tool, ok = _integers(df, "tool", problems)
+        unknown = ok & ((tool < 0) | (tool >= n_tools))
+        valid_key &= ok & ~unknown
+        for r in np.flatnonzero(unknown):
+            problems.append(Problem(int(r) + 1, "tool", f"tool {tool[r]} is not configured; tools are 0..{n_tools - 1} "
+                                                        f"({n_tools} in the config's tool list)"))
+        tool = np.where(unknown, 0, tool)
+
+    pose = np.arange(R, dtype=np.int64)  # no pose column: every row its own pose, like Measurements.from_tensors
+    if "pose" in cols:
+        pose, ok = _integers(df, "pose", problems)
+        valid_key &= ok
+
+    xyz = np.full((R, 3), np.nan)
+    if has_xyz:
+        for i, c in enumerate(XYZ):
+            if require_xyz:
+                xyz[:, i] = _numbers(df, c, problems)
+            else:
+                # predicting: empty cells are allowed (nothing measured), text is still an error
+                filled = df[c] != ""
+                sub = df.loc[filled, [c]].reset_index(drop=True)
+                sub_problems: list[Problem] = []
+                vals = _numbers(sub, c, sub_problems)
+                rows = np.flatnonzero(filled.to_numpy())
+                problems += [Problem(int(rows[p.row - 1]) + 1, p.column, p.message) for p in sub_problems]
+                xyz[rows, i] = vals
+
+    if require_xyz and "pose" in cols and (n_tools is None or "tool" in cols):
+        # a bad pose or tool is already reported; it must not also pair up as a false duplicate
+        key = pd.DataFrame({"pose": pose, "tool": tool, "row": np.arange(R)})[valid_key]
+        dup = np.zeros(R, dtype=bool)
+        dup[key["row"].to_numpy()[key.duplicated(["pose", "tool"], keep="first").to_numpy()]] = True
+        if dup.any():
+            first = np.zeros(R, dtype=np.int64)
+            first[key["row"].to_numpy()] = key.groupby(["pose", "tool"])["row"].transform("min").to_numpy()
+            for r in np.flatnonzero(dup):
+                problems.append(Problem(int(r) + 1, "pose, tool", f"duplicate of row {first[r] + 1} "
+                                                                  f"(pose {pose[r]}, tool {tool[r]}); each pose is measured once per tool"))
+
+    if problems:
+        lines = df.attrs.get("lines")
+        if lines is not None and len(lines) == R:
+            problems = [p if p.row is None else Problem(p.row, p.column, p.message, lines[p.row - 1]) for p in problems]
+        raise DataError(path, problems)
+
+    interpreted = set(qcols) | ({"tool"} if n_tools is not None else set()) | {"pose"}
+    interpreted |= set(dcols) if has_direction else set()
+    interpreted |= set(XYZ) if has_xyz else set()
+    extra = {c: df[c].to_numpy(dtype=object) for c in df.columns if c not in interpreted}
+    return Measurements(
+        q=units.joints_to_si(torch.from_numpy(q), prismatic),
+        tool=torch.from_numpy(tool),
+        xyz=units.mm_to_m(torch.from_numpy(xyz)),
+        direction=torch.from_numpy(direction),
+        pose=torch.from_numpy(pose),
+        rows=torch.arange(1, R + 1),
+        has_direction=has_direction,
+        source=path,
+        extra=extra,
+    )
+
+
+def read_table(path, robot, n_tools: int | None, require_xyz: bool = True, require_pose: bool | None = None
+               ) -> tuple[Measurements, pd.DataFrame]:
+    """Read and validate a CSV; returns SI :class:`Measurements` and the raw text table (for carrying columns through).
+
+    See :func:`parse_table` for the arguments. Raises :class:`DataError`.
+    """
+    path = Path(path)
+    df = _read_raw(path)
+    return parse_table(df, path, robot, n_tools, require_xyz, require_pose), df
+
+
+def read_measurements(path, robot, n_tools: int | None, require_xyz: bool = True) -> Measurements:
+    """Read a measurement CSV (mm, deg) into SI :class:`Measurements` (m, rad); columns beyond the contract go to ``extra``.
+
+    robot: a :class:`torchcal.kinematics.Robot` (joint count, units, controller
+    range); n_tools: number of tools in the config. Raises :class:`DataError`
+    listing every problem.
+    """
+    return read_table(path, robot, n_tools, require_xyz)[0]
+
+
+# ---------------------------------------------------------------------------- writing
+def joints_to_file(q: torch.Tensor, robot) -> np.ndarray:
+    """Controller commands (R, n) SI -> (R, n) float64 numpy in file units (deg / mm)."""
+    return units.joints_from_si(q.detach().to("cpu", torch.float64), robot.joint_map.prismatic.cpu()).numpy()
+
+
+def points_to_file(xyz: torch.Tensor) -> np.ndarray:
+    """Points (R, 3) m -> (R, 3) float64 numpy in mm."""
+    return units.m_to_mm(xyz.detach().to("cpu", torch.float64)).numpy()
+
+
+def measurements_frame(data: Measurements, robot) -> pd.DataFrame:
+    """The contract's table (file units) for ``data``: pose, tool, q, [dir], x, y, z, then 1-D extra columns."""
+    n = data.n_joints
+    if n != robot.joint_map.n:
+        raise ValueError(f"measurements have {n} joints, robot '{robot.name}' has {robot.joint_map.n}")
+    cols: dict[str, np.ndarray] = {
+        "pose": data.pose.cpu().numpy().astype(np.int64),
+        "tool": data.tool.cpu().numpy().astype(np.int64),
+    }
+    q = joints_to_file(data.q, robot)
+    for i, c in enumerate(joint_columns(n)):
+        cols[c] = q[:, i]
+    if data.has_direction:
+        d = data.direction.cpu().numpy().astype(np.int64)
+        for i, c in enumerate(direction_columns(n)):
+            cols[c] = d[:, i]
+    xyz = points_to_file(data.xyz)
+    for i, c in enumerate(XYZ):
+        cols[c] = xyz[:, i]
+    for name, v in data.extra.items():
+        arr = v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else np.asarray(v)
+        # only per-row scalars are columns; other extras (e.g. (R, n) tensors from a simulator) are not
+        if arr.ndim == 1 and arr.shape[0] == len(data) and name not in cols:
+            cols[name] = arr
+    return pd.DataFrame(cols)
+
+
+def write_table(path, df: pd.DataFrame) -> Path:
+    """Write a table as CSV (floats with :data:`FLOAT_FORMAT`, NaN as an empty cell); creates the folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    df.to_csv(path, index=False, float_format=FLOAT_FORMAT, na_rep="", lineterminator="\n")
+    return path
+
+
+def write_measurements(path, data: Measurements, robot) -> Path:
+    """Write SI :class:`Measurements` in the CSV contract (mm, deg); NaN points become empty x, y, z cells."""
+    return write_table(path, measurements_frame(data, robot))
+
+
+__all__ = [
+    "DataError",
+    "Problem",
+    "direction_columns",
+    "joint_columns",
+    "measurements_frame",
+    "parse_table",
+    "read_measurements",
+    "read_table",
+    "write_measurements",
+    "write_table",
+]

@@ -1,0 +1,225 @@
+"""Run directories: everything one fit produced, reloadable, like a training run.
+
+Layout written by :func:`torchcal.pipeline.run_fit`::
+
+    <run>/
+      config.yaml      the fully resolved config (absolute paths, every default)
+      versions.json    python, platform, torchcal + dependency versions, git commit, device
+      run.log          what happened, with timestamps (also when a step failed)
+      model.pt         RobotModel.spec() + state_dict; reload with load_model(<run>)
+      fit.json         FitResult.summary(), pinned (gauge-fixed) parameter names, cost history
+      orders.json      order selection table (model.order: auto only)
+      metrics.json     residual statistics in mm (Table 6 layout; Table 7 with a truth)
+      residuals.csv    per-row nominal and modeled residuals (mm) of every data set
+      plots/*.png      Figure 12 (joint_errors), 13 (distribution_*), 14-15 (residuals_*),
+                       16 (compensation_validation, with a truth)
+
+Where it goes: ``out`` itself when it does not exist or is an empty folder;
+otherwise a fresh ``<out>/<YYYYmmdd-HHMMSS>`` inside it, so re-running a
+config never overwrites an earlier run (and never fails for it).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import platform
+import subprocess
+import sys
+from contextlib import contextmanager
+from datetime import datetime
+from importlib import metadata
+from pathlib import Path
+
+import torch
+
+MODEL_FILE = "model.pt"
+MODEL_FORMAT = "torchcal.RobotModel"
+MODEL_FORMAT_VERSION = 1
+
+
+class RunDirError(ValueError):
+    """A run directory that cannot be created or read; the message names the folder."""
+
+
+def make_run_dir(out) -> Path:
+    """Create the run directory for ``out``: ``out`` if absent or empty, else ``out/<timestamp>`` (never reuses one)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise RunDirError(f"{out}: exists and is not a folder; choose another 'out'")
+    if not out.exists() or not any(out.iterdir()):
+        out.mkdir(parents=True, exist_ok=True)
+        return out
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    for k in range(1, 1000):
+        run = out / (stamp if k == 1 else f"{stamp}-{k}")
+        try:
+            run.mkdir()  # exist_ok=False: two runs started in the same second get different folders
+            return run
+        except FileExistsError:
+            continue
+    raise RunDirError(f"{out}: could not create a fresh run folder for {stamp}")
+
+
+def _jsonable(obj):
+    """Plain JSON values: tensors to lists, NaN / inf to null (strict JSON has neither), Paths to str."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, torch.Tensor):
+        return _jsonable(obj.detach().cpu().tolist())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "item") and callable(obj.item):  # numpy scalars
+        return _jsonable(obj.item())
+    return obj
+
+
+def write_json(path, obj) -> Path:
+    """Write ``obj`` as indented, strict JSON (NaN -> null)."""
+    path = Path(path)
+    path.write_text(json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    return path
+
+
+def read_json(path):
+    return json.loads(Path(path).read_text(encoding="utf-8"))
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return metadata.version(dist)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def git_commit(folder=None) -> dict | None:
+    """{'commit', 'dirty'} of the git checkout holding ``folder`` (default: torchcal's source), or None."""
+    folder = Path(folder or Path(__file__).resolve().parent.parent)
+    try:
+        commit = subprocess.run(["git", "-C", str(folder), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5)
+        if commit.returncode != 0:
+            return None
+        status = subprocess.run(["git", "-C", str(folder), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=10)
+        return {"commit": commit.stdout.strip(), "dirty": bool(status.stdout.strip()) if status.returncode == 0 else None}
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def collect_versions(device=None) -> dict:
+    """What produced a run: interpreter, platform, package versions, git commit, compute device."""
+    dev = torch.device(device or "cpu")
+    info = {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "torchcal": _version("torchcal"),
+        "torch": torch.__version__,
+        "numpy": _version("numpy"),
+        "scipy": _version("scipy"),
+        "pandas": _version("pandas"),
+        "omegaconf": _version("omegaconf"),
+        "pytorch_kinematics": _version("pytorch-kinematics") or _version("pytorch_kinematics"),
+        "yourdfpy": _version("yourdfpy"),
+        "git": git_commit(),
+        "device": str(dev),
+        "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine(),
+        "created": datetime.now().astimezone().isoformat(timespec="seconds"),
+    }
+    return info
+
+
+# ----------------------------------------------------------------------- models
+def save_model(run_dir, model, **meta) -> Path:
+    """Write ``model.pt``: the model's spec (structure) and state dict (values, on CPU), plus ``meta``."""
+    path = Path(run_dir) / MODEL_FILE
+    state = {k: v.detach().cpu() for k, v in model.state_dict().items()}
+    spec = dict(model.spec())
+    robot = Path(str(spec["robot"]))
+    if robot.suffix and robot.exists():
+        # a robot file named relative to the working directory must reload from anywhere
+        spec["robot"] = str(robot.resolve())
+    torch.save({"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "spec": spec,
+                "state_dict": state, "meta": _jsonable(meta)}, path)
+    return path
+
+
+def load_model(run_dir, device=None, robot=None):
+    """Rebuild the identified :class:`torchcal.model.RobotModel` of a run (a run folder or its model.pt).
+
+    device: where to put it (default CPU); robot: a loaded Robot to use instead
+    of the one named in the spec (e.g. when the run moved to another machine).
+    """
+    from ..model import RobotModel
+
+    path = Path(run_dir)
+    if path.is_dir():
+        path = path / MODEL_FILE
+    if not path.is_file():
+        raise RunDirError(f"{path}: no model here; give a run directory written by 'torchcal fit'")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # a truncated or foreign file: say which file, not a pickle traceback
+        raise RunDirError(f"{path}: not a readable torchcal model ({type(exc).__name__}: {exc})") from None
+    if not isinstance(blob, dict) or blob.get("format") != MODEL_FORMAT:
+        raise RunDirError(f"{path}: not a torchcal model file")
+    if blob.get("format_version", 0) > MODEL_FORMAT_VERSION:
+        raise RunDirError(f"{path}: written by a newer torchcal (format {blob['format_version']}); upgrade torchcal")
+    model = RobotModel.from_spec(blob["spec"], robot)
+    model.load_state_dict(blob["state_dict"])
+    return model.to(device) if device is not None else model
+
+
+def load_run_config(run_dir):
+    """The resolved config (DictConfig) a run was made with."""
+    from omegaconf import OmegaConf
+
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise RunDirError(f"{path}: no config.yaml; is {run_dir} a run directory?")
+    return OmegaConf.load(path)
+
+
+# ---------------------------------------------------------------------- logging
+@contextmanager
+def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
+    """Send the ``torchcal`` logger's INFO records to ``<run_dir>/run.log`` for the duration of the block.
+
+    A failure inside the block is logged with its traceback before it propagates,
+    so the log shows how far a run got.
+    """
+    logger = logging.getLogger(name)
+    handler = logging.FileHandler(Path(run_dir) / filename, encoding="utf-8")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
+    old_level = logger.level
+    logger.addHandler(handler)
+    if logger.level == logging.NOTSET or logger.level > logging.INFO:
+        logger.setLevel(logging.INFO)
+    try:
+        yield logger
+    except BaseException:
+        logger.exception("run failed")
+        raise
+    finally:
+        logger.removeHandler(handler)
+        handler.close()
+        logger.setLevel(old_level)
+
+
+__all__ = [
+    "MODEL_FILE",
+    "RunDirError",
+    "collect_versions",
+    "git_commit",
+    "load_model",
+    "load_run_config",
+    "make_run_dir",
+    "read_json",
+    "run_log",
+    "save_model",
+    "write_json",
+]

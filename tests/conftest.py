@@ -12,22 +12,28 @@ torch.set_default_dtype(torch.float64)
 PAPER2_TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]
 
 
-def fanuc_dh_reference(q_deg: np.ndarray) -> np.ndarray:
-    """Flange pose (N, 4, 4), metres, from Paper II Table 2 with plain numpy (independent of torchcal)."""
-    q = np.radians(np.atleast_2d(q_deg))
-    theta = np.stack([q[:, 0], q[:, 1] - np.pi / 2, q[:, 1] + q[:, 2], q[:, 3], q[:, 4], q[:, 5]], 1)
-    d = [0, 0, 0, -290, 0, -80]
-    a = [150, 250, 75, 0, 0, 0]
-    alpha = np.radians([-90, 180, -90, 90, -90, 180])
-    out = np.tile(np.eye(4), (q.shape[0], 1, 1))
-    for i in range(6):
+def standard_dh(theta: np.ndarray, d, a, alpha) -> np.ndarray:
+    """Π of standard DH transforms with plain numpy (independent of torchcal).
+
+    theta: (N, n) rad; d, a: (n,) mm; alpha: (n,) rad -> (N, 4, 4), translation in mm.
+    """
+    out = np.tile(np.eye(4), (theta.shape[0], 1, 1))
+    for i in range(theta.shape[1]):
         ct, st = np.cos(theta[:, i]), np.sin(theta[:, i])
         ca, sa = np.cos(alpha[i]), np.sin(alpha[i])
-        T = np.zeros((q.shape[0], 4, 4))
+        T = np.zeros((theta.shape[0], 4, 4))
         T[:, 0] = np.stack([ct, -st * ca, st * sa, a[i] * ct], 1)
         T[:, 1] = np.stack([st, ct * ca, -ct * sa, a[i] * st], 1)
         T[:, 2, 1], T[:, 2, 2], T[:, 2, 3], T[:, 3, 3] = sa, ca, d[i], 1.0
         out = out @ T
+    return out
+
+
+def fanuc_dh_reference(q_deg: np.ndarray) -> np.ndarray:
+    """Flange pose (N, 4, 4), metres, from Paper II Table 2 with plain numpy (independent of torchcal)."""
+    q = np.radians(np.atleast_2d(q_deg))
+    theta = np.stack([q[:, 0], q[:, 1] - np.pi / 2, q[:, 1] + q[:, 2], q[:, 3], q[:, 4], q[:, 5]], 1)
+    out = standard_dh(theta, [0, 0, 0, -290, 0, -80], [150, 250, 75, 0, 0, 0], np.radians([-90, 180, -90, 90, -90, 180]))
     out[:, :3, 3] /= 1000.0
     return out
 

@@ -236,3 +236,61 @@ def test_fit_with_automatic_orders(e2e):
     model = load_model(out)
     assert model.joint_errors.orders[:, 0].tolist() == sel["orders"]
     assert not (out / "plots").exists() and (out / "model.pt").exists()
+
+
+def test_fit_far_tracker_with_unknown_tools_then_predict(tmp_path, fanuc):
+    """A tracker 2.5 m away in its own frame, reflectors at unknown places (tools: {count: 3}, no frame):
+    fit aligns first, records the frame and tools, and predict answers in the tracker's frame."""
+    from dataclasses import replace
+
+    from torchcal.identify import NoiseModel
+    from torchcal.io.csv import write_measurements
+    from torchcal.kinematics.transforms import homogeneous, rpy_to_matrix, so3_log
+    from torchcal.sim import quasi_random_commands, simulate
+
+    f64 = torch.float64
+    frame = homogeneous(rpy_to_matrix(torch.tensor([-2.4, 0.6, 1.2], dtype=f64)), torch.tensor([-1.2, 2.1, -0.5], dtype=f64))
+    assert 2.4 < float(frame[:3, 3].norm()) < 2.6
+    tools = torch.tensor([[45.0, 55.0, 150.0], [60.0, -40.0, 170.0], [-35.0, -60.0, 140.0]], dtype=f64) * 1e-3
+    truth = TruthRobot.fanuc_paper2(fanuc, tools, 4, base_nominal=frame)
+    lim = fanuc.joint_map.limits
+    ident = simulate(truth, quasi_random_commands(lim, 40, 6), [0, 1, 2], NoiseModel.paper2(), 1)
+    keep = torch.arange(len(ident)) % 5 != 3  # not every reflector seen at every pose
+    ident = replace(ident, q=ident.q[keep], tool=ident.tool[keep], xyz=ident.xyz[keep], direction=ident.direction[keep],
+                    pose=ident.pose[keep], rows=torch.arange(1, int(keep.sum()) + 1), extra={})
+    val = simulate(truth, quasi_random_commands(lim, 25, 6, skip=40), [0, 1, 2], NoiseModel.paper2(), 2)
+    write_measurements(tmp_path / "identification.csv", ident, fanuc)
+    write_measurements(tmp_path / "validation.csv", val, fanuc)
+    (tmp_path / "fit.yaml").write_text(
+        "robot: fanuc_lrmate200i\ntools: {count: 3}\n"
+        "data: {identification: identification.csv, validation: validation.csv}\n"
+        "model: {order: 1}\nplots: false\nout: run\n")
+    r = invoke("fit", tmp_path / "fit.yaml", "--quiet")
+    assert r.exit_code == 0, r.output
+    run = tmp_path / "run"
+    al = json.loads((run / "alignment.json").read_text())
+    assert al["estimated_frame"] and al["estimated_tools"] and al["converged"]
+    assert np.linalg.norm(np.array(al["frame"]["xyz_mm"]) - frame[:3, 3].numpy() * 1e3) < 5.0
+    assert np.abs(np.array(al["tools_mm"]) - truth.tools().numpy() * 1e3).max() < 3.0
+    assert 0.1 < al["residual_mm"]["rms"] < 5.0  # the nominal robot's errors, not a wrong frame (metres)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["alignment"] == al
+    assert metrics["sets"]["validation"]["modeled"]["mean"] < 0.5 * metrics["sets"]["validation"]["nominal"]["mean"]
+    assert "alignment: estimated the measurement frame and tool vectors" in (run / "run.log").read_text()
+    model = load_model(run)
+    with torch.no_grad():
+        assert float(so3_log(frame[:3, :3].T @ model.base()[:3, :3]).norm()) < 5e-3
+    # the run's config still says what the user wrote; the model carries the estimates
+    assert dict(load_config(run / "config.yaml").tools) == {"count": 3}
+
+    r = invoke("predict", run, tmp_path / "validation.csv", tmp_path / "predicted.csv")
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(tmp_path / "predicted.csv")
+    with torch.no_grad():
+        p_mm = model.points(val.q, val.tool, val.direction).numpy() * 1e3
+    assert np.allclose(out[["x", "y", "z"]].to_numpy(), p_mm, rtol=0, atol=1e-7)
+    err = np.linalg.norm(out[["x", "y", "z"]].to_numpy() - val.xyz.numpy() * 1e3, axis=1)
+    # in the tracker's frame 2.5 m away, well under the nominal robot's millimetres (order 1 on 40 poses: ~0.5 mm)
+    nominal_mean = metrics["sets"]["validation"]["nominal"]["mean"]
+    assert nominal_mean < 10.0 and err.mean() == pytest.approx(metrics["sets"]["validation"]["modeled"]["mean"], rel=1e-6)
+    assert err.mean() < 0.25 * nominal_mean

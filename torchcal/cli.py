@@ -349,6 +349,39 @@ def simulate_cmd(
     typer.echo(f"next: torchcal fit {paths['config']}")
 
 
+# --------------------------------------------------------------- import-tracker
+@app.command("import-tracker")
+def import_tracker_cmd(
+    output: Annotated[Path, typer.Argument(help="Measurement CSV to write (pose, tool, q1..qN, dir1..dirN, x, y, z; mm, deg).")],
+    joints: Annotated[Path, typer.Option("--joints", help="Commanded joints, one row per pose, N columns (deg / mm).")],
+    target: Annotated[list[Path], typer.Option("--target", help="Tool reflector file (x y z mm per pose); repeat, tool i = i-th file (0-based).")],
+    base: Annotated[Optional[list[Path]], typer.Option("--base", help="Base reflector file (x y z mm per pose), for drift; repeat.")] = None,
+    robot: Annotated[Optional[str], typer.Option(help="Bundled robot name, joint-map YAML or URDF: joint count and controller limits are checked.")] = None,
+    drift_threshold_mm: Annotated[float, typer.Option(help="Largest per-pose base drift (mm) accepted without --correct-drift.")] = 0.1,
+    correct_drift: Annotated[bool, typer.Option("--correct-drift", help="Map each pose's target points through its rigid base-drift correction.")] = False,
+    outlier_mm: Annotated[float, typer.Option(help="A single base reading this far (mm) off its median is a wrong-target outlier.")] = 1.0,
+):
+    """Convert laser-tracker exports (whitespace / comma separated, one row per pose) into the measurement CSV.
+
+    Approach directions follow the commanded pose order; 0 0 0 rows are failed
+    readings (that reflector's row dropped, reported); base reflectors give
+    the per-pose drift (checked against the threshold, or corrected).
+    """
+    from .io.csv import write_table
+    from .io.tracker import import_tracker
+    from .kinematics import load_robot
+
+    with _user_errors():
+        rob = load_robot(robot) if robot else None
+        res = import_tracker(joints, list(target), list(base or []), rob, drift_threshold_mm, correct_drift, outlier_mm)
+        write_table(output, res.table)
+    out = _console()
+    out.print(res.summary_table())
+    for line in res.report:
+        out.print(line, markup=False)
+    typer.echo(f"wrote {len(res.table)} rows -> {output}")
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point (``torchcal``)."""
     app(args=argv if argv is not None else sys.argv[1:], prog_name="torchcal")

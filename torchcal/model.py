@@ -17,6 +17,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from .errors.compliance import build_compliance
 from .errors.frame import FrameError, ToolSet
 from .errors.joint import JointErrors
 from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
@@ -32,10 +33,17 @@ class RobotModel(nn.Module):
     vectors in the flange frame (m); orders: Chebyshev order per joint (int,
     list or (n, 6) table, see :class:`JointErrors`); backlash: direction term
     on eps_z; base_nominal: (4, 4) first guess of the measurement frame ->
-    robot base (identity when the tracker frame is the base frame).
+    robot base (identity when the tracker frame is the base frame);
+    compliance: optional gravity compliance of the joints carrying the arm
+    (:class:`~torchcal.errors.compliance.GravityCompliance`, parameter
+    ``compliance.coef``): False (off, the default), True / 'auto', 'gravity',
+    'functions', or a dict of its keywords (mode, joints, gravity, inertials).
+    Its deflection Δθ(θ(q)) adds to the URDF joint variables where the joint
+    errors v act, evaluated at the commanded q (v does not enter it).
     """
 
-    def __init__(self, robot: Robot, tools, orders=6, backlash=None, base_nominal: torch.Tensor | None = None):
+    def __init__(self, robot: Robot, tools, orders=6, backlash=None, base_nominal: torch.Tensor | None = None,
+                 compliance=False):
         super().__init__()
         self.robot = robot
         chain, jm = robot.chain, robot.joint_map
@@ -49,6 +57,7 @@ class RobotModel(nn.Module):
         self.joint_errors = JointErrors(jm.joint_ranges(), orders, backlash, chain.joint_names)
         self.base = FrameError(base_nominal)
         self.tools = ToolSet(tools)
+        self.compliance = build_compliance(robot, compliance)
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
 
     # ------------------------------------------------------------------ shapes
@@ -78,6 +87,8 @@ class RobotModel(nn.Module):
         """
         qv = q if v is None else q + v
         theta = self.joint_variables(qv)
+        if self.compliance is not None:
+            theta = theta + self.compliance(self.joint_variables(q))
         E = self.joint_errors(theta, direction)
         T0 = self.base() if base else self.base.correction()
         return chain_frames(self.origins, self.axes, self.prismatic, theta, E, self.tip, T0)
@@ -114,6 +125,10 @@ class RobotModel(nn.Module):
         """Forward pass keeping what the closed-form Jacobians need."""
         je = self.joint_errors
         theta = self.joint_variables(q if v is None else q + v)
+        comp = None
+        if self.compliance is not None:
+            comp = self.compliance.functions(self.joint_variables(q))  # (B, m, K)
+            theta = theta + self.compliance.deflection_from(comp)
         lam = je.normalized(theta)
         K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
         scale = 2.0 / (je.ranges[:, 1] - je.ranges[:, 0])
@@ -130,7 +145,7 @@ class RobotModel(nn.Module):
             de = de + torch.nn.functional.pad(((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
         T0 = self.base() if base else self.base.correction()
         jR, jp, F = chain_frames(self.origins, self.axes, self.prismatic, theta, twist_to_transform(e), self.tip, T0)
-        return dict(theta=theta, basis=basis, e=e, de=de, s=s, jR=jR, jp=jp, F=F, K=K, Kb=Kb)
+        return dict(theta=theta, basis=basis, e=e, de=de, s=s, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp)
 
     def point_jacobians(self, q, tool, direction=None, v=None):
         """Tool points and their Jacobians w.r.t. every parameter group and the joint errors v.
@@ -138,8 +153,9 @@ class RobotModel(nn.Module):
         q: (B, n); tool: (B,) long; direction: (B, n) or None; v: (B, n) or None.
         -> p: (B, 3) and a dict of Jacobians d p / d(.) keyed like named_parameters():
            'joint_errors.coef' (B, 3, n, 6, K), 'joint_errors.backlash' (B, 3, n, Kb),
-           'base.twist' (B, 3, 6), 'tools.delta' (B, 3, T, 3), and 'v' (B, 3, n)
-           (controller space, error-term slopes included).
+           'base.twist' (B, 3, 6), 'tools.delta' (B, 3, T, 3), with compliance
+           'compliance.coef' (B, 3, m, K), and 'v' (B, 3, n) (controller space,
+           error-term slopes included).
         """
         d = self._parts(q, direction, v)
         F = d["F"]
@@ -159,6 +175,10 @@ class RobotModel(nn.Module):
         Jt = torch.zeros(B, 3, self.tools.count, 3, dtype=q.dtype, device=q.device)
         Jt[torch.arange(B, device=q.device), :, tool, :] = F[:, :3, :3]
         J["tools.delta"] = Jt
+        if self.compliance is not None:
+            c = self.compliance
+            # Δθ_j = Σ_k coef[j, k] F[j, k] enters like a joint error: d p / d coef = d p / d θ_j · F[j, k]
+            J["compliance.coef"] = torch.einsum("bcm,bmk->bcmk", Jth[:, :, c.joints], d["comp"]) * c.mask
         J["v"] = Jth @ self.coupling
         return p, J
 
@@ -177,18 +197,25 @@ class RobotModel(nn.Module):
         Js = Js + torch.einsum("bnct,bnt->bcn", Je, d["de"])
         Rt = F[:, :3, :3].transpose(1, 2)
         Jb = torch.cat([Rt @ Js[:, :3], Rt @ Js[:, 3:]], 1)
+        if self.compliance is not None:
+            # θ = A q + offset + Δθ(A q + offset): dθ/dq = (I + dΔθ/dθ) A per pose
+            D = self.compliance.deflection_jacobian(self.joint_variables(q))
+            return F, Jb @ (self.coupling + D @ self.coupling)
         return F, Jb @ self.coupling
 
     # ------------------------------------------------------------ persistence
     def spec(self) -> dict[str, Any]:
         """What it takes to rebuild this model's structure (the state dict holds the values)."""
-        return {
+        out = {
             "robot": self.robot.source or self.robot.name,
             "tools": self.tools.nominal.tolist(),
             "orders": self._spec["orders"],
             "backlash": self._spec["backlash"],
             "base_nominal": self.base.nominal.tolist(),
         }
+        if self.compliance is not None:  # absent when off: specs of models without it stay as they were
+            out["compliance"] = self.compliance.spec()
+        return out
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> "RobotModel":
@@ -199,4 +226,4 @@ class RobotModel(nn.Module):
         b = spec.get("backlash")
         backlash = None if b is None or max(b) < 0 else b
         return cls(robot, torch.tensor(spec["tools"], dtype=torch.float64), spec["orders"], backlash,
-                   torch.tensor(spec["base_nominal"], dtype=torch.float64))
+                   torch.tensor(spec["base_nominal"], dtype=torch.float64), compliance=spec.get("compliance") or False)

@@ -3,6 +3,10 @@
 A thin composition of library calls, in Paper II's order (5.5-5.6):
 
 1. load the robot, tools (mm -> m) and the CSV data (identification, validation);
+   when the config leaves the tool vectors (``tools: {count: T}``) or the
+   measurement frame (``measurement_frame: estimate``) to the data, estimate
+   them on the nominal robot first (:mod:`torchcal.identify.alignment`) ->
+   ``alignment.json``; the model then starts from them (base_nominal, tools);
 2. choose the Chebyshev orders if ``model.order: auto`` (:func:`select_orders`:
    on the validation set if there is one, else K-fold cross-validation by pose);
 3. identify the model (:func:`torchcal.identify.fit`) and write ``model.pt`` and
@@ -26,11 +30,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+from omegaconf import DictConfig
 
 from . import units
 from .analysis.stats import ResidualStats, percent_decrease, point_residuals, residual_stats
 from .identify import FitResult, NoiseModel, Prior, fit
 from .io.config import ConfigError, check_config, to_yaml
+from .kinematics.transforms import homogeneous, rpy_to_matrix
 from .io.csv import read_measurements, write_table
 from .io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
 from .kinematics import load_robot
@@ -65,9 +71,54 @@ class RunResult:
 
 
 # --------------------------------------------------------------- config -> objects
-def config_tools(cfg) -> torch.Tensor:
-    """Tool vectors (T, 3) in metres from the config's mm."""
-    return units.mm_to_m(torch.tensor([list(t) for t in cfg.tools], dtype=torch.float64))
+def config_tools(cfg) -> torch.Tensor | None:
+    """Tool vectors (T, 3) in metres from the config's mm; None when the config only counts them ({count: T})."""
+    if isinstance(cfg.tools, (dict, DictConfig)):
+        return None
+    return units.mm_to_m(torch.tensor([[float(v) for v in t] for t in cfg.tools], dtype=torch.float64))
+
+
+def config_tool_count(cfg) -> int:
+    """T: the number of tool configurations (listed vectors or tools.count)."""
+    return int(cfg.tools["count"]) if isinstance(cfg.tools, (dict, DictConfig)) else len(cfg.tools)
+
+
+def config_frame(cfg) -> tuple[str, torch.Tensor | None]:
+    """measurement_frame resolved: ('base', identity), ('given', (4, 4) SI) or ('estimate', None).
+
+    'auto' is 'base' when the tool vectors are listed and 'estimate' when they are only counted.
+    A given frame {xyz_mm, rpy_deg} is the robot base in the measurement frame: p = Rot(rpy) p_base + xyz.
+    """
+    f = cfg.measurement_frame
+    if isinstance(f, (dict, DictConfig)):
+        rpy = units.deg_to_rad(torch.tensor([float(v) for v in f["rpy_deg"]], dtype=torch.float64))
+        xyz = units.mm_to_m(torch.tensor([float(v) for v in f["xyz_mm"]], dtype=torch.float64))
+        return "given", homogeneous(rpy_to_matrix(rpy), xyz)
+    if f == "auto":
+        f = "estimate" if config_tools(cfg) is None else "base"
+    return (f, torch.eye(4, dtype=torch.float64)) if f == "base" else (f, None)
+
+
+def config_alignment(cfg, robot, data: Measurements, label: str = "config"):
+    """Run :func:`torchcal.identify.alignment.align` when the config leaves tools or frame to the data.
+
+    -> (tools_m (T, 3), base_nominal (4, 4), AlignmentResult or None); SI, on the data's device.
+    Raises ConfigError (naming the config and the data file) when the data cannot determine them.
+    """
+    tools_m, T = config_tools(cfg), config_tool_count(cfg)
+    mode, frame = config_frame(cfg)
+    dev = data.xyz.device
+    if tools_m is not None and mode != "estimate":
+        return tools_m.to(dev), frame.to(dev), None
+    from .identify.alignment import AlignmentError, align
+
+    try:
+        res = align(robot, data, T, None if tools_m is None else tools_m.to(dev),
+                    None if mode == "estimate" else frame.to(dev))
+    except AlignmentError as exc:
+        what = " and ".join(w for w, free in (("tool vectors", tools_m is None), ("measurement frame", mode == "estimate")) if free)
+        raise ConfigError(f"{label}: cannot estimate the {what} from data.identification: {exc}") from None
+    return res.tools, res.base_nominal, res
 
 
 def config_noise(cfg, robot) -> NoiseModel:
@@ -101,11 +152,14 @@ def solver_options(cfg) -> dict:
     return opts
 
 
-def model_factory(robot, tools_m: torch.Tensor, backlash, device):
+def model_factory(robot, tools_m: torch.Tensor, backlash, device, base_nominal: torch.Tensor | None = None):
     """make_model(orders) -> a fresh all-zero RobotModel on ``device`` (what :func:`select_orders` needs)."""
+    base_nominal = None if base_nominal is None else base_nominal.detach().cpu()
+    tools_m = tools_m.detach().cpu()
+
     def make(orders):
         return RobotModel(robot, tools_m, orders=list(orders) if not isinstance(orders, int) else orders,
-                          backlash=backlash).to(device)
+                          backlash=backlash, base_nominal=base_nominal).to(device)
 
     return make
 
@@ -239,8 +293,7 @@ def _run_fit(cfg, console=None) -> RunResult:
     check_config(cfg, label, robot.joint_map.n)
     device = torch.device(cfg.device)
     torch.manual_seed(int(cfg.seed))
-    tools_m = config_tools(cfg)
-    T = tools_m.shape[0]
+    T = config_tool_count(cfg)
     noise = config_noise(cfg, robot)
     prior = config_prior(cfg)
     opts = solver_options(cfg)
@@ -256,6 +309,9 @@ def _run_fit(cfg, console=None) -> RunResult:
         if val is None:
             raise ConfigError(f"{label}: key 'data.truth': the compensation check runs on the validation set; set data.validation")
 
+    # tools / measurement frame left to the data: the rigid alignment (cheap) before anything is written
+    tools_m, base_nominal, alignment = config_alignment(cfg, robot, ident, label)
+
     run_dir = make_run_dir(cfg.out)
     files: dict[str, Path] = {}
     progress = _Progress(console)
@@ -266,7 +322,20 @@ def _run_fit(cfg, console=None) -> RunResult:
         progress.info(f"run directory {run_dir}")
         progress.info(f"robot '{robot.name}' ({robot.joint_map.n} joints), {T} tools; identification "
                       f"{len(ident)} rows / {ident.n_poses} poses" + (f", validation {len(val)} rows" if val is not None else ""))
-        make = model_factory(robot, tools_m, config_backlash(cfg), device)
+        if alignment is not None:
+            files["alignment"] = write_json(run_dir / "alignment.json", alignment.summary())
+            a = alignment.summary()
+            what = " and ".join(w for w, free in (("measurement frame", alignment.estimated_frame),
+                                                  ("tool vectors", alignment.estimated_tools)) if free)
+            progress.info(f"alignment: estimated the {what} on the nominal robot ({a['start']} start, "
+                          f"{alignment.iterations} iterations): residual rms {a['residual_mm']['rms']:.4f} mm, "
+                          f"mean {a['residual_mm']['mean']:.4f} mm, max {a['residual_mm']['max']:.4f} mm")
+            progress.info("alignment: robot base at xyz " + ", ".join(f"{v:.3f}" for v in a["frame"]["xyz_mm"])
+                          + " mm, rpy " + ", ".join(f"{v:.4f}" for v in a["frame"]["rpy_deg"]) + " deg; tools "
+                          + "; ".join("[" + ", ".join(f"{v:.3f}" for v in t) + "]" for t in a["tools_mm"]) + " mm")
+            if not alignment.converged:
+                log.warning("the alignment refinement did not converge; see alignment.json")
+        make = model_factory(robot, tools_m, config_backlash(cfg), device, base_nominal)
 
         selection = None
         order = cfg.model.order
@@ -307,6 +376,7 @@ def _run_fit(cfg, console=None) -> RunResult:
             "orders": orders,
             "order_selection": None if selection is None else selection.criterion,
             "fit": {"converged": bool(result.success), "iterations": int(result.nit), "cost": float(result.fun)},
+            "alignment": None if alignment is None else alignment.summary(),
             "sets": {name.lower(): {"rows": len(sets[name]), "poses": sets[name].n_poses,
                                     "nominal": vars(ev["nominal_stats"]), "modeled": vars(ev["modeled_stats"]),
                                     "decrease_percent": ev["decrease"]} for name, ev in evaluations.items()},
@@ -404,6 +474,9 @@ __all__ = [
     "compensation_check",
     "compensation_kwargs",
     "compensation_targets",
+    "config_alignment",
+    "config_frame",
+    "config_tool_count",
     "config_noise",
     "config_prior",
     "config_tools",

@@ -84,3 +84,13 @@ def test_residual_jacobian_matches_finite_differences(model, fanuc):
         e[j] = h
         fd = (de_at(q + e)[0] - de_at(q - e)[0]) / (2 * h) * w
         assert torch.allclose(Jr[:, :, j], fd, atol=1e-8, rtol=0), j
+
+
+def test_blocked_evaluation_equals_one_pass(fanuc, tools_m):
+    """The CPU block loop in flange() is bookkeeping only: every block gives the one-pass numbers."""
+    model = randomize(RobotModel(fanuc, tools_m, orders=6, backlash=True), 5)
+    q = random_commands(fanuc, 50, 6)
+    s = torch.sign(torch.randn(50, 6, generator=torch.Generator().manual_seed(7)))
+    R1, p1 = FlangeKernel(model, block=None).flange(soa(q), soa(s))
+    R2, p2 = FlangeKernel(model, block=7).flange(soa(q), soa(s))
+    assert torch.allclose(R1, R2, atol=1e-15, rtol=0) and torch.allclose(p1, p2, atol=1e-15, rtol=0)

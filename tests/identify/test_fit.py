@@ -167,3 +167,24 @@ def test_order_selection_window_limits_the_per_joint_search(fanuc, tools_m):
             cur, cur_score = list(r["orders"]), r["score"]
     assert cur == sel.orders
     assert sel.score == min(r["score"] for r in sel.table)
+
+
+def test_prior_follows_the_layout_when_a_whole_group_is_pinned(fanuc, tools_m):
+    """set_layout must drop the prior entries of a group the new layout no longer has at all."""
+    from torchcal.identify.problem import CalibrationProblem
+
+    model = RobotModel(fanuc, tools_m, orders=1, backlash=True)
+    data = simulate(model, fanuc, 10, 20, None)
+    prob = CalibrationProblem(model, data, NoiseModel.paper2(), Prior())
+    names = prob.layout.names()
+    first = prob.layout.entries[0][0]
+    k = int(prob.layout.entries[0][2].sum())
+    drop = torch.zeros(prob.layout.size, dtype=torch.bool)
+    drop[:k] = True  # pin every entry of the first group
+    drop[k + 1] = True  # and one more
+    before = dict(zip(names, prob.prior_precision.tolist()))
+    new = prob.layout.without(drop)
+    prob.set_layout(new)
+    assert first not in [e[0] for e in new.entries]
+    assert prob.prior_precision.numel() == new.size
+    assert prob.prior_precision.tolist() == [before[n] for n in new.names()]

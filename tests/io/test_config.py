@@ -127,3 +127,48 @@ def test_example_config_loads():
     check_config(cfg, str(path), n_joints=6)
     assert cfg.model.order == 6 and cfg.robot == "fanuc_lrmate200i"
     assert Path(cfg.data.validation).name == "validation.csv"
+
+
+def test_unknown_tools_and_measurement_frame(cfg_file):
+    """tools: {count: T} and measurement_frame: auto / base / estimate / {xyz_mm, rpy_deg}; overrides replace them."""
+    import torch
+
+    from torchcal.pipeline import config_frame, config_tool_count, config_tools
+
+    cfg = load_config(cfg_file)
+    assert cfg.measurement_frame == "auto" and config_tool_count(cfg) == 2
+    mode, frame = config_frame(cfg)  # tools listed: Paper II's tracker at the robot base
+    assert mode == "base" and torch.equal(frame, torch.eye(4, dtype=torch.float64))
+    assert torch.allclose(config_tools(cfg), torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22]]) * 1e-3)
+
+    cfg_file.write_text(MINIMAL.replace("tools:\n  - [33.06, 57.73, 161.22]\n  - [57.26, -33.86, 161.22]\n",
+                                        "tools: {count: 3}\n"))
+    cfg = load_config(cfg_file)
+    assert config_tools(cfg) is None and config_tool_count(cfg) == 3
+    assert config_frame(cfg) == ("estimate", None)  # auto: unknown tools -> estimate the frame too
+    assert config_frame(load_config(cfg_file, ["measurement_frame=base"]))[0] == "base"
+
+    # a given frame: the robot base seen in the tracker frame, p = Rot(rpy) p_base + xyz
+    cfg = load_config(cfg_file, ["measurement_frame={xyz_mm: [1000, -500, 250], rpy_deg: [0, 0, 90]}"])
+    mode, frame = config_frame(cfg)
+    p = frame @ torch.tensor([0.2, 0.0, 0.0, 1.0], dtype=torch.float64)
+    assert mode == "given" and torch.allclose(p[:3], torch.tensor([1.0, -0.3, 0.25], dtype=torch.float64), atol=1e-15)
+    # overrides replace a list by a mapping and back
+    cfg = load_config(cfg_file, ["tools=[[0, 0, 100]]", "measurement_frame=estimate"])
+    assert config_tool_count(cfg) == 1 and config_frame(cfg) == ("estimate", None)
+    assert config_tool_count(load_config(cfg_file, ["tools.count=4"])) == 4
+
+
+@pytest.mark.parametrize("override, key", [
+    ("tools={count: 0}", "tools.count"),
+    ("tools={cnt: 3}", "tools.cnt"),
+    ("tools=5", "tools"),
+    ("tools=[[1,2,x]]", "tools"),
+    ("measurement_frame=far", "measurement_frame"),
+    ("measurement_frame=null", "measurement_frame"),
+    ("measurement_frame={xyz_mm: [1, 2]}", "measurement_frame.xyz_mm"),
+    ("measurement_frame={xyz_mm: [1, 2, 3], rpy_deg: [0, 0, 0], scale: 1}", "measurement_frame.scale"),
+])
+def test_bad_tools_and_frames_name_the_key(cfg_file, override, key):
+    with pytest.raises(ConfigError, match=f"key '{key}'"):
+        load_config(cfg_file, [override])

@@ -19,6 +19,14 @@ from .cpa import (
     nominal_axes,
     single_joint_commands,
 )
+from .identifiability import (
+    Combination,
+    CorrelatedPair,
+    Identifiability,
+    identifiability,
+    plot_position_std,
+    position_std_sweeps,
+)
 from .repeatability import (
     JointVariancePlan,
     JointVarianceTable,
@@ -44,6 +52,9 @@ __all__ = [
     "AxisFit",
     "CPAModel",
     "CircleFit",
+    "Combination",
+    "CorrelatedPair",
+    "Identifiability",
     "DHParameters",
     "JointVariancePlan",
     "JointVarianceTable",
@@ -59,6 +70,7 @@ __all__ = [
     "fit_joint_axis",
     "gamma99",
     "grouped_stats",
+    "identifiability",
     "iso9283_repeatability",
     "joint_variance_from_pairs",
     "joint_variance_plan",
@@ -66,6 +78,8 @@ __all__ = [
     "nominal_axes",
     "pair_angular_errors",
     "percent_decrease",
+    "plot_position_std",
+    "position_std_sweeps",
     "point_residuals",
     "residual_stats",
     "rotation_plane_coordinates",

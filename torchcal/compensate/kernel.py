@@ -81,9 +81,16 @@ class FlangeKernel:
     model: the RobotModel (its current parameter values are copied, detached).
     general_axes: force the Rodrigues path for every joint (for testing); by
     default joints whose axis is exactly +z use a cheaper column rotation.
+    block: poses per block in :meth:`flange` (None: 8192 on the CPU, whole
+    batches elsewhere).
     """
 
-    def __init__(self, model, general_axes: bool = False):
+    def __init__(self, model, general_axes: bool = False, block: int | None = None):
+        # blocks only pay on the CPU (cache); a GPU wants the whole batch at once
+        self.block = block if block is not None else (8192 if model.device.type == "cpu" else None)
+        if getattr(model, "compliance", None) is not None:
+            raise NotImplementedError("FlangeKernel (compensation) does not model gravity compliance yet; "
+                                      "build the RobotModel with compliance=False or evaluate model.flange directly")
         with torch.no_grad():
             je = model.joint_errors
             self.n = model.n
@@ -341,10 +348,24 @@ class FlangeKernel:
     def flange(self, qT: torch.Tensor, sT: torch.Tensor | None = None):
         """Modeled flange E_base · F_a(q, s): qT (n, B), sT (n, B) or None -> R (3, 3, B), p (3, B).
 
-        Same pose as ``model.flange(q, direction, base=False)``.
+        Same pose as ``model.flange(q, direction, base=False)``. On the CPU a
+        long batch is evaluated in blocks of ``self.block`` poses: the ~150
+        elementwise ops then work on data that stays in cache (measured on 2
+        cores: 32 768 poses in blocks of 8192 take ~0.65x the time of one pass).
         """
+        return self._blocked(self._flange, qT, sT)
+
+    def _flange(self, qT, sT):
         A, t, travel, _ = self._links(qT, sT, True)
         return self._chain(A, t, travel, base=True)
+
+    def _blocked(self, fn, qT: torch.Tensor, sT: torch.Tensor | None):
+        """fn(qT, sT) -> tuple of (..., B) tensors, evaluated block by block and joined along the pose axis."""
+        B = qT.shape[1]
+        if self.block is None or B <= self.block:
+            return fn(qT, sT)
+        parts = [fn(qT[:, a:a + self.block], None if sT is None else sT[:, a:a + self.block]) for a in range(0, B, self.block)]
+        return tuple(torch.cat(xs, -1) for xs in zip(*parts))
 
     def flange_jacobian(self, qT: torch.Tensor, sT: torch.Tensor | None = None):
         """Modeled flange and its body Jacobian, error slopes included.
@@ -352,6 +373,9 @@ class FlangeKernel:
         qT: (n, B), sT: (n, B) or None -> R (3, 3, B), p (3, B), J (6, n, B);
         the same numbers as ``model.flange_jacobian(q, direction)``.
         """
+        return self._blocked(self._flange_jacobian, qT, sT)
+
+    def _flange_jacobian(self, qT, sT):
         A, t, travel, vecs = self._links(qT, sT, True, jacobian=True)
         R, p, V, o = self._chain(A, t, travel, base=True, vecs=vecs)
         return R, p, self._body_jacobian(R, p, V, o, True)
@@ -368,6 +392,9 @@ class FlangeKernel:
         the flange frame per unit dq, the frame of the error vector (48).
         No error terms (enough for the fixed-Jacobian iteration).
         """
+        return self._blocked(self._nominal_flange_jacobian, qT, None)
+
+    def _nominal_flange_jacobian(self, qT, sT=None):
         A, t, travel, vecs = self._links(qT, None, False, jacobian=True)
         R, p, V, o = self._chain(A, t, travel, base=False, vecs=vecs)
         return R, p, self._body_jacobian(R, p, V, o, False)

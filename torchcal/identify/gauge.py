@@ -44,13 +44,20 @@ def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: 
 
 
 def gauge_priority(names: list[str]) -> torch.Tensor:
-    """Order in which columns claim identifiability: base, tools, then joints root to tip, low order first."""
+    """Order in which columns claim identifiability: base, tools, joints root to tip (low order first), compliance.
+
+    The gravity compliance comes last: where its functions duplicate a joint's
+    own Chebyshev series exactly (not the case for the default functions), the
+    geometric term is kept.
+    """
     def key(i_name):
         i, name = i_name
         if name.startswith("base."):
             return (0, i)
         if name.startswith("tool"):
             return (1, i)
+        if name.startswith("compliance."):
+            return (3, i)
         return (2, i)
 
     return torch.tensor([i for i, _ in sorted(enumerate(names), key=key)], dtype=torch.long)

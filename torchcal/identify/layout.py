@@ -17,6 +17,9 @@ def _masks(model: nn.Module) -> dict[str, torch.Tensor]:
     if je is not None:
         masks["joint_errors.coef"] = je.mask.expand_as(je.coef).clone()
         masks["joint_errors.backlash"] = je.backlash_mask.clone()
+    comp = getattr(model, "compliance", None)
+    if comp is not None:
+        masks["compliance.coef"] = comp.mask.clone()
     return masks
 
 
@@ -79,6 +82,10 @@ class ParameterLayout:
         """Stack per-group Jacobians (B, c, *param_shape) into (B, c, P) in layout order."""
         cols = []
         for name, p, m in self.entries:
+            if name not in J:
+                # a group without a closed-form Jacobian must not be treated as one that does not move the points
+                raise KeyError(f"no Jacobian for free parameter group '{name}' (point_jacobians returned {sorted(J)}); "
+                               f"fix it or hold it fixed")
             g = J[name]
             B, c = g.shape[:2]
             cols.append(g.reshape(B, c, -1)[:, :, m.flatten()])
@@ -97,6 +104,9 @@ class ParameterLayout:
             return je.parameter_names()[0]
         if name == "joint_errors.backlash" and je is not None:
             return je.parameter_names()[1]
+        comp = getattr(self.model, "compliance", None)
+        if name == "compliance.coef" and comp is not None:
+            return comp.parameter_names()
         if name == "base.twist":
             return [f"base.{t}" for t in ("eps_x", "eps_y", "eps_z", "delta_x", "delta_y", "delta_z")]
         if name == "tools.delta":

@@ -67,7 +67,10 @@ class Prior:
 
     rotation / translation: sigma of the joint error terms (rad / m);
     frame_rotation / frame_translation: sigma of the base frame and tool
-    corrections. Besides the exact redundancies that :mod:`.gauge` pins, an
+    corrections; compliance: sigma of the gravity compliance coefficients
+    (``compliance.coef``, rad per unit configuration function: per unit sin/cos
+    in 'functions' mode, rad/(N·m) in 'gravity' mode). Besides the exact
+    redundancies that :mod:`.gauge` pins, an
     order-m model has near-redundant directions (a constant error after joint
     i is a sin/cos of q_i before it, which a Chebyshev series reproduces to
     ~1e-6): the data cannot place the model along them, the prior does. The
@@ -80,16 +83,19 @@ class Prior:
     frame_rotation: float = 0.1
     frame_translation: float = 1e-2
     mean: torch.Tensor | None = field(default=None, repr=False)
+    compliance: float = 1e-2
 
     def precision(self, layout: ParameterLayout) -> torch.Tensor:
         """(P,) inverse variances in layout order."""
         rot = layout.is_rotation()
         frame = torch.tensor([n.startswith(("base.", "tool")) for n in layout.names()], dtype=torch.bool)
+        comp = torch.tensor([n.startswith("compliance.") for n in layout.names()], dtype=torch.bool)
         sigma = torch.where(
             frame,
             torch.where(rot, self.frame_rotation, self.frame_translation),
             torch.where(rot, self.rotation, self.translation),
         ).to(torch.float64)
+        sigma = torch.where(comp, torch.tensor(self.compliance, dtype=torch.float64), sigma)
         return 1.0 / sigma**2
 
 
@@ -135,7 +141,8 @@ class CalibrationProblem:
         keep = []
         for name, _, m in self.layout.entries:
             nm = new_masks.get(name)
-            keep.append(m[m] if nm is None else nm[m])
+            # a group the new layout pins entirely is absent from it: none of its entries stay
+            keep.append(torch.zeros_like(m[m]) if nm is None else nm[m])
         return torch.cat(keep).to(self.prior_precision.device) if keep else torch.zeros(0, dtype=torch.bool)
 
     @property

@@ -107,8 +107,17 @@ class FitConfig:
 
     robot: str = MISSING
     """Bundled robot name (e.g. fanuc_lrmate200i), a joint-map YAML or a URDF."""
-    tools: list[list[float]] = MISSING
-    """Nominal tool vectors [x, y, z] in the flange frame, mm; the CSV 'tool' column indexes this list."""
+    tools: Any = MISSING
+    """Nominal tool vectors [x, y, z] in the flange frame, mm (a list; the CSV 'tool' column indexes it),
+    or ``{count: T}`` when they are not known (e.g. reflectors glued on the flange): the fit then estimates
+    them from the data first (:mod:`torchcal.identify.alignment`)."""
+    measurement_frame: Any = "auto"
+    """The robot base seen in the measurement (tracker) frame, the model's nominal T_0^m (26):
+    ``base`` (identity: the tracker frame is at the robot base, as Paper II assumes), ``estimate``
+    (from the data, no guess needed: :mod:`torchcal.identify.alignment`), ``auto`` (``base`` when the
+    tool vectors are listed, ``estimate`` when they are only counted), or
+    ``{xyz_mm: [x, y, z], rpy_deg: [roll, pitch, yaw]}`` (p_tracker = Rot(rpy) p_base + xyz, URDF
+    roll-pitch-yaw). The fit refines it either way (base-frame corrections)."""
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
@@ -126,6 +135,12 @@ class FitConfig:
     config_file: Optional[str] = None
     """Set by load_config: the YAML this config came from (provenance)."""
 
+
+FRAME_MODES = ("auto", "base", "estimate")
+"""The string values of ``measurement_frame``."""
+
+WHOLE_VALUE_KEYS = ("tools", "measurement_frame")
+"""Keys whose override replaces the whole value (their values change type: list, mapping or word)."""
 
 PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out")
 
@@ -206,9 +221,16 @@ def apply_overrides(cfg: DictConfig, overrides: Sequence[str], base: Path | None
     for item in overrides:
         key, _ = _split_override(item)
         try:
-            cfg = OmegaConf.merge(cfg, OmegaConf.from_dotlist([item]))
+            new = OmegaConf.from_dotlist([item])
+            if key in WHOLE_VALUE_KEYS:
+                # these take a list, a mapping or a word: an override replaces the value, never merges into it
+                cfg[key] = new[key]
+            else:
+                cfg = OmegaConf.merge(cfg, new)
         except OmegaConfBaseException as exc:
             raise _explain(exc, f"override '{item}'") from None
+        except TypeError as exc:  # e.g. merging a mapping into a list
+            raise ConfigError(f"override '{item}': key '{key}': {exc}") from None
         touched = [k for k in ("robot",) + PATH_KEYS if k == key or k.startswith(key + ".")]
         _resolve_paths(cfg, base, touched)
     return cfg
@@ -266,6 +288,10 @@ def _is_int(x) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
 
 
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x and abs(x) != float("inf")
+
+
 def _plain(x):
     return OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x
 
@@ -291,11 +317,34 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
         raise _explain(exc, label) from None
 
     tools = _plain(cfg.tools)
-    if not tools:
-        fail("tools", "needs at least one tool vector [x, y, z] (mm)")
-    for i, t in enumerate(tools):
-        if len(t) != 3:
-            fail("tools", f"tool {i} has {len(t)} values; each tool is [x, y, z] in mm")
+    if isinstance(tools, dict):
+        extra = sorted(set(tools) - {"count"})
+        if extra:
+            fail(f"tools.{extra[0]}", "unknown key; unknown tool vectors are given as {count: T} (valid keys: count)")
+        if "count" not in tools or not _is_int(tools["count"]) or tools["count"] < 1:
+            fail("tools.count", f"{tools.get('count')!r}: give the number of tools (an int >= 1)")
+    elif isinstance(tools, list):
+        if not tools:
+            fail("tools", "needs at least one tool vector [x, y, z] (mm), or {count: T} when they are unknown")
+        for i, t in enumerate(tools):
+            if not isinstance(t, list) or len(t) != 3:
+                fail("tools", f"tool {i} is {t!r}; each tool is [x, y, z] in mm")
+            if not all(_is_number(v) for v in t):
+                fail("tools", f"tool {i} {t!r}: the values must be numbers (mm)")
+    else:
+        fail("tools", f"{tools!r}: give a list of tool vectors [[x, y, z], ...] (mm) or {{count: T}} when they are unknown")
+
+    frame = _plain(cfg.measurement_frame)
+    if isinstance(frame, dict):
+        extra = sorted(set(frame) - {"xyz_mm", "rpy_deg"})
+        if extra:
+            fail(f"measurement_frame.{extra[0]}", "unknown key; valid keys: xyz_mm, rpy_deg")
+        for key, what in (("xyz_mm", "[x, y, z] in mm"), ("rpy_deg", "[roll, pitch, yaw] in deg")):
+            v = frame.get(key)
+            if not isinstance(v, list) or len(v) != 3 or not all(_is_number(x) for x in v):
+                fail(f"measurement_frame.{key}", f"{v!r}: give {what}")
+    elif frame not in FRAME_MODES:
+        fail("measurement_frame", f"{frame!r}: give one of {', '.join(FRAME_MODES)} or {{xyz_mm: [x, y, z], rpy_deg: [r, p, y]}}")
 
     order = _plain(cfg.model.order)
     if isinstance(order, str):

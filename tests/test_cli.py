@@ -238,6 +238,26 @@ def test_fit_with_automatic_orders(e2e):
     assert not (out / "plots").exists() and (out / "model.pt").exists()
 
 
+def test_fit_with_gravity_compliance(e2e, fanuc):
+    """model.compliance=true: the saved model carries it (predict uses it); compensate refuses it cleanly."""
+    out = e2e["root"] / "compliance"
+    r = invoke("fit", e2e["sim"] / "fit.yaml", "model.order=0", "model.compliance=true", "plots=false",
+               f"out={out}", "--quiet")
+    assert r.exit_code == 0, r.output
+    model = load_model(out)
+    assert model.compliance is not None and bool(model.compliance.coef.detach().abs().max() > 0)
+    val = pd.read_csv(e2e["sim"] / "validation.csv")
+    r = invoke("predict", out, e2e["sim"] / "validation.csv", e2e["root"] / "pc.csv")
+    assert r.exit_code == 0, r.output
+    q = read_measurements(e2e["sim"] / "validation.csv", fanuc, 3)
+    with torch.no_grad():
+        p_mm = model.points(q.q, q.tool, q.direction).numpy() * 1000.0
+    assert np.allclose(pd.read_csv(e2e["root"] / "pc.csv")[["x", "y", "z"]].to_numpy(), p_mm, atol=1e-7)
+    val[[f"q{i}" for i in range(1, 7)]].to_csv(e2e["root"] / "cmd.csv", index=False)
+    r = invoke("compensate", out, e2e["root"] / "cmd.csv", e2e["root"] / "cc.csv")
+    assert r.exit_code == 2 and "compliance" in r.output
+
+
 def test_fit_far_tracker_with_unknown_tools_then_predict(tmp_path, fanuc):
     """A tracker 2.5 m away in its own frame, reflectors at unknown places (tools: {count: 3}, no frame):
     fit aligns first, records the frame and tools, and predict answers in the tracker's frame."""

@@ -88,6 +88,7 @@ def test_unknown_key_in_override_names_override(cfg_file):
     ("noise.sigma_m=0", "noise.sigma_m"),
     ("tools=[[1,2]]", "tools"),
     ("model.backlash=maybe", "model.backlash"),
+    ("model.compliance=sometimes", "model.compliance"),
 ])
 def test_bad_values_name_the_key(cfg_file, override, key):
     with pytest.raises(ConfigError, match=f"key '{key}'"):

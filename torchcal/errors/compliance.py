@@ -133,15 +133,16 @@ def default_carrying_joints(origins, axes, prismatic, theta_home, gravity) -> li
     z = (jR[0] @ axes[:, :, None])[..., 0]
     o = jp[0]
     gh = gravity / gravity.norm()
-    horizontal = [(not bool(prismatic[i])) and abs(float(z[i] @ gh)) < 1e-5 for i in range(n)]
+    # tolerances fit a calibrated URDF too, whose axes are off by the identified errors (mrad, tenths of mm)
+    horizontal = [(not bool(prismatic[i])) and abs(float(z[i] @ gh)) < 1e-2 for i in range(n)]
     wrist = set()
     if n >= 6 and _axes_meet(z[n - 3 :], o[n - 3 :]):
         wrist = {n - 3, n - 2, n - 1}
     return [i for i in range(n) if horizontal[i] and i not in wrist]
 
 
-def _axes_meet(z: torch.Tensor, o: torch.Tensor, tol: float = 1e-6) -> bool:
-    """Whether lines (o_i, z_i) (k, 3) pass through one point (within tol metres)."""
+def _axes_meet(z: torch.Tensor, o: torch.Tensor, tol: float = 1e-3) -> bool:
+    """Whether lines (o_i, z_i) (k, 3) pass through one point (within tol metres; 1 mm: a calibrated wrist still counts)."""
     P = torch.eye(3, dtype=z.dtype) - z[:, :, None] * z[:, None, :]  # (k, 3, 3)
     A = P.sum(0)
     if float(torch.linalg.svdvals(A).min()) < 1e-9:
@@ -319,8 +320,9 @@ class GravityCompliance(nn.Module):
             jR, _, _ = chain_frames(self.origins, self.axes, self.prismatic, home[None])
             z = (jR[0] @ self.axes[:, :, None])[..., 0][self.joints]
             dots = z @ z[0]
-            if bool((dots.abs() < 1.0 - 1e-9).any()):
-                bad = [self.joint_names[i] for i, d in zip(idx, dots.tolist()) if abs(d) < 1.0 - 1e-9]
+            # 5e-5 = 1 - cos(0.57 deg): the axes of a calibrated URDF are parallel only to its identified errors
+            if bool((dots.abs() < 1.0 - 5e-5).any()):
+                bad = [self.joint_names[i] for i, d in zip(idx, dots.tolist()) if abs(d) < 1.0 - 5e-5]
                 raise ValueError(f"compliance: joints {bad} are not parallel to '{self.joint_names[idx[0]]}'; "
                                  "the arm-angle functions need parallel axes (pass joints= or use URDF inertials)")
             self.register_buffer("signs", torch.sign(dots))

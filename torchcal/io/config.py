@@ -56,6 +56,9 @@ class ModelConfig:
     """Orders tried by order: auto."""
     folds: int = 5
     """Cross-validation folds (by pose) for order: auto without a validation set."""
+    compliance: Any = False
+    """Gravity compliance (arm sag): false, true (torques from the URDF inertials when every moving link has
+    one, else arm-angle functions), "gravity" or "functions"."""
 
 
 @dataclass
@@ -361,6 +364,9 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
     else:
         fail("model.order", f"{order!r}: give an int 0..{MAX_ORDER}, a per-joint list, or auto")
 
+    compliance = _plain(cfg.model.compliance)
+    if not (isinstance(compliance, bool) or compliance in ("auto", "gravity", "functions")):
+        fail("model.compliance", f"{compliance!r}: give true, false, \"gravity\" or \"functions\"")
     backlash = _plain(cfg.model.backlash)
     if isinstance(backlash, list):
         if not all(_is_int(b) and -1 <= b <= MAX_ORDER for b in backlash):

@@ -17,7 +17,6 @@ converged.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import platform
 import time

@@ -71,3 +71,31 @@ def randomize(model, seed: int, rot: float = 2e-3, trans: float = 2e-4, decay: f
         model.base.twist.copy_(torch.randn(6, generator=g) * torch.tensor([rot] * 3 + [trans * 5] * 3))
         model.tools.delta.copy_(torch.randn(model.tools.delta.shape, generator=g) * trans)
     return model
+
+
+def assert_point_jacobians_match_autograd(model, q, tool, s, v):
+    """RobotModel.point_jacobians against torch.func.jacrev, every parameter group and v.
+
+    -> (parameters by name, the closed-form Jacobians) for further checks.
+    """
+    from torch.func import functional_call, jacrev
+
+    p, J = model.point_jacobians(q, tool, s, v)
+    assert torch.allclose(p, model.points(q, tool, s, v), atol=1e-15)
+    params = {k: t.detach() for k, t in model.named_parameters()}
+    for name in params:
+        def f(x, name=name):
+            return functional_call(model, {**params, name: x}, (q, tool, s, v))
+        assert torch.allclose(jacrev(f)(params[name]), J[name], atol=1e-13), name
+    Jv = jacrev(lambda vv: model.points(q, tool, s, vv))(v)
+    assert torch.allclose(torch.stack([Jv[b, :, b] for b in range(q.shape[0])]), J["v"], atol=1e-13)
+    return params, J
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """Tiny problems: on a shared 2-core machine torch's intra-op threads make fits several times slower."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)

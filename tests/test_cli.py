@@ -27,13 +27,7 @@ def invoke(*args):
     return runner.invoke(app, [str(a) for a in args])
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # tiny problems: on a shared 2-core machine torch's intra-op threads make the fit ~10x slower, not faster
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest: tiny problems run faster on one thread
 
 
 @pytest.fixture(scope="module")

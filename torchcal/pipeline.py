@@ -392,7 +392,7 @@ def _run_fit(cfg, console=None) -> RunResult:
                           f"({ev['decrease']['mean']:.2f} % decrease), max {s.max:.4f} mm, Gamma 99 % {s.gamma99:.4f} mm")
 
         comp_table, comp = None, None
-        if truth is not None and getattr(model, "compliance", None) is not None:
+        if truth is not None and model.compliance is not None:
             progress.info("compensation check skipped: compensation does not model gravity compliance yet")
         elif truth is not None:
             with progress.step(f"compensating {len(val)} validation commands and measuring them on the simulated truth"):

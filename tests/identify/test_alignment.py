@@ -17,13 +17,7 @@ F64 = torch.float64
 TOOLS_M = torch.tensor([[0.041, 0.062, 0.148], [0.071, -0.029, 0.139], [-0.052, -0.047, 0.171]], dtype=F64)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # small problems: on a shared 2-core machine intra-op threads slow the fits down several times
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_thread")  # conftest: tiny problems run faster on one thread
 
 
 def far_frame() -> torch.Tensor:

@@ -1,4 +1,7 @@
+import math
+
 import numpy as np
+import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -57,3 +60,12 @@ def test_pose_error_is_zero_for_equal_and_first_order_twist():
     d = torch.tensor([1e-7, 2e-7, -1e-7, 3e-7, -2e-7, 1e-7])
     T2 = T @ twist_to_transform(torch.cat([d[3:], d[:3]]))
     assert torch.allclose(pose_error(T, T2), d, atol=1e-13)
+
+
+@pytest.mark.parametrize("pitch", [math.pi / 2, -math.pi / 2])
+def test_rpy_round_trip_at_gimbal_lock(pitch):
+    rpy = torch.tensor([[0.3, pitch, -0.7], [-1.2, pitch, 0.4]], dtype=torch.float64)
+    R = rpy_to_matrix(rpy)
+    back = matrix_to_rpy(R)
+    assert torch.isfinite(back).all() and (back[:, 2] == 0).all()
+    assert torch.allclose(rpy_to_matrix(back), R, atol=1e-12)

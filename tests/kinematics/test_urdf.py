@@ -29,16 +29,18 @@ def test_fanuc_dh_property(q):
     assert np.abs(T.numpy() - fanuc_dh_reference(q_deg.numpy())).max() < 1e-15
 
 
-def test_pytorch_kinematics_cross_check(fanuc):
+@pytest.mark.parametrize("name", ["fanuc_lrmate200i", "abb_irb120"])
+def test_pytorch_kinematics_cross_check(name):
     """pk's own chain agrees to its float32 rounding of the origins (~1e-7 m), no better."""
     import pytorch_kinematics as pk
 
-    from torchcal.kinematics import urdf_dir
+    from torchcal.kinematics import load_robot, urdf_dir
 
-    xml = (urdf_dir() / "fanuc_lrmate200i.urdf").read_text()
+    robot = load_robot(name)
+    xml = (urdf_dir() / f"{name}.urdf").read_text()
     pkc = pk.build_serial_chain_from_urdf(xml, "flange").to(dtype=torch.float64)
-    theta = fanuc.joint_map.to_joint(random_commands(fanuc, 64, 1))
-    diff = (pkc.forward_kinematics(theta).get_matrix() - fanuc.chain.fk(theta)).abs().max()
+    theta = robot.joint_map.to_joint(random_commands(robot, 64, 1))
+    diff = (pkc.forward_kinematics(theta).get_matrix() - robot.chain.fk(theta)).abs().max()
     assert diff < 1e-6
 
 

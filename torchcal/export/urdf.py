@@ -20,7 +20,6 @@ written unchanged next to the URDF when the robot has one.
 from __future__ import annotations
 
 import copy
-import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +30,7 @@ import yaml
 from .. import units
 from ..analysis.stats import ResidualStats, point_residuals, residual_stats, stats_table
 from ..kinematics.robot import Robot, load_robot, urdf_dir
-from ..kinematics.transforms import homogeneous, invert, rpy_to_matrix, twist_to_transform
+from ..kinematics.transforms import homogeneous, invert, matrix_to_rpy, rpy_to_matrix, twist_to_transform
 from ..kinematics.urdf import URDFError, validate_urdf
 
 
@@ -60,19 +59,6 @@ def constant_origins(model, base: bool = True, measurement_frame: bool = False) 
     return out.detach()
 
 
-def _rpy(R: torch.Tensor) -> list[float]:
-    """URDF roll-pitch-yaw of a rotation (3, 3), exact to rounding also at pitch = +-90 deg."""
-    R = R.detach().to("cpu", torch.float64)
-    pitch = math.atan2(-float(R[2, 0]), math.hypot(float(R[0, 0]), float(R[1, 0])))
-    if math.cos(pitch) > 1e-6:
-        roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
-        yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
-    else:  # gimbal lock: only roll -+ yaw is defined; put it all in roll
-        yaw = 0.0
-        roll = math.atan2(-float(R[1, 2]), float(R[1, 1]))
-    return [roll, pitch, yaw]
-
-
 def _fmt(values) -> str:
     return " ".join(repr(float(v)) for v in values)
 
@@ -90,7 +76,7 @@ def _set_origin(joint: ET.Element, T: torch.Tensor) -> None:
         o = ET.Element("origin")
         joint.insert(0, o)
     o.set("xyz", _fmt(T[:3, 3].tolist()))
-    o.set("rpy", _fmt(_rpy(T[:3, :3])))
+    o.set("rpy", _fmt(matrix_to_rpy(T[:3, :3].detach().to("cpu", torch.float64)).tolist()))
 
 
 # ---------------------------------------------------------------------- sources

@@ -59,11 +59,8 @@ def kabsch(src: torch.Tensor, dst: torch.Tensor, weights: torch.Tensor | None = 
     cs = (w[..., None] * src).sum(-2)
     cd = (w[..., None] * dst).sum(-2)
     H = ((src - cs[..., None, :]) * w[..., None]).transpose(-1, -2) @ (dst - cd[..., None, :])  # (..., 3, 3)
-    U, _, Vh = torch.linalg.svd(H)
-    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
-    d = torch.where(d == 0, torch.ones_like(d), d)
-    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
-    R = Vh.transpose(-1, -2) @ D @ U.transpose(-1, -2)
+    # the optimal rotation is the proper rotation nearest to H^T (H = U S V^T -> R = V diag(1, 1, d) U^T)
+    R = nearest_rotation(H.transpose(-1, -2))
     t = cd - (R @ cs[..., None])[..., 0]
     return R, t
 

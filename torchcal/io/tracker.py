@@ -195,21 +195,20 @@ def rigid_to_reference(x: np.ndarray, ref: np.ndarray, w: np.ndarray) -> tuple[n
     -> R (P, 3, 3), b (P, 3) with R x + b ~ ref (Kabsch with >= 3 points,
     translation only with 1-2, identity with none), count (P,) points used.
     """
+    import torch
+
+    from ..identify.alignment import kabsch
+
     wf = w.astype(np.float64)[..., None]
     cnt = w.sum(1)
     safe = np.maximum(cnt, 1)[:, None]
     xs = np.where(w[..., None], x, 0.0)
     cx = (xs * wf).sum(1) / safe
     cm = (ref[None] * wf).sum(1) / safe
-    H = np.einsum("pk,pki,pkj->pij", w.astype(np.float64), xs - cx[:, None], ref[None] - cm[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    V = np.swapaxes(Vt, 1, 2)
-    d = np.sign(np.linalg.det(V @ np.swapaxes(U, 1, 2)))
-    d = np.where(d == 0, 1.0, d)
-    D = np.tile(np.eye(3), (len(x), 1, 1))
-    D[:, 2, 2] = d
-    R = V @ D @ np.swapaxes(U, 1, 2)
-    R = np.where((cnt >= 3)[:, None, None], R, np.eye(3))
+    # poses with no usable point get unit weights only to keep kabsch finite; their R is replaced below
+    wk = np.where((cnt > 0)[:, None], w, True).astype(np.float64)
+    R, _ = kabsch(torch.from_numpy(xs), torch.from_numpy(np.broadcast_to(ref, xs.shape).copy()), torch.from_numpy(wk))
+    R = np.where((cnt >= 3)[:, None, None], R.numpy(), np.eye(3))
     b = cm - np.einsum("pij,pj->pi", R, cx)
     b = np.where((cnt > 0)[:, None], b, 0.0)
     return R, b, cnt

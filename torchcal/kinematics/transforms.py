@@ -70,10 +70,15 @@ def rpy_to_matrix(rpy: torch.Tensor) -> torch.Tensor:
 
 
 def matrix_to_rpy(R: torch.Tensor) -> torch.Tensor:
-    """Inverse of rpy_to_matrix (away from pitch = +-90 deg).  (..., 3, 3) -> (..., 3)."""
-    roll = torch.atan2(R[..., 2, 1], R[..., 2, 2])
-    pitch = torch.atan2(-R[..., 2, 0], torch.sqrt(R[..., 2, 1] ** 2 + R[..., 2, 2] ** 2))
-    yaw = torch.atan2(R[..., 1, 0], R[..., 0, 0])
+    """Inverse of rpy_to_matrix.  (..., 3, 3) -> (..., 3).
+
+    At pitch = +-90 deg (gimbal lock) only roll -+ yaw is defined: it all goes
+    into roll and yaw is 0, so rpy_to_matrix still rebuilds R exactly.
+    """
+    pitch = torch.atan2(-R[..., 2, 0], torch.hypot(R[..., 0, 0], R[..., 1, 0]))
+    lock = torch.cos(pitch) <= 1e-6
+    roll = torch.where(lock, torch.atan2(-R[..., 1, 2], R[..., 1, 1]), torch.atan2(R[..., 2, 1], R[..., 2, 2]))
+    yaw = torch.where(lock, torch.zeros_like(pitch), torch.atan2(R[..., 1, 0], R[..., 0, 0]))
     return torch.stack([roll, pitch, yaw], -1)
 
 

@@ -8,7 +8,7 @@ A thin composition of library calls, in Paper II's order (5.5-5.6):
    them on the nominal robot first (:mod:`torchcal.identify.alignment`) ->
    ``alignment.json``; the model then starts from them (base_nominal, tools);
 2. choose the Chebyshev orders if ``model.order: auto`` (:func:`select_orders`:
-   on the validation set if there is one, else K-fold cross-validation by pose);
+   on the validation set if there is one, else by leave-one-pose-out residuals or K-fold CV by pose);
 3. identify the model (:func:`torchcal.identify.fit`) and write ``model.pt`` and
    ``fit.json`` at once, so that a later failure loses nothing computed;
 4. evaluate nominal and modeled residuals (joint errors zero) on both sets:
@@ -343,10 +343,12 @@ def _run_fit(cfg, console=None) -> RunResult:
         if isinstance(order, str):  # "auto" (check_config allows no other string)
             from .identify.order import select_orders
 
-            how = "validation set" if val is not None else f"{cfg.model.folds}-fold cross-validation"
+            folds = int(cfg.model.folds)
+            how = ("validation set" if val is not None else
+                   "leave-one-pose-out residuals" if folds == 0 else f"{folds}-fold cross-validation")
             with progress.step(f"choosing Chebyshev orders by {how}") as p:
                 selection = select_orders(make, ident, val, noise, prior, candidates=list(cfg.model.candidates),
-                                          folds=int(cfg.model.folds), seed=int(cfg.seed), progress=p.update,
+                                          folds=folds, margin=float(cfg.model.margin), seed=int(cfg.seed), progress=p.update,
                                           joint_window=2,  # per-joint refinement near the uniform optimum: 3x fewer fits
                                           **opts)
             orders = [int(o) for o in selection.orders]

@@ -6,7 +6,7 @@ Sections (Paper II numbering):
   Figure 11   mean identification / validation residual, orders 1-10 x 150/250/350 poses
   Tables 6-7  the 6th-order / 250-pose model: nominal, modeled, compensated (mean, max, Gamma 99 %)
   Truth       model error against the noise-free truth, ratio to the true model's residual,
-              order chosen automatically (model.order: auto, cross-validation on the identification set)
+              order chosen automatically (model.order: auto, leave-one-pose-out on the identification set)
   Tables 10-12 Circle Point Analysis against the proposed model, per joint and on the quasi-random set
   Share       the joint-dependent share of the error
   Compensation robustness and accuracy on 20 000 uniform poses of the identified model
@@ -182,7 +182,8 @@ def truth_check(S: Setup, model: RobotModel, label: str, data: Measurements | No
 
 def auto_orders(S: Setup, folds: int, window: int, use_validation: bool):
     """model.order: auto. With the validation set: Figure 11's procedure (lowest validation residual);
-    without: K-fold cross-validation by pose on the identification data (what `torchcal fit` does then)."""
+    without: leave-one-pose-out residuals on the identification data (folds=0, what `torchcal fit` does then)
+    or K-fold cross-validation by pose (folds=K)."""
     ident = S.ident(250)
 
     def make(orders):
@@ -331,8 +332,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--skip-sweep", action="store_true", help="skip Figure 11 (30 fits)")
-    ap.add_argument("--skip-auto", action="store_true", help="skip the automatic order choice (cross-validation, minutes)")
-    ap.add_argument("--folds", type=int, default=5)
+    ap.add_argument("--skip-auto", action="store_true", help="skip the automatic order choice (minutes)")
+    ap.add_argument("--folds", type=int, default=0, help="order: auto without validation set: 0 leave one pose out, K K-fold CV")
     ap.add_argument("--window", type=int, default=2, help="per-joint order search: orders within this of the current one")
     ap.add_argument("--robust-poses", type=int, default=20000)
     ap.add_argument("--json", type=Path, default=None, help="write every number printed to this file")

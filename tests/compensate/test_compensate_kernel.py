@@ -3,11 +3,16 @@
 import pytest
 import torch
 
-from conftest import random_commands, randomize
+from conftest import PRISMATIC_URDF, random_commands, randomize
+from torchcal.compensate import fused
 from torchcal.compensate.damped import pose_residual, residual_jacobian
 from torchcal.compensate.kernel import FlangeKernel, pose_error_soa
+from torchcal.kinematics import load_robot
 from torchcal.kinematics.transforms import pose_error
 from torchcal.model import RobotModel
+
+# both evaluations of the flange: the torch ops (any device) and the numba-compiled CPU kernel
+BACKENDS = [False, pytest.param(True, marks=pytest.mark.skipif(not fused.HAVE_NUMBA, reason="numba not installed"))]
 
 
 def soa(q):
@@ -20,13 +25,15 @@ def model(fanuc, tools_m):
     return randomize(RobotModel(fanuc, tools_m, orders=6, backlash=True), 11, rot=2e-2, trans=5e-3)
 
 
+@pytest.mark.parametrize("use_fused", BACKENDS)
 @pytest.mark.parametrize("general_axes", [False, True])
 @pytest.mark.parametrize("with_direction", [False, True])
-def test_kernel_matches_model(model, fanuc, general_axes, with_direction):
-    q = random_commands(fanuc, 200, 3)
-    s = torch.sign(torch.randn(200, 6, generator=torch.Generator().manual_seed(4))) if with_direction else None
+def test_kernel_matches_model(model, fanuc, general_axes, with_direction, use_fused):
+    q = random_commands(fanuc, 1200, 3)  # more than one chunk of the fused kernel's threads
+    s = torch.sign(torch.randn(1200, 6, generator=torch.Generator().manual_seed(4))) if with_direction else None
     sT = None if s is None else soa(s)
-    k = FlangeKernel(model, general_axes=general_axes)
+    k = FlangeKernel(model, general_axes=general_axes, fused=use_fused)
+    assert (k.fused is not None) == use_fused
     with torch.no_grad():
         F = model.flange(q, s, base=False)
         F0, J0 = model.flange_jacobian(q, s)
@@ -42,13 +49,47 @@ def test_kernel_matches_model(model, fanuc, general_axes, with_direction):
     assert torch.allclose(pn.T, Fn[:, :3, 3], atol=2e-15, rtol=0)
 
 
-def test_nominal_jacobian_is_the_zero_model_jacobian(fanuc, tools_m):
+@pytest.mark.parametrize("use_fused", BACKENDS)
+def test_nominal_jacobian_is_the_zero_model_jacobian(fanuc, tools_m, use_fused):
     zero = RobotModel(fanuc, tools_m, orders=6, backlash=True)
     q = random_commands(fanuc, 100, 5)
     with torch.no_grad():
-        _, J0 = zero.flange_jacobian(q)
-    _, _, J = FlangeKernel(zero).nominal_flange_jacobian(soa(q))
+        F0, J0 = zero.flange_jacobian(q)
+    R, p, J = FlangeKernel(zero, fused=use_fused).nominal_flange_jacobian(soa(q))
     assert torch.allclose(J.permute(2, 0, 1), J0, atol=1e-15, rtol=0)
+    assert torch.allclose(p.T, F0[:, :3, 3], atol=2e-15, rtol=0)
+
+
+@pytest.mark.parametrize("use_fused", BACKENDS)
+def test_kernel_matches_model_with_a_prismatic_joint(tmp_path, use_fused):
+    """Travel along a prismatic axis after E_i, non-z revolute axes, and the Jacobian's linear columns."""
+    path = tmp_path / "rpr.urdf"
+    path.write_text(PRISMATIC_URDF)
+    robot = load_robot(path)
+    model = randomize(RobotModel(robot, torch.tensor([[0.0, 0.0, 0.05]], dtype=torch.float64), orders=4, backlash=True),
+                      3, rot=2e-2, trans=5e-3)
+    q = random_commands(robot, 300, 9)
+    s = torch.sign(torch.randn(300, 3, generator=torch.Generator().manual_seed(1)))
+    k = FlangeKernel(model, fused=use_fused)
+    with torch.no_grad():
+        F0, J0 = model.flange_jacobian(q, s)
+        F = model.flange(q, s, base=False)
+        Fn = model.nominal_flange(q)
+    R, p = k.flange(soa(q), soa(s))
+    assert torch.allclose(R.permute(2, 0, 1), F[:, :3, :3], atol=2e-15, rtol=0)
+    assert torch.allclose(p.T, F[:, :3, 3], atol=2e-15, rtol=0)
+    R, p, J = k.flange_jacobian(soa(q), soa(s))
+    assert torch.allclose(J.permute(2, 0, 1), J0, atol=1e-14, rtol=0)
+    Rn, pn, _ = k.nominal_flange_jacobian(soa(q))
+    assert torch.allclose(pn.T, Fn[:, :3, 3], atol=2e-15, rtol=0)
+
+
+@pytest.mark.skipif(not fused.HAVE_NUMBA, reason="numba not installed")
+def test_fused_kernel_is_refused_where_it_does_not_apply(fanuc, tools_m):
+    model = RobotModel(fanuc, tools_m, orders=2).to(torch.float32)
+    assert FlangeKernel(model).fused is None  # automatic choice: torch ops for float32
+    with pytest.raises(ValueError, match="float64"):
+        FlangeKernel(model, fused=True)
 
 
 def test_pose_error_soa_matches_pose_error(model, fanuc):
@@ -91,6 +132,6 @@ def test_blocked_evaluation_equals_one_pass(fanuc, tools_m):
     model = randomize(RobotModel(fanuc, tools_m, orders=6, backlash=True), 5)
     q = random_commands(fanuc, 50, 6)
     s = torch.sign(torch.randn(50, 6, generator=torch.Generator().manual_seed(7)))
-    R1, p1 = FlangeKernel(model, block=None).flange(soa(q), soa(s))
-    R2, p2 = FlangeKernel(model, block=7).flange(soa(q), soa(s))
+    R1, p1 = FlangeKernel(model, block=None, fused=False).flange(soa(q), soa(s))
+    R2, p2 = FlangeKernel(model, block=7, fused=False).flange(soa(q), soa(s))
     assert torch.allclose(R1, R2, atol=1e-15, rtol=0) and torch.allclose(p1, p2, atol=1e-15, rtol=0)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from conftest import random_commands, randomize
-from torchcal.identify import CalibrationProblem, NoiseModel, Prior, fit, fix_gauge, lbfgs, levenberg_marquardt
+from torchcal.identify import CalibrationProblem, NoiseModel, Prior, fit, fix_gauge
 from torchcal.identify.lm import _schur_step
 from torchcal.measurements import Measurements
 from torchcal.model import RobotModel
@@ -126,7 +126,8 @@ def test_lbfgs_agrees_with_lm_on_a_small_problem(fanuc, tools_m):
     assert diff < 2e-5
 
 
-def test_order_selection_finds_the_joint_that_needs_terms(fanuc, tools_m):
+@pytest.mark.parametrize("folds, criterion", [(3, "cv-3"), (0, "loo")])
+def test_order_selection_finds_the_joint_that_needs_terms(fanuc, tools_m, folds, criterion):
     from torchcal.identify import select_orders
 
     noise = NoiseModel.paper2()
@@ -137,10 +138,10 @@ def test_order_selection_finds_the_joint_that_needs_terms(fanuc, tools_m):
         truth.joint_errors.coef[1, :3, 1:4] = 3e-4
     data = simulate(truth, fanuc, 60, 16, noise)
     sel = select_orders(lambda o: RobotModel(fanuc, tools_m, orders=o), data, None, noise,
-                        candidates=[0, 3], folds=3, seed=0)
+                        candidates=[0, 3], folds=folds, seed=0)
     assert sel.orders[1] == 3
     assert sum(sel.orders) == 3  # every other joint stays constant
-    assert sel.criterion == "cv-3"
+    assert sel.criterion == criterion
 
 
 def test_order_selection_window_limits_the_per_joint_search(fanuc, tools_m):
@@ -152,7 +153,7 @@ def test_order_selection_window_limits_the_per_joint_search(fanuc, tools_m):
     data = simulate(truth, fanuc, 40, 18, noise)
     val = simulate(truth, fanuc, 30, 19, noise)
     sel = select_orders(lambda o: RobotModel(fanuc, tools_m, orders=o), data, val, noise,
-                        candidates=[0, 1, 2, 3], joint_window=1, max_passes=1)
+                        candidates=[0, 1, 2, 3], joint_window=1, max_passes=1, margin=0.0)
     uniform = [r for r in sel.table if r["stage"] == "uniform"]
     per_joint = [r for r in sel.table if r["stage"] != "uniform"]
     assert len(uniform) == 4
@@ -188,3 +189,38 @@ def test_prior_follows_the_layout_when_a_whole_group_is_pinned(fanuc, tools_m):
     assert first not in [e[0] for e in new.entries]
     assert prob.prior_precision.numel() == new.size
     assert prob.prior_precision.tolist() == [before[n] for n in new.names()]
+
+
+def test_leave_one_pose_out_matches_refits(fanuc, tools_m):
+    """loo_residuals (one linearization, Woodbury) against the model actually refitted without each pose."""
+    from torchcal.identify.order import _row_errors, loo_residuals
+
+    noise = NoiseModel.paper2()
+    truth = randomize(RobotModel(fanuc, tools_m, orders=2), 21)
+    data = simulate(truth, fanuc, 40, 22, noise)
+    model = RobotModel(fanuc, tools_m, orders=1)  # too simple on purpose: held-out errors well above the training ones
+    r = fit(model, data, noise, ftol=1e-14)
+    loo = loo_residuals(model, data, noise, Prior(), r.v)
+    train = _row_errors(model, data)
+    for pose in (0, 17, 39):
+        held = data.pose == pose
+        refit = RobotModel(fanuc, tools_m, orders=1)
+        refit.load_state_dict(model.state_dict())
+        fit(refit, data.subset(~held), noise, ftol=1e-14)
+        exact = _row_errors(refit, data.subset(held))
+        assert torch.allclose(loo[held], exact, rtol=2e-3, atol=2e-8), (pose, loo[held], exact)
+        assert (exact - train[held]).abs().max() > 20 * (loo[held] - exact).abs().max()  # the shift is resolved
+
+
+def test_paired_improvement_averages_rows_per_pose():
+    from torchcal.identify.order import paired_improvement
+
+    pose = torch.tensor([0, 0, 1, 1, 2, 2, 3, 3])
+    a = torch.tensor([1.0, 3.0, 2.0, 2.0, 5.0, 1.0, 0.0, 4.0])
+    b = a - torch.tensor([1.0, 1.0, 0.0, 2.0, 3.0, 3.0, 0.5, 1.5])  # per-pose mean differences 1, 1, 3, 1
+    gain, se = paired_improvement(a, b, pose)
+    d = torch.tensor([1.0, 1.0, 3.0, 1.0])
+    assert gain == pytest.approx(1.5)
+    assert se == pytest.approx(float(d.std()) / 2.0)
+    gain, se = paired_improvement(a, a + 0.25, pose)
+    assert gain == pytest.approx(-0.25) and se == pytest.approx(0.0, abs=1e-12)

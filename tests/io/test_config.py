@@ -89,10 +89,19 @@ def test_unknown_key_in_override_names_override(cfg_file):
     ("tools=[[1,2]]", "tools"),
     ("model.backlash=maybe", "model.backlash"),
     ("model.compliance=sometimes", "model.compliance"),
+    ("model.folds=1", "model.folds"),
+    ("model.folds=-2", "model.folds"),
+    ("model.margin=-1", "model.margin"),
 ])
 def test_bad_values_name_the_key(cfg_file, override, key):
     with pytest.raises(ConfigError, match=f"key '{key}'"):
         load_config(cfg_file, [override])
+
+
+def test_order_selection_keys(cfg_file):
+    assert load_config(cfg_file, []).model.folds == 0  # leave one pose out by default
+    cfg = load_config(cfg_file, ["model.folds=5", "model.margin=0"])
+    assert cfg.model.folds == 5 and cfg.model.margin == 0
 
 
 def test_required_keys_and_per_joint_lengths(cfg_file, tmp_path):

@@ -6,7 +6,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import fanuc_dh_reference, random_commands
+from conftest import PRISMATIC_URDF, fanuc_dh_reference, random_commands
 from torchcal.kinematics import load_robot
 from torchcal.kinematics.transforms import so3_exp, twist_to_transform
 from torchcal.model import RobotModel
@@ -281,19 +281,6 @@ def test_float32_and_batch_shapes(fanuc, tools_m):
     p32 = truth.points(q.float(), tool, s.float())
     assert p32.dtype == torch.float32 and p64.dtype == torch.float64 and p64.shape == (10, 3)
     assert torch.allclose(p32.double(), p64, atol=1e-5)
-
-
-PRISMATIC_URDF = """<?xml version="1.0"?>
-<robot name="rpr">
-  <link name="base"/><link name="l1"/><link name="l2"/><link name="l3"/>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
-    <origin xyz="0 0 0.4" rpy="0 0 0"/><axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
-  <joint name="j2" type="prismatic"><parent link="l1"/><child link="l2"/>
-    <origin xyz="0.2 0 0" rpy="0 1.5707963267948966 0"/><axis xyz="0 0 1"/><limit lower="0" upper="0.5" effort="1" velocity="1"/></joint>
-  <joint name="j3" type="revolute"><parent link="l2"/><child link="l3"/>
-    <origin xyz="0 0 0.1" rpy="0 0 0"/><axis xyz="1 0 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
-</robot>
-"""
 
 
 def test_random_truth_on_a_prismatic_robot(tmp_path):

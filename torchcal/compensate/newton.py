@@ -16,8 +16,9 @@ targets out of the modeled robot's reach) are handed to damped least squares
 with the current model Jacobian (:mod:`.damped`); rows that never converge
 come out flagged with their lowest-error solution, never dropped.
 
-The fast path runs on :class:`.kernel.FlangeKernel` (pose index last, chunks
-of poses small enough to stay in cache); the damped path and every reported
+The fast path runs on :class:`.kernel.FlangeKernel` (pose index last; on the
+CPU in float64 its evaluations are the numba-compiled kernel of
+:mod:`.fused`, elsewhere torch ops); the damped path and every reported
 figure can be checked against ``RobotModel.flange`` directly.
 """
 

@@ -5,7 +5,7 @@ from .gauge import dependent_columns, fix_gauge
 from .layout import ParameterLayout
 from .lbfgs import lbfgs
 from .lm import levenberg_marquardt
-from .order import OrderSelection, pose_folds, score_orders, select_orders
+from .order import OrderSelection, held_out_errors, loo_residuals, paired_improvement, pose_folds, score_orders, select_orders
 from .problem import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, CalibrationProblem, NoiseModel, Prior
 from .result import FitResult
 
@@ -22,8 +22,11 @@ __all__ = [
     "dependent_columns",
     "fit",
     "fix_gauge",
+    "held_out_errors",
     "lbfgs",
     "levenberg_marquardt",
+    "loo_residuals",
+    "paired_improvement",
     "pose_folds",
     "score_orders",
     "select_orders",

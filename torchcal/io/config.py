@@ -54,8 +54,12 @@ class ModelConfig:
     """Backlash term on eps_z: true (same order as eps_z), false, or its order (int or per-joint list)."""
     candidates: list[int] = field(default_factory=lambda: list(range(0, MAX_ORDER + 1)))
     """Orders tried by order: auto."""
-    folds: int = 5
-    """Cross-validation folds (by pose) for order: auto without a validation set."""
+    folds: int = 0
+    """order: auto without a validation set: 0 = leave-one-pose-out residuals of one fit per trial
+    (no training-size bias), K >= 2 = K-fold cross-validation by pose (K fits per trial)."""
+    margin: float = 1.0
+    """order: auto, per-joint stage: keep a change only if it lowers the held-out error by more than this many
+    standard errors of the paired (per-pose) difference."""
     compliance: Any = False
     """Gravity compliance (arm sag): false, true (torques from the URDF inertials when every moving link has
     one, else arm-angle functions), "gravity" or "functions"."""
@@ -379,8 +383,10 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
     cands = _plain(cfg.model.candidates)
     if not cands or not all(0 <= c <= MAX_ORDER for c in cands):
         fail("model.candidates", f"{cands}: give a non-empty list of orders in 0..{MAX_ORDER}")
-    if cfg.model.folds < 2:
-        fail("model.folds", f"{cfg.model.folds}: cross-validation needs at least 2 folds")
+    if not _is_int(cfg.model.folds) or cfg.model.folds < 0 or cfg.model.folds == 1:
+        fail("model.folds", f"{cfg.model.folds}: give 0 (leave one pose out) or a number of folds >= 2")
+    if not cfg.model.margin >= 0:
+        fail("model.margin", f"{cfg.model.margin}: give a number of standard errors >= 0")
 
     if not cfg.noise.sigma_m > 0:
         fail("noise.sigma_m", f"{cfg.noise.sigma_m}: the tracker sigma (mm) must be positive")

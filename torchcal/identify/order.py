@@ -66,7 +66,8 @@ def pose_folds(data: Measurements, folds: int, seed: int) -> list[torch.Tensor]:
 
 
 @torch.no_grad()
-def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | None, v: torch.Tensor | None = None) -> torch.Tensor:
+def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | None, v: torch.Tensor | None = None,
+                  fixed=(), gauge: bool = True) -> torch.Tensor:
     """Leave-one-pose-out prediction errors of a fitted model, from one linearization.  -> (R,) m.
 
     model: fitted to ``data`` (the MLE optimum); v: (R, n) its fitted joint
@@ -79,10 +80,12 @@ def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | N
     S = sum A~^T A~ + Lambda_prior and the pose's blocks A~_i, f~_i,
     H_ii = A~_i S^-1 A~_i^T, dropping pose i moves the parameters by
     db_i = S^-1 A~_i^T (I - H_ii)^-1 f~_i (Sherman-Morrison-Woodbury), and the
-    held-out error is sigma_m (g_i + A_i db_i).
+    held-out error is sigma_m (g_i + A_i db_i). fixed, gauge: as given to
+    :func:`fit`, so that the same parameters are free.
     """
-    problem = CalibrationProblem(model, data, noise, prior)
-    fix_gauge(problem)
+    problem = CalibrationProblem(model, data, noise, prior, fixed)
+    if gauge:
+        fix_gauge(problem)
     x = problem.layout.get().to(problem.model.device)
     v = problem.v_zero() if v is None else v.to(x)
     f, A, C = problem.linearize(x, v)
@@ -94,7 +97,10 @@ def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | N
     ft = torch.linalg.solve_triangular(L, g[..., None], upper=False)[..., 0]  # (R, 3)
     Af = At.reshape(R * 3, P)
     S = Af.T @ Af + torch.diag(problem.prior_precision)
-    Ls = torch.linalg.cholesky(S)
+    Ls, info = torch.linalg.cholesky_ex(S)
+    if int(info) != 0:  # no prior and a direction the data leave free: the fit's damping chose it, a nudge here
+        S = S + torch.eye(P, dtype=S.dtype, device=S.device) * 1e-12 * S.diagonal().abs().max()
+        Ls = torch.linalg.cholesky(S)
     # pose blocks, padded to the largest number of rows per pose (padding rows are zero)
     pose = problem.data.pose
     ids, slot_of = torch.unique(pose, return_inverse=True)
@@ -112,9 +118,13 @@ def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | N
     SiAT = torch.cholesky_solve(Ab.permute(2, 0, 1).reshape(P, N * 3 * k), Ls).reshape(P, N, 3 * k).permute(1, 0, 2)  # S^-1 A~_i^T
     H = Ab @ SiAT  # (N, 3k, 3k)
     eye = torch.eye(3 * k, dtype=A.dtype, device=A.device)
-    db = (SiAT @ torch.linalg.solve(eye - H, fb[..., None]))[..., 0]  # (N, P)
-    e = g + (A @ db[slot_of][..., None])[..., 0]
-    return e.norm(dim=-1) / problem.inv_sigma_m
+    # a pose that alone determines some direction has H_ii -> I: its held-out error is unbounded, say so
+    sol, info = torch.linalg.solve_ex(eye - H, fb[..., None])
+    bad = (info != 0) | ~torch.isfinite(sol).all(-1).all(-1)
+    sol = torch.where(bad[:, None, None], torch.zeros_like(sol), sol)
+    db = (SiAT @ sol)[..., 0]  # (N, P)
+    e = (g + (A @ db[slot_of][..., None])[..., 0]).norm(dim=-1) / problem.inv_sigma_m
+    return torch.where(bad[slot_of], torch.full_like(e, float("inf")), e)
 
 
 def held_out_errors(
@@ -139,7 +149,8 @@ def held_out_errors(
         r = fit(model, data, noise, prior, **fit_options)
         if validation is not None:
             return _row_errors(model, validation), validation.pose
-        return loo_residuals(model, data, noise, prior, r.v), data.pose
+        return loo_residuals(model, data, noise, prior, r.v, fit_options.get("fixed", ()),
+                             fit_options.get("gauge", True)), data.pose
     err = torch.empty(len(data), dtype=data.xyz.dtype, device=data.xyz.device)
     for test_ids in pose_folds(data, folds, seed):
         test = torch.isin(data.pose, test_ids.to(data.pose.device))

@@ -53,7 +53,7 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
     from .kinematics import URDFError
 
     # unwritable or misnamed output paths are the user's to fix too; other OSErrors stay tracebacks (bugs)
-    # NotImplementedError: a documented limitation (compensating a model with gravity compliance), not a crash
+    # NotImplementedError: a documented limitation, not a crash
     return (DataError, URDFError, ConfigError, RunDirError, TruthError, PermissionError, IsADirectoryError,
             NotADirectoryError, NotImplementedError)
 

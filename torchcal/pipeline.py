@@ -394,9 +394,7 @@ def _run_fit(cfg, console=None) -> RunResult:
                           f"({ev['decrease']['mean']:.2f} % decrease), max {s.max:.4f} mm, Gamma 99 % {s.gamma99:.4f} mm")
 
         comp_table, comp = None, None
-        if truth is not None and model.compliance is not None:
-            progress.info("compensation check skipped: compensation does not model gravity compliance yet")
-        elif truth is not None:
+        if truth is not None:
             with progress.step(f"compensating {len(val)} validation commands and measuring them on the simulated truth"):
                 comp = compensation_check(model, truth, val, noise, int(cfg.seed) + 1,
                                           **compensation_kwargs(cfg.compensation.tol_deg, cfg.compensation.max_iter))

@@ -257,3 +257,23 @@ def test_cuda_matches_cpu(model, fanuc):
     assert torch.equal(gpu.converged.cpu(), cpu.converged)
     c = cpu.converged
     assert torch.allclose(gpu.q.cpu()[c], cpu.q[c], atol=1e-11, rtol=0)
+
+
+def test_compensation_of_a_model_with_gravity_compliance(fanuc, tools_m):
+    """The deflection Δθ(q) moves with the command: (46) holds with it, checked on RobotModel itself."""
+    m = randomize(RobotModel(fanuc, tools_m, orders=3, backlash=True, compliance=True), 31)
+    with torch.no_grad():
+        m.compliance.coef.copy_(torch.randn(m.compliance.coef.shape, generator=torch.Generator().manual_seed(32)) * 2e-3)
+    q = random_commands(fanuc, 200, 33)
+    s = directions(200, 34)
+    res = compensate(m, q, s)
+    c = res.converged
+    assert c.double().mean() > 0.85
+    de = actual_error(m, res, q, s)
+    assert de[c].norm(dim=-1).max() <= 1e-12
+    # the same model without compliance compensates differently: the deflection is not ignored
+    rigid = RobotModel(fanuc, tools_m, orders=3, backlash=True)
+    rigid.load_state_dict({k: v for k, v in m.state_dict().items() if not k.startswith("compliance.")})
+    other = compensate(rigid, q, s)
+    both = c & other.converged
+    assert (res.q - other.q)[both].norm(dim=-1).median() > 1e-4

@@ -218,11 +218,28 @@ def test_layout_prior_and_missing_jacobian(fanuc, tools_m):
         layout.flatten_jacobian(J, 4)
 
 
-def test_compensation_kernel_refuses_compliance(fanuc, tools_m):
+def test_compensation_kernel_evaluates_compliance_models(fanuc, tools_m):
+    """With compliance the kernel hands the modeled flange to the model (never the fused kernel)."""
     from torchcal.compensate.kernel import FlangeKernel
 
-    with pytest.raises(NotImplementedError, match="compliance"):
-        FlangeKernel(RobotModel(fanuc, tools_m, orders=1, compliance=True))
+    m = randomize(RobotModel(fanuc, tools_m, orders=2, backlash=True, compliance=True), 4)
+    with torch.no_grad():
+        m.compliance.coef.copy_(torch.randn(m.compliance.coef.shape, generator=torch.Generator().manual_seed(5)) * 2e-3)
+    k = FlangeKernel(m)
+    assert k.fused is None
+    with pytest.raises(ValueError, match="compliance"):
+        FlangeKernel(m, fused=True)
+    q = random_commands(fanuc, 30, 6)
+    s = torch.sign(torch.randn(30, 6, generator=torch.Generator().manual_seed(7)))
+    with torch.no_grad():
+        F, J0 = m.flange_jacobian(q, s)
+        Fn = m.nominal_flange(q)
+    R, p, J = k.flange_jacobian(q.T.contiguous(), s.T.contiguous())
+    assert torch.allclose(p.T, F[:, :3, 3], atol=1e-15, rtol=0) and torch.allclose(J.permute(2, 0, 1), J0, atol=1e-15, rtol=0)
+    R, p = k.flange(q.T.contiguous(), s.T.contiguous())
+    assert torch.allclose(R.permute(2, 0, 1), F[:, :3, :3], atol=1e-15, rtol=0)
+    Rn, pn, _ = k.nominal_flange_jacobian(q.T.contiguous())  # the nominal chain has no compliance
+    assert torch.allclose(pn.T, Fn[:, :3, 3], atol=2e-15, rtol=0)
 
 
 def test_fit_recovers_compliance(fanuc, tools_m):

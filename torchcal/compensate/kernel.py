@@ -79,7 +79,9 @@ def pose_error_soa(Ra: torch.Tensor, pa: torch.Tensor, Rn: torch.Tensor, pn: tor
 class FlangeKernel:
     """Fast flange pose of a RobotModel (modeled and nominal) in the (3, 3, B) layout.
 
-    model: the RobotModel (its current parameter values are copied, detached).
+    model: the RobotModel (its current parameter values are copied, detached;
+        with gravity compliance the modeled flange and its Jacobian are
+        evaluated by the model itself, live, and only the nominal chain here).
     general_axes: force the Rodrigues path for every joint (for testing); by
     default joints whose axis is exactly +z use a cheaper column rotation.
     block: poses per block in :meth:`flange` (None: 8192 on the CPU, whole
@@ -92,9 +94,9 @@ class FlangeKernel:
     def __init__(self, model, general_axes: bool = False, block: int | None = None, fused: bool | None = None):
         # blocks only pay on the CPU (cache); a GPU wants the whole batch at once
         self.block = block if block is not None else (8192 if model.device.type == "cpu" else None)
-        if getattr(model, "compliance", None) is not None:
-            raise NotImplementedError("FlangeKernel (compensation) does not model gravity compliance yet; "
-                                      "build the RobotModel with compliance=False or evaluate model.flange directly")
+        # gravity compliance deflects each joint by a function of the whole configuration: the modeled
+        # flange then comes from the model itself (slower; its Jacobian carries the deflection's slope)
+        self.model = model if getattr(model, "compliance", None) is not None else None
         with torch.no_grad():
             je = model.joint_errors
             self.n = model.n
@@ -130,10 +132,11 @@ class FlangeKernel:
             self.tipR, self.tipp = tip[:3, :3].clone(), tip[:3, 3].clone()
             base = model.base.correction().detach()
             self.baseR, self.basep = base[:3, :3].clone(), base[:3, 3].clone()
-        if fused and not _fused.available(self.device, self.dtype):
-            raise ValueError(f"FlangeKernel: the fused kernel needs numba, the CPU and float64 "
-                             f"(numba {'found' if _fused.HAVE_NUMBA else 'missing'}, {self.device}, {self.dtype})")
-        use = _fused.available(self.device, self.dtype) if fused is None else bool(fused)
+        if fused and (not _fused.available(self.device, self.dtype) or self.model is not None):
+            raise ValueError(f"FlangeKernel: the fused kernel needs numba, the CPU, float64 and no gravity compliance "
+                             f"(numba {'found' if _fused.HAVE_NUMBA else 'missing'}, {self.device}, {self.dtype}, "
+                             f"compliance {'on' if self.model is not None else 'off'})")
+        use = _fused.available(self.device, self.dtype) and self.model is None if fused is None else bool(fused)
         self.fused = _fused.FusedFlange(self) if use else None
 
     # ------------------------------------------------------------------ pieces
@@ -362,6 +365,9 @@ class FlangeKernel:
         elementwise ops then work on data that stays in cache (measured on 2
         cores: 32 768 poses in blocks of 8192 take ~0.65x the time of one pass).
         """
+        if self.model is not None:
+            with torch.no_grad():
+                return to_soa(self.model.flange(qT.T, None if sT is None else sT.T, base=False))
         if self.fused is not None:
             return self.fused.flange(qT, sT)
         return self._blocked(self._flange, qT, sT)
@@ -384,6 +390,10 @@ class FlangeKernel:
         qT: (n, B), sT: (n, B) or None -> R (3, 3, B), p (3, B), J (6, n, B);
         the same numbers as ``model.flange_jacobian(q, direction)``.
         """
+        if self.model is not None:
+            with torch.no_grad():
+                F, J = self.model.flange_jacobian(qT.T, None if sT is None else sT.T)
+            return (*to_soa(F), J.permute(1, 2, 0).contiguous())
         if self.fused is not None:
             return self.fused.flange_jacobian(qT, sT)
         return self._blocked(self._flange_jacobian, qT, sT)

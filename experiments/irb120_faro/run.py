@@ -126,7 +126,7 @@ def main(argv=None):
     def run(label, orders, backlash, compliance=False, prior=Prior()):
         m = RobotModel(robot, al.tools, orders=orders, backlash=backlash, base_nominal=al.base_nominal, compliance=compliance)
         t = time.perf_counter()
-        res = fit(m, ident, noise, prior)
+        res = fit(m, ident, noise, prior, max_iter=300)  # the largest models need more than the default 100
         flag = "" if res.success else ", NOT converged"
         key = label + f"  [{time.perf_counter() - t:.1f} s, {res.nit} it{flag}]"
         evaluate(key, m)

@@ -214,6 +214,19 @@ def test_like_with_like_against_robot_model(fanuc, tools_m):
     assert torch.allclose(shifted.flange(q, base=False), E @ shifted.nominal_flange(q), atol=1e-15)
 
 
+def test_truth_file_round_trip_keeps_the_measurement_frame(fanuc, tools_m, tmp_path):
+    from torchcal.io.truth import load_truth, save_truth
+
+    base = twist_to_transform(torch.tensor([0.1, -0.2, 0.3, 1.5, -0.5, 0.2], dtype=torch.float64))
+    truth = TruthRobot.fanuc_paper2(fanuc, tools_m, 5, base_nominal=base)
+    back = load_truth(save_truth(tmp_path / "truth.json", truth, "fanuc_paper2", 5), fanuc)
+    q = random_commands(fanuc, 20, 6)
+    s = torch.sign(torch.randn(20, 6, generator=torch.Generator().manual_seed(7)))
+    tool = torch.arange(20) % 3
+    assert torch.equal(back.base_nominal, truth.base_nominal)
+    assert torch.allclose(back.points(q, tool, s), truth.points(q, tool, s), atol=1e-15, rtol=0)
+
+
 def test_seeds_reproduce_and_differ(fanuc, tools_m):
     for make in (TruthRobot.fanuc_paper2, TruthRobot.random):
         a, b, c = make(fanuc, tools_m, 21), make(fanuc, tools_m, 21), make(fanuc, tools_m, 22)

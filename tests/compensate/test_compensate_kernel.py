@@ -12,7 +12,7 @@ from torchcal.kinematics.transforms import pose_error
 from torchcal.model import RobotModel
 
 # both evaluations of the flange: the torch ops (any device) and the numba-compiled CPU kernel
-BACKENDS = [False, pytest.param(True, marks=pytest.mark.skipif(not fused.HAVE_NUMBA, reason="numba not installed"))]
+BACKENDS = [False, pytest.param(True, marks=pytest.mark.skipif(not fused.HAVE_NUMBA, reason="numba unavailable (not installed, or TORCHCAL_NO_NUMBA set)"))]
 
 
 def soa(q):
@@ -84,7 +84,7 @@ def test_kernel_matches_model_with_a_prismatic_joint(tmp_path, use_fused):
     assert torch.allclose(pn.T, Fn[:, :3, 3], atol=2e-15, rtol=0)
 
 
-@pytest.mark.skipif(not fused.HAVE_NUMBA, reason="numba not installed")
+@pytest.mark.skipif(not fused.HAVE_NUMBA, reason="numba unavailable (not installed, or TORCHCAL_NO_NUMBA set)")
 def test_fused_kernel_is_refused_where_it_does_not_apply(fanuc, tools_m):
     model = RobotModel(fanuc, tools_m, orders=2).to(torch.float32)
     assert FlangeKernel(model).fused is None  # automatic choice: torch ops for float32

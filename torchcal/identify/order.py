@@ -104,17 +104,17 @@ def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | N
     # pose blocks, padded to the largest number of rows per pose (padding rows are zero)
     pose = problem.data.pose
     ids, slot_of = torch.unique(pose, return_inverse=True)
+    N = ids.numel()
     order = torch.argsort(slot_of, stable=True)
-    counts = torch.bincount(slot_of, minlength=ids.numel())
+    counts = torch.bincount(slot_of, minlength=N)
     k = int(counts.max())
     start = torch.cumsum(counts, 0) - counts
     within = torch.arange(R, device=pose.device) - start[slot_of[order]]
-    Ab = torch.zeros(ids.numel(), k, 3, P, dtype=A.dtype, device=A.device)
-    fb = torch.zeros(ids.numel(), k, 3, dtype=A.dtype, device=A.device)
+    Ab = torch.zeros(N, k, 3, P, dtype=A.dtype, device=A.device)
+    fb = torch.zeros(N, k, 3, dtype=A.dtype, device=A.device)
     Ab[slot_of[order], within] = At[order]
     fb[slot_of[order], within] = ft[order]
-    Ab, fb = Ab.reshape(-1, 3 * k, P), fb.reshape(-1, 3 * k)
-    N = ids.numel()
+    Ab, fb = Ab.reshape(N, 3 * k, P), fb.reshape(N, 3 * k)
     SiAT = torch.cholesky_solve(Ab.permute(2, 0, 1).reshape(P, N * 3 * k), Ls).reshape(P, N, 3 * k).permute(1, 0, 2)  # S^-1 A~_i^T
     H = Ab @ SiAT  # (N, 3k, 3k)
     eye = torch.eye(3 * k, dtype=A.dtype, device=A.device)
@@ -137,32 +137,31 @@ def held_out_errors(
     folds: int = 0,
     seed: int = 0,
     **fit_options,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Held-out error of every row (m) for a model with these per-joint orders, and the rows' pose ids.
+) -> torch.Tensor:
+    """Held-out error (m) of every row of ``validation`` (if given) or ``data``, for a model with these orders.
 
     On ``validation`` if given; else the leave-one-pose-out errors (folds=0,
     :func:`loo_residuals`); else K-fold cross-validation by pose (each row
-    predicted by the fit on the folds without it). -> (R,), (R,).
+    predicted by the fit on the folds without it). -> (R,).
     """
     if validation is not None or folds == 0:
         model = make_model(orders)
         r = fit(model, data, noise, prior, **fit_options)
         if validation is not None:
-            return _row_errors(model, validation), validation.pose
-        return loo_residuals(model, data, noise, prior, r.v, fit_options.get("fixed", ()),
-                             fit_options.get("gauge", True)), data.pose
+            return _row_errors(model, validation)
+        return loo_residuals(model, data, noise, prior, r.v, fit_options.get("fixed", ()), fit_options.get("gauge", True))
     err = torch.empty(len(data), dtype=data.xyz.dtype, device=data.xyz.device)
     for test_ids in pose_folds(data, folds, seed):
         test = torch.isin(data.pose, test_ids.to(data.pose.device))
         model = make_model(orders)
         fit(model, data.subset(~test), noise, prior, **fit_options)
         err[test] = _row_errors(model, data.subset(test))
-    return err, data.pose
+    return err
 
 
 def score_orders(make_model, orders, data, validation, noise, prior, folds: int = 0, seed: int = 0, **fit_options) -> float:
     """Mean held-out residual (m) of :func:`held_out_errors`."""
-    return float(held_out_errors(make_model, orders, data, validation, noise, prior, folds, seed, **fit_options)[0].mean())
+    return float(held_out_errors(make_model, orders, data, validation, noise, prior, folds, seed, **fit_options).mean())
 
 
 def paired_improvement(err_a: torch.Tensor, err_b: torch.Tensor, pose: torch.Tensor) -> tuple[float, float]:
@@ -216,27 +215,24 @@ def select_orders(
     candidates = sorted(set(int(c) for c in candidates))
     n = data.n_joints
     table: list[dict] = []
-    cache: dict[tuple, float] = {}
-    errors: dict[tuple, torch.Tensor] = {}
-    pose = None
+    errors: dict[tuple, torch.Tensor] = {}  # held-out error per row of each candidate tried
+    pose = (validation if validation is not None else data).pose  # the rows those errors belong to
 
     def score(orders, stage):
-        nonlocal pose
         key = tuple(int(o) for o in orders)
-        if key not in cache:
-            errors[key], pose = held_out_errors(make_model, key, data, validation, noise, prior, folds, seed, **fit_options)
-            cache[key] = float(errors[key].mean())
-            table.append({"orders": list(key), "score": cache[key], "stage": stage})
+        if key not in errors:
+            errors[key] = held_out_errors(make_model, key, data, validation, noise, prior, folds, seed, **fit_options)
+            table.append({"orders": list(key), "score": float(errors[key].mean()), "stage": stage})
             if progress is not None:
-                progress(f"{stage}: orders {list(key)} -> {cache[key] * 1e3:.4f} mm")
-        return cache[key]
+                progress(f"{stage}: orders {list(key)} -> {table[-1]['score'] * 1e3:.4f} mm")
+        return float(errors[key].mean())
 
     def better(trial, incumbent) -> bool:
         gain, se = paired_improvement(errors[tuple(incumbent)], errors[tuple(trial)], pose)
         return gain > margin * se
 
     best = min(([m] * n for m in candidates), key=lambda o: score(o, "uniform"))
-    best_score = cache[tuple(best)]
+    best_score = score(best, "uniform")
     if per_joint:
         for _ in range(max_passes):
             improved = False

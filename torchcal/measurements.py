@@ -80,3 +80,12 @@ class Measurements:
         """All rows whose pose id is in pose_ids."""
         ids = torch.as_tensor(pose_ids, dtype=torch.long, device=self.pose.device)
         return self.subset(torch.isin(self.pose, ids))
+
+
+def first_invalid_direction(direction: torch.Tensor) -> tuple[int, int] | None:
+    """(pose, joint index) of the first approach direction that is not -1, 0 or +1, or None.  direction: (B, n)."""
+    bad = ~((direction == 1) | (direction == -1) | (direction == 0))
+    if not bad.any():
+        return None
+    i, j = (int(x) for x in bad.nonzero()[0])
+    return i, j

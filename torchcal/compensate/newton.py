@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import torch
 
 from ..kinematics.transforms import homogeneous
+from ..measurements import first_invalid_direction
 from .damped import damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
 
@@ -253,9 +254,9 @@ def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
             raise ValueError(f"compensate: direction must have the shape of q_nom {tuple(q_nom.shape)}, got {tuple(direction.shape)}")
         if direction.device != model.device:
             raise ValueError(f"compensate: direction is on {direction.device}, the model on {model.device}")
-        bad = ~((direction == 1) | (direction == -1) | (direction == 0))
-        if bad.any():
-            i, j = (int(x) for x in bad.nonzero()[0])
+        bad = first_invalid_direction(direction)
+        if bad is not None:
+            i, j = bad
             raise ValueError(f"compensate: direction must be -1, 0 or +1, got {float(direction[i, j])} at pose {i}, joint {j + 1}")
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from ..identify.problem import NoiseModel
-from ..measurements import Measurements
+from ..measurements import Measurements, first_invalid_direction
 from .sampling import approach_directions
 from .truth import TruthRobot
 
@@ -60,9 +60,9 @@ def simulate(
         s = torch.as_tensor(directions).to(device=device, dtype=dtype)
         if s.shape != q.shape:
             raise ValueError(f"simulate: directions must have shape {tuple(q.shape)}, got {tuple(s.shape)}")
-        odd = ~((s == 1) | (s == -1) | (s == 0))
-        if odd.any():
-            r, c = (int(x) for x in odd.nonzero()[0])
+        odd = first_invalid_direction(s)
+        if odd is not None:
+            r, c = odd
             raise ValueError(f"simulate: direction at pose {r}, joint {c + 1} is {float(s[r, c])}, expected -1, 0 or +1")
     Tn = tool_ids.numel()
     qq, ss = q.repeat(Tn, 1), s.repeat(Tn, 1)

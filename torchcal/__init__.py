@@ -1,0 +1,118 @@
+"""torchcal: volumetric error calibration and compensation of industrial robots, in PyTorch.
+
+The main API at the top level (imported on first use, so ``import torchcal``
+stays light: torch loads when a function needs it)::
+
+    import torchcal
+
+    robot = torchcal.load_robot("fanuc_lrmate200i")                # bundled, a joint-map YAML or a URDF
+    data = torchcal.read_measurements("ident.csv", robot, n_tools=3)  # CSV contract (mm, deg) -> SI
+    model = torchcal.RobotModel(robot, tools_m, orders=6, backlash=True)
+    result = torchcal.fit(model, data, torchcal.NoiseModel.paper2())  # maximum likelihood, in place
+    q_new = torchcal.compensate(model, q, direction).q                # compensated commands
+
+Config-driven runs: ``torchcal.run_fit(torchcal.load_config("fit.yaml"))``
+(what ``torchcal fit`` does). Every error torchcal raises on purpose (bad data,
+robot, config, run directory) is a :class:`TorchcalError`.
+
+``torchcal.compensate`` is the subpackage of that name, made callable as its
+function: ``torchcal.compensate(model, q)`` == ``torchcal.compensate.compensate(model, q)``.
+"""
+
+from __future__ import annotations
+
+import sys
+import types
+from importlib import import_module
+
+from .exceptions import TorchcalError
+
+_LAZY = {
+    # robots and models
+    "load_robot": ("torchcal.kinematics", "load_robot"),
+    "Robot": ("torchcal.kinematics", "Robot"),
+    "RobotModel": ("torchcal.model", "RobotModel"),
+    # data
+    "Measurements": ("torchcal.measurements", "Measurements"),
+    "read_measurements": ("torchcal.io.csv", "read_measurements"),
+    "write_measurements": ("torchcal.io.csv", "write_measurements"),
+    # identification
+    "fit": ("torchcal.identify", "fit"),
+    "NoiseModel": ("torchcal.identify", "NoiseModel"),
+    "Prior": ("torchcal.identify", "Prior"),
+    "FitResult": ("torchcal.identify", "FitResult"),
+    "identifiability": ("torchcal.analysis.identifiability", "identifiability"),
+    # compensation, simulation, planning
+    "compensate": ("torchcal.compensate", None),  # the subpackage, callable as its compensate()
+    "CompensationResult": ("torchcal.compensate", "CompensationResult"),
+    "simulate": ("torchcal.sim", "simulate"),
+    "TruthRobot": ("torchcal.sim", "TruthRobot"),
+    "plan_poses": ("torchcal.planning", "plan_poses"),
+    # config-driven runs
+    "load_config": ("torchcal.io.config", "load_config"),
+    "run_fit": ("torchcal.pipeline", "run_fit"),
+    "load_model": ("torchcal.io.rundir", "load_model"),
+    # errors
+    "URDFError": ("torchcal.kinematics.urdf", "URDFError"),
+    "DataError": ("torchcal.io.csv", "DataError"),
+    "ConfigError": ("torchcal.io.config", "ConfigError"),
+    "RunDirError": ("torchcal.io.rundir", "RunDirError"),
+}
+"""Top-level name -> (module, attribute), imported on first access."""
+
+__all__ = sorted([*_LAZY, "TorchcalError", "__version__"])
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("torchcal")
+    except PackageNotFoundError:  # a source tree that was never installed
+        return "0+unknown"
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        module, attr = _LAZY[name]
+        value = import_module(module) if attr is None else getattr(import_module(module), attr)
+        globals()[name] = value  # cache: the next access is a plain attribute
+        return value
+    if name == "__version__":
+        value = _version()
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'torchcal' has no attribute '{name}'")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))
+
+
+class _CallableModule(types.ModuleType):
+    """The subpackage ``torchcal.compensate``, callable as its function: ``torchcal.compensate(model, q)``
+    is ``torchcal.compensate.compensate(model, q)``; attribute access and imports are unchanged."""
+
+    def __call__(self, *args, **kwargs):
+        return self.compensate(*args, **kwargs)
+
+    @property
+    def __wrapped__(self):  # inspect.signature / help() show the function's signature
+        return self.compensate
+
+
+class _Package(types.ModuleType):
+    """The package module: binding the subpackage ``compensate`` (the import system does it on first
+    import) makes it callable as the function of the same name."""
+
+    def __setattr__(self, name, value):
+        if name == "compensate" and type(value) is types.ModuleType:
+            value.__class__ = _CallableModule
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package
+_sub = sys.modules.get(__name__ + ".compensate")
+if _sub is not None and type(_sub) is types.ModuleType:  # imported before this module ran (reload)
+    _sub.__class__ = _CallableModule
+del _sub

@@ -9,7 +9,9 @@ on this side is in mm and degrees (see :mod:`torchcal.io.csv`).
     torchcal compensate RUN_DIR targets.csv compensated.csv
 
 Bad inputs (data, robot, config, run directory) print one message naming the
-file, row / key and column, and exit with status 2.
+file, row / key and column, and exit with status 2. Ctrl-C prints one line
+("interrupted", and for a fit where the partial run directory is) and exits
+with status 130.
 """
 
 from __future__ import annotations
@@ -19,11 +21,45 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
 
-import typer
-from rich.console import Console
-from rich.table import Table
+try:
+    import typer
+    from rich.console import Console
+    from rich.table import Table
+    from typer.core import TyperGroup
+except KeyboardInterrupt:  # Ctrl-C while the console script starts: one line, not an import traceback
+    sys.stderr.write("\ninterrupted\n")
+    raise SystemExit(130) from None
+
+from .exceptions import TorchcalError
+
+INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
+
+
+def _interrupted(exc: BaseException) -> None:
+    """One line on stderr for Ctrl-C; imports nothing (the interrupt may have hit an import half done)."""
+    run_dir = getattr(exc, "run_dir", None)
+    where = f"; the partial run directory is {run_dir}" if run_dir is not None else ""
+    try:
+        sys.stderr.write(f"\ninterrupted{where}\n")
+        sys.stderr.flush()
+    except Exception:  # a closed stderr must not turn Ctrl-C into a traceback
+        pass
+
+
+class _Group(TyperGroup):
+    """The command group: Ctrl-C anywhere in a command is one line and exit status 130, not a traceback."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as exc:
+            _interrupted(exc)
+            raise typer.Exit(INTERRUPTED) from None
+
 
 app = typer.Typer(
+    cls=_Group,
     name="torchcal",
     help="Volumetric error calibration of industrial robots (Paper II's method): fit, predict, compensate, simulate.",
     no_args_is_help=True,
@@ -46,24 +82,33 @@ def _console(stderr: bool = False) -> Console:
 
 
 def _user_error_types() -> tuple[type[BaseException], ...]:
-    from .io.config import ConfigError
-    from .io.csv import DataError
-    from .io.rundir import RunDirError
-    from .io.truth import TruthError
-    from .kinematics import URDFError
+    """TorchcalError (every bad input: data, robot, config, run directory) and a few builtins.
 
+    Imports nothing: it runs while an exception propagates, possibly out of an
+    import half done. An error class outside TorchcalError counts only once its
+    module is loaded (an exception from a module never imported cannot be raised).
+    """
+    extra = []
+    mod = sys.modules.get("torchcal.io.truth")
+    if mod is not None and hasattr(mod, "TruthError"):
+        extra.append(mod.TruthError)
     # unwritable or misnamed output paths are the user's to fix too; other OSErrors stay tracebacks (bugs)
     # NotImplementedError: a documented limitation, not a crash
-    return (DataError, URDFError, ConfigError, RunDirError, TruthError, PermissionError, IsADirectoryError,
-            NotADirectoryError, NotImplementedError)
+    return (TorchcalError, *extra, PermissionError, IsADirectoryError, NotADirectoryError, NotImplementedError)
 
 
 @contextmanager
 def _user_errors():
-    """Turn bad-input exceptions into one message on stderr and exit status 2 (no traceback)."""
+    """Turn bad-input exceptions into one message on stderr and exit status 2 (no traceback).
+
+    Only ``Exception``s are looked at: KeyboardInterrupt passes through untouched to
+    the command group (one line, status 130).
+    """
     try:
         yield
-    except _user_error_types() as exc:
+    except Exception as exc:
+        if not isinstance(exc, _user_error_types()):
+            raise
         # markup=False: messages quote file contents and lists, which must not be read as rich markup
         _console(stderr=True).print(f"error: {exc}", markup=False)
         raise typer.Exit(USER_ERROR) from None
@@ -86,9 +131,9 @@ def _device(name: str):
 
 def _version_callback(value: bool):
     if value:
-        from importlib.metadata import version
+        from . import __version__  # package metadata, or a fallback in a source tree never installed
 
-        typer.echo(f"torchcal {version('torchcal')}")
+        typer.echo(f"torchcal {__version__}")
         raise typer.Exit()
 
 
@@ -150,6 +195,9 @@ def fit_cmd(
             out.print(f"warning: {flagged} validation commands flagged (not converged or outside the joint range)", markup=False)
     if not result.fit.success:
         out.print(f"warning: the solver stopped without converging: {result.fit.message}", markup=False)
+    for w in getattr(result, "warnings", []):  # data that cannot determine the model, implausible nominal residual, ...
+        if not w.startswith("the solver did not converge"):
+            out.print(f"warning: {w}", markup=False)
     # plain echo: a long path must stay on one line for scripts that read it
     typer.echo(f"run directory: {result.run_dir}")
 
@@ -163,23 +211,11 @@ def predict_cmd(
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
 ):
     """Predict measured points x, y, z (mm) for joint commands with an identified model."""
-    import torch
-
-    from .io.csv import points_to_file, read_table, write_table
-    from .io.rundir import load_model
-
     with _user_errors():
-        model = load_model(run_dir, device=_device(device))
-        data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
-        data = data.to(model.device)
-        with torch.no_grad():
-            p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
-        mm = points_to_file(p)
-        out = df.copy()
-        for i, c in enumerate(("x", "y", "z")):
-            out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
-        write_table(output, out)
-    typer.echo(f"predicted {len(df)} rows -> {output}")
+        from .pipeline import predict_file
+
+        rows = predict_file(run_dir, input, output, _device(device))
+    typer.echo(f"predicted {rows} rows -> {output}")
 
 
 # ------------------------------------------------------------------ compensate
@@ -187,15 +223,24 @@ def predict_cmd(
 def compensate_cmd(
     run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit`.")],
     input: Annotated[Path, typer.Argument(help="CSV with nominal commands q1..qN [, dir1..dirN] (deg / mm); other columns are kept.")],
-    output: Annotated[Path, typer.Argument(help="CSV to write: q1..qN compensated (deg / mm) plus converged, iterations, within_limits.")],
+    output: Annotated[Path, typer.Argument(help="CSV to write: q1..qN compensated (deg / mm) plus converged, iterations, within_limits, "
+                                                "max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside].")],
     tol_deg: Annotated[Optional[float], typer.Option(help="Newton tolerance on |dq| (deg); default: the run's compensation.tol_deg.")] = None,
     max_iter: Annotated[Optional[int], typer.Option(help="Newton iteration limit; default: the run's compensation.max_iter.")] = None,
+    max_correction_deg: Annotated[Optional[float], typer.Option(
+        help="Largest correction |q_new - q_nom| of any joint (deg, mm for prismatic joints; also the step bound); "
+             "rows that need more are flagged, not converged. Default 5.")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).
 
     Rows that do not converge or leave the controller's joint range are
-    flagged (converged / within_limits = false), never dropped.
+    flagged (converged / within_limits = false), never dropped. A row whose
+    exact solution lies more than --max-correction-deg from its nominal
+    command (next to a singularity) is not converged: it keeps a bounded
+    best-effort command. direction_outside (when the run's model records the
+    identification data's coverage and the file has dir1..dirN) marks rows
+    whose approach directions the identification never saw.
     """
     from .io.csv import joint_columns, joints_to_file, read_table, write_table
     from .io.rundir import load_model
@@ -206,6 +251,11 @@ def compensate_cmd(
         data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
         data = data.to(model.device)
         options = _compensation_options(run_dir, tol_deg, max_iter)
+        if max_correction_deg is not None:
+            from .units import deg_to_rad
+
+            bound = deg_to_rad(float(max_correction_deg))
+            options.update(max_correction=bound, max_step=bound)
         res = _compensate(model, data, options)
         within = res.within_limits
         q_file = joints_to_file(res.q, robot)
@@ -215,6 +265,12 @@ def compensate_cmd(
         out["converged"] = res.converged.cpu().numpy()
         out["iterations"] = res.iterations.cpu().numpy()
         out["within_limits"] = within.cpu().numpy()
+        # largest correction in file units (deg / mm): a flagged or large one is visible per row
+        import numpy as np
+
+        out["max_dq"] = np.abs(q_file - joints_to_file(data.q, robot)).max(axis=1) if robot.joint_map.n else 0.0
+        if res.direction_outside is not None:
+            out["direction_outside"] = res.direction_outside.cpu().numpy()
         write_table(output, out)
     flagged = ~res.converged | ~within
     n_flag = int(flagged.sum())
@@ -226,6 +282,10 @@ def compensate_cmd(
             markup=False)
     else:
         typer.echo("0 commands flagged")
+    if res.direction_outside is not None and bool(res.direction_outside.any()):
+        _console(stderr=True).print(
+            f"warning: {int(res.direction_outside.sum())} of {len(df)} commands approach a joint from a direction the "
+            f"identification data did not cover there (column 'direction_outside')", markup=False)
 
 
 def _compensation_options(run_dir: Path, tol_deg: float | None, max_iter: int | None) -> dict:
@@ -248,89 +308,6 @@ def _compensate(model, data, options):
 
 
 # -------------------------------------------------------------------- simulate
-def default_joint_variances(n: int) -> tuple[list[float], list[float]]:
-    """Joint variances (deg²) for simulated data: Paper II Table 5 for 6 joints, else its median for every joint."""
-    from .identify import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD
-
-    if n == len(PAPER2_JOINT_VAR_FWD):
-        return list(PAPER2_JOINT_VAR_FWD), list(PAPER2_JOINT_VAR_BWD)
-    med_f = sorted(PAPER2_JOINT_VAR_FWD)[len(PAPER2_JOINT_VAR_FWD) // 2]
-    med_b = sorted(PAPER2_JOINT_VAR_BWD)[len(PAPER2_JOINT_VAR_BWD) // 2]
-    return [med_f] * n, [med_b] * n
-
-
-def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: int = 250, validation: int = 300,
-                     validation_tool: int = 2, seed: int = 0, order: int = 6, force: bool = False) -> dict[str, Path]:
-    """Write simulated measurements in the CSV contract plus truth.json and a ready-to-run fit.yaml.
-
-    Paper II's protocol (5.2, 5.5): quasi-random commands over the controller
-    range, each identification pose measured with all three tools of Table 4,
-    disjoint validation commands measured with ``validation_tool``; tracker
-    sigma 0.005 mm and Table 5 joint variances. The truth is Paper II's FANUC
-    (:meth:`TruthRobot.fanuc_paper2`) for the bundled FANUC, else
-    :meth:`TruthRobot.random`. -> name -> path of the files written.
-    """
-    import torch
-    import yaml
-
-    from . import units
-    from .identify import NoiseModel
-    from .io.config import ConfigError
-    from .io.csv import write_measurements
-    from .io.truth import save_truth
-    from .kinematics import load_robot
-    from .sim import TruthRobot, quasi_random_commands, simulate
-
-    out_dir = Path(out_dir)
-    names = {"identification": "identification.csv", "validation": "validation.csv", "truth": "truth.json", "config": "fit.yaml"}
-    existing = [n for n in names.values() if (out_dir / n).exists()]
-    if existing and not force:
-        raise ConfigError(f"{out_dir}: already holds {existing}; choose another folder or pass --force to overwrite")
-    if identification < 1 or validation < 0:
-        raise ConfigError(f"--identification must be >= 1 and --validation >= 0 (got {identification}, {validation})")
-    tools_mm = PAPER2_TOOLS_MM
-    if not 0 <= validation_tool < len(tools_mm):
-        raise ConfigError(f"--validation-tool {validation_tool}: tools are 0..{len(tools_mm) - 1} (Paper II Table 4)")
-    rob = load_robot(robot)
-    n = rob.joint_map.n
-    tools_m = units.mm_to_m(torch.tensor(tools_mm, dtype=torch.float64))
-    kind = "fanuc_paper2" if rob.name == "fanuc_lrmate200i" and n == 6 else "random"
-    # fit.yaml and truth.json name a robot file absolutely: they are read from another folder
-    robot_spec = str(Path(rob.source).resolve()) if Path(rob.source).suffix else (rob.source or rob.name)
-    truth = TruthRobot.fanuc_paper2(rob, tools_m, seed) if kind == "fanuc_paper2" else TruthRobot.random(rob, tools_m, seed)
-    var_f, var_b = default_joint_variances(n)
-    sigma_mm = 0.005
-    noise = NoiseModel.from_file_units(sigma_mm, var_f, var_b, rob.joint_map.prismatic)
-    limits = rob.joint_map.limits
-    # one scrambled sequence: validation continues where identification stopped, so the sets are disjoint
-    q_id = quasi_random_commands(limits, identification, seed)
-    ident = simulate(truth, q_id, list(range(len(tools_mm))), noise, seed)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {"identification": write_measurements(out_dir / names["identification"], ident, rob)}
-    if validation:
-        q_val = quasi_random_commands(limits, validation, seed, skip=identification)
-        val = simulate(truth, q_val, [validation_tool], noise, seed + 1)
-        paths["validation"] = write_measurements(out_dir / names["validation"], val, rob)
-    paths["truth"] = save_truth(out_dir / names["truth"], truth, kind, seed, noise, robot_spec=robot_spec)
-    cfg = {
-        "robot": robot_spec,
-        "tools": tools_mm,
-        "data": {"identification": names["identification"], "validation": names["validation"] if validation else None,
-                 "truth": names["truth"] if validation else None},
-        "model": {"order": order, "backlash": True},
-        "noise": {"sigma_m": sigma_mm, "joint_var_fwd": var_f, "joint_var_bwd": var_b},
-        "seed": seed,
-        "out": "runs",
-    }
-    header = (f"# Simulated '{rob.name}' data written by `torchcal simulate` (truth: {kind}, seed {seed}).\n"
-              f"# Run:  torchcal fit {out_dir / names['config']}  [key=value ...]\n"
-              "# Units: mm, deg, deg^2. Relative paths resolve against this file's folder.\n"
-              "# 'data.truth' enables the compensation check on the simulated robot (Paper II Table 7, Fig. 16).\n")
-    (out_dir / names["config"]).write_text(header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None), encoding="utf-8")
-    paths["config"] = out_dir / names["config"]
-    return paths
-
-
 @app.command("simulate")
 def simulate_cmd(
     out_dir: Annotated[Path, typer.Argument(help="Folder for identification.csv, validation.csv, truth.json and fit.yaml.")],
@@ -344,6 +321,8 @@ def simulate_cmd(
 ):
     """Simulated measurements of a robot with known errors (Paper II's protocol) and a ready-to-run fit.yaml."""
     with _user_errors():
+        from .sim.dataset import simulate_dataset
+
         paths = simulate_dataset(out_dir, robot, identification, validation, validation_tool, seed, order, force)
     for name, p in paths.items():
         typer.echo(f"{name}: {p}")
@@ -383,9 +362,74 @@ def import_tracker_cmd(
     typer.echo(f"wrote {len(res.table)} rows -> {output}")
 
 
+# ------------------------------------------------------------------ plan-poses
+def _parse_xyz_mm(text: str | None, option: str):
+    """'X,Y,Z' in mm -> (3,) list in m, or None; a ConfigError naming the option otherwise."""
+    if text is None:
+        return None
+    from . import units
+    from .io.config import ConfigError
+
+    try:
+        xyz = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        xyz = []
+    if len(xyz) != 3 or any(v != v or v in (float("inf"), float("-inf")) for v in xyz):
+        raise ConfigError(f"{option} '{text}': expected three numbers X,Y,Z in mm (robot base frame)")
+    return [units.mm_to_m(v) for v in xyz]
+
+
+@app.command("plan-poses")
+def plan_poses_cmd(
+    robot: Annotated[str, typer.Argument(help="Bundled robot name, joint-map YAML or URDF.")],
+    count: Annotated[int, typer.Argument(help="Number of poses to plan.")],
+    output: Annotated[Path, typer.Argument(help="CSV to write: pose, q1..qN (deg / mm), in visiting order.")],
+    seed: Annotated[int, typer.Option(help="Seed of the Sobol scrambling and the visiting order.")] = 0,
+    tracker: Annotated[Optional[str], typer.Option(help="Tracker position X,Y,Z in mm (robot base frame): keep only poses whose flange z axis points within --max-incidence-deg of it.")] = None,
+    max_incidence_deg: Annotated[float, typer.Option(help="Largest angle between the flange z axis and the line to the tracker.")] = 60.0,
+    min_height_mm: Annotated[float, typer.Option(help="Lowest flange z (mm) in the robot base frame.")] = 0.0,
+    min_distance_mm: Annotated[float, typer.Option(help="Radius (mm) of the keep-out sphere around the base origin.")] = 200.0,
+    order: Annotated[str, typer.Option(help="Visiting order: decorrelate (backlash-friendly), shuffle, or sequence (Sobol order; confounds backlash).")] = "decorrelate",
+):
+    """Quasi-random, reachable measurement poses in an order that decorrelates approach direction from position.
+
+    Prints, per joint, the correlation and R² (cubic Chebyshev basis) between
+    the approach direction and the position in the planned order, next to the
+    Sobol sequence's own order (see torchcal.planning).
+    """
+    with _user_errors():
+        from . import units
+        from .kinematics import load_robot
+        from .planning import plan_poses
+
+        rob = load_robot(robot)
+        plan = plan_poses(rob, count, seed=seed, tracker=_parse_xyz_mm(tracker, "--tracker"),
+                          min_tool_distance=units.mm_to_m(min_distance_mm), min_height=units.mm_to_m(min_height_mm),
+                          max_incidence_deg=max_incidence_deg, order=order)
+        plan.to_csv(output, rob)
+    st = plan.stats
+    table = Table(title=f"approach direction vs position, {len(plan)} poses, order={order}")
+    for col in ("joint", "corr", "R²", "one-sided bins", "corr (Sobol order)", "R² (Sobol order)"):
+        table.add_column(col, justify="left" if col == "joint" else "right")
+    names = list(rob.joint_map.names) if hasattr(rob.joint_map, "names") else [f"J{j + 1}" for j in range(rob.joint_map.n)]
+    for j, name in enumerate(names):
+        table.add_row(name, f"{st['corr'][j]:+.3f}", f"{st['r2'][j]:.3f}", f"{st['one_sided_bins'][j]}/{st['bins']}",
+                      f"{st['sequence']['corr'][j]:+.3f}", f"{st['sequence']['r2'][j]:.3f}")
+    out = _console()
+    out.print(table)
+    rej = st["rejected"]
+    out.print(f"drew {st['drawn']} candidates; rejected {rej['below_plane']} below the floor plane, "
+              f"{rej['near_base']} near the base, {rej['not_visible']} not visible from the tracker", markup=False)
+    typer.echo(f"wrote {len(plan)} poses -> {output}")
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point (``torchcal``)."""
-    app(args=argv if argv is not None else sys.argv[1:], prog_name="torchcal")
+    """Console entry point (``torchcal``); Ctrl-C outside a command (while parsing) is one line and status 130 too."""
+    try:
+        app(args=argv if argv is not None else sys.argv[1:], prog_name="torchcal")
+    except KeyboardInterrupt as exc:
+        _interrupted(exc)
+        sys.exit(INTERRUPTED)
 
 
 if __name__ == "__main__":

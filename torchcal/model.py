@@ -4,7 +4,12 @@
 t measured in the measurement frame for controller command q,
 
     p = T_0^m  F_a(q + v, s)  p_T,t            (25)-(27)
-    F_a = Π_i origin_i · E_i(θ_i, s_i) · joint_i(θ_i),   θ = joint_map(q)   (19)
+    F_a = Π_i origin_i · E_i(u_i, s_i) · joint_i(θ_i),   θ = joint_map(q + v)   (19)
+
+where u_i, the variable joint i's error series (23) is evaluated on, is the
+controller command (q + v)_i normalized over the command limits (24) — the
+paper's reading and the default — or the URDF joint variable θ_i (per joint,
+``error_variable``; the FANUC's J3 gear turns with q3 while θ3 = q2 + q3).
 
 Everything is SI inside (m, rad); convert at the file boundary with
 :mod:`torchcal.units`.
@@ -17,9 +22,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from .errors.compliance import build_compliance
-from .errors.frame import FrameError, ToolSet
-from .errors.joint import JointErrors
+from .error_models.compliance import build_compliance
+from .error_models.frame import FrameError, ToolSet
+from .error_models.joint import JointErrors
 from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
 from .kinematics.fk import chain_frames
 from .kinematics.robot import Robot
@@ -35,16 +40,27 @@ class RobotModel(nn.Module):
     on eps_z; base_nominal: (4, 4) first guess of the measurement frame ->
     robot base (identity when the tracker frame is the base frame);
     compliance: optional gravity compliance of the joints carrying the arm
-    (:class:`~torchcal.errors.compliance.GravityCompliance`, parameter
+    (:class:`~torchcal.error_models.compliance.GravityCompliance`, parameter
     ``compliance.coef``): False (off, the default), True / 'auto', 'gravity',
     'functions', or a dict of its keywords (mode, joints, gravity, inertials).
     Its deflection Δθ(θ(q)) adds to the URDF joint variables where the joint
     errors v act, evaluated at the commanded q (v does not enter it).
+    error_variable: 'command' (Paper II (24)), 'joint', or one per joint; None
+    takes the robot's joint map (``error_variable:`` of its YAML, 'command' by default).
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> model = RobotModel(robot, torch.tensor([[0.0, 0.0, 0.1]], dtype=torch.float64), orders=6, backlash=True)
+        >>> model.error_variable[2], model.points(torch.zeros(4, 6, dtype=torch.float64), torch.zeros(4, dtype=torch.long)).shape
+        ('command', torch.Size([4, 3]))
     """
 
     def __init__(self, robot: Robot, tools, orders=6, backlash=None, base_nominal: torch.Tensor | None = None,
-                 compliance=False):
+                 compliance=False, error_variable=None):
         super().__init__()
+        if error_variable is not None:
+            robot = robot.with_error_variable(error_variable)
         self.robot = robot
         chain, jm = robot.chain, robot.joint_map
         self.register_buffer("origins", chain.origins.clone())
@@ -54,11 +70,19 @@ class RobotModel(nn.Module):
         self.register_buffer("coupling", jm.coupling.clone())
         self.register_buffer("offset", jm.offset.clone())
         self.register_buffer("command_limits", jm.limits.clone())
-        self.joint_errors = JointErrors(jm.joint_ranges(), orders, backlash, chain.joint_names)
+        self.error_variable = list(jm.error_variable)
+        A_u, b_u = jm.error_map()
+        # structure, not state: rebuilt from the spec, so state dicts of older runs (without them) still load
+        self.register_buffer("error_coupling", A_u.clone(), persistent=False)
+        self.register_buffer("error_offset", b_u.clone(), persistent=False)
+        # a joint whose errors follow θ_i also sees the gravity deflection of θ_i; one on the command does not
+        self.register_buffer("error_follows_joint", jm.follows_joint().to(torch.float64), persistent=False)
+        self.joint_errors = JointErrors(jm.error_ranges(), orders, backlash, chain.joint_names)
         self.base = FrameError(base_nominal)
         self.tools = ToolSet(tools)
         self.compliance = build_compliance(robot, compliance)
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
+        self.coverage = None  # DirectionCoverage of the identification data, set by fit()
 
     # ------------------------------------------------------------------ shapes
     @property
@@ -78,6 +102,10 @@ class RobotModel(nn.Module):
         """Controller commands (B, n) -> URDF joint variables (B, n)."""
         return q @ self.coupling.T + self.offset
 
+    def error_variables(self, q: torch.Tensor) -> torch.Tensor:
+        """Controller commands (B, n) -> the variable u (B, n) each joint's error series is evaluated on."""
+        return q @ self.error_coupling.T + self.error_offset
+
     def frames(self, q: torch.Tensor, direction: torch.Tensor | None = None, v: torch.Tensor | None = None, base: bool = True):
         """Joint frames and flange pose with all errors, see :func:`chain_frames`.
 
@@ -87,9 +115,12 @@ class RobotModel(nn.Module):
         """
         qv = q if v is None else q + v
         theta = self.joint_variables(qv)
+        u = self.error_variables(qv)
         if self.compliance is not None:
-            theta = theta + self.compliance(self.joint_variables(q))
-        E = self.joint_errors(theta, direction)
+            dtheta = self.compliance(self.joint_variables(q))
+            theta = theta + dtheta
+            u = u + dtheta * self.error_follows_joint
+        E = self.joint_errors(u, direction)
         T0 = self.base() if base else self.base.correction()
         return chain_frames(self.origins, self.axes, self.prismatic, theta, E, self.tip, T0)
 
@@ -124,12 +155,16 @@ class RobotModel(nn.Module):
     def _parts(self, q, direction, v, base: bool = True):
         """Forward pass keeping what the closed-form Jacobians need."""
         je = self.joint_errors
-        theta = self.joint_variables(q if v is None else q + v)
+        qv = q if v is None else q + v
+        theta = self.joint_variables(qv)
+        u = self.error_variables(qv)
         comp = None
         if self.compliance is not None:
             comp = self.compliance.functions(self.joint_variables(q))  # (B, m, K)
-            theta = theta + self.compliance.deflection_from(comp)
-        lam = je.normalized(theta)
+            dtheta = self.compliance.deflection_from(comp)
+            theta = theta + dtheta
+            u = u + dtheta * self.error_follows_joint
+        lam = je.normalized(u)
         K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
         scale = 2.0 / (je.ranges[:, 1] - je.ranges[:, 0])
         basis, dbasis = chebyshev_design(lam, max(K, Kb), scale)
@@ -138,7 +173,7 @@ class RobotModel(nn.Module):
         de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
         s = None
         if je.has_backlash and direction is not None:
-            s = direction.to(theta)
+            s = direction.to(u)
             bl = je.backlash * je.backlash_mask
             zpad = (2, 3)
             e = e + torch.nn.functional.pad(((basis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
@@ -162,8 +197,8 @@ class RobotModel(nn.Module):
         p = self.tool_points(F, tool)
         B, n = q.shape
         Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :])[:, :, :3, :]  # (B, n, 3, 6)
-        Jth = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :3, :]  # (B, 3, n)
-        Jth = Jth + torch.einsum("bnct,bnt->bcn", Je, d["de"])
+        Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :3, :]  # (B, 3, n) per θ_i
+        slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 3, n): d p / d u_i through E_i's series
         J = {"joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
         if d["s"] is not None:
             J["joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None], d["basis"][..., : d["Kb"]])
@@ -177,9 +212,11 @@ class RobotModel(nn.Module):
         J["tools.delta"] = Jt
         if self.compliance is not None:
             c = self.compliance
-            # Δθ_j = Σ_k coef[j, k] F[j, k] enters like a joint error: d p / d coef = d p / d θ_j · F[j, k]
-            J["compliance.coef"] = torch.einsum("bcm,bmk->bcmk", Jth[:, :, c.joints], d["comp"]) * c.mask
-        J["v"] = Jth @ self.coupling
+            # Δθ_j = Σ_k coef[j, k] F[j, k] moves θ_j (and u_j where the errors follow θ_j): d p / d coef = d p / d Δθ_j · F[j, k]
+            Jdef = Jax + slope * self.error_follows_joint
+            J["compliance.coef"] = torch.einsum("bcm,bmk->bcmk", Jdef[:, :, c.joints], d["comp"]) * c.mask
+        # v moves θ = A (q + v) + offset and u = A_u (q + v) + b_u
+        J["v"] = Jax @ self.coupling + slope @ self.error_coupling
         return p, J
 
     def flange_jacobian(self, q, direction=None, base: bool = False):
@@ -193,15 +230,34 @@ class RobotModel(nn.Module):
         F = d["F"]
         o = F[:, :3, 3]
         Je = twist_jacobian(d["jR"], d["jp"], d["e"], o[:, None, :])  # (B, n, 6, 6)
-        Js = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, o)
-        Js = Js + torch.einsum("bnct,bnt->bcn", Je, d["de"])
+        Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, o)  # (B, 6, n) per θ_i
+        slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 6, n) per u_i
         Rt = F[:, :3, :3].transpose(1, 2)
-        Jb = torch.cat([Rt @ Js[:, :3], Rt @ Js[:, 3:]], 1)
+
+        def body(Js):
+            return torch.cat([Rt @ Js[:, :3], Rt @ Js[:, 3:]], 1)
+
+        dtheta_dq, du_dq = self.coupling, self.error_coupling
         if self.compliance is not None:
-            # θ = A q + offset + Δθ(A q + offset): dθ/dq = (I + dΔθ/dθ) A per pose
-            D = self.compliance.deflection_jacobian(self.joint_variables(q))
-            return F, Jb @ (self.coupling + D @ self.coupling)
-        return F, Jb @ self.coupling
+            # θ = A q + offset + Δθ(A q + offset): dθ/dq = (I + dΔθ/dθ) A per pose; u follows Δθ where it follows θ
+            DA = self.compliance.deflection_jacobian(self.joint_variables(q)) @ self.coupling
+            dtheta_dq = self.coupling + DA
+            du_dq = self.error_coupling + self.error_follows_joint[:, None] * DA
+        return F, body(Jax) @ dtheta_dq + body(slope) @ du_dq
+
+    def parameter_groups(self) -> list:
+        """Kind, unit and prior scale of every learnable parameter, declared by the module that owns it.
+
+        -> list of :class:`torchcal.params.ParamGroup` in ``named_parameters()``
+        order ('joint_errors.coef', 'joint_errors.backlash', 'base.twist',
+        'tools.delta'[, 'compliance.coef']).
+        """
+        groups = []
+        for prefix, module in self.named_children():
+            declare = getattr(module, "param_groups", None)
+            if callable(declare):
+                groups += list(declare(prefix))
+        return groups
 
     # ------------------------------------------------------------ persistence
     def spec(self) -> dict[str, Any]:
@@ -212,7 +268,10 @@ class RobotModel(nn.Module):
             "orders": self._spec["orders"],
             "backlash": self._spec["backlash"],
             "base_nominal": self.base.nominal.tolist(),
+            "error_variable": list(self.error_variable),
         }
+        if self.coverage is not None:
+            out["coverage"] = self.coverage.to_dict()
         if self.compliance is not None:  # absent when off: specs of models without it stay as they were
             out["compliance"] = self.compliance.spec()
         return out
@@ -225,5 +284,12 @@ class RobotModel(nn.Module):
         robot = robot or load_robot(spec["robot"])
         b = spec.get("backlash")
         backlash = None if b is None or max(b) < 0 else b
-        return cls(robot, torch.tensor(spec["tools"], dtype=torch.float64), spec["orders"], backlash,
-                   torch.tensor(spec["base_nominal"], dtype=torch.float64), compliance=spec.get("compliance") or False)
+        # runs written before the error variable existed evaluated every series on the URDF joint variable
+        model = cls(robot, torch.tensor(spec["tools"], dtype=torch.float64), spec["orders"], backlash,
+                    torch.tensor(spec["base_nominal"], dtype=torch.float64), compliance=spec.get("compliance") or False,
+                    error_variable=spec.get("error_variable", "joint"))
+        if spec.get("coverage") is not None:
+            from .analysis.coverage import DirectionCoverage
+
+            model.coverage = DirectionCoverage.from_dict(spec["coverage"])
+        return model

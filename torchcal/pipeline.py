@@ -1,22 +1,33 @@
 """The fit pipeline behind ``torchcal fit`` and the experiments: config -> run directory.
 
-A thin composition of library calls, in Paper II's order (5.5-5.6):
+A thin composition of library calls, in Paper II's order (5.5-5.6); each stage
+is one function of this module, and :func:`run_fit` calls them in turn:
 
-1. load the robot, tools (mm -> m) and the CSV data (identification, validation);
-   when the config leaves the tool vectors (``tools: {count: T}``) or the
-   measurement frame (``measurement_frame: estimate``) to the data, estimate
-   them on the nominal robot first (:mod:`torchcal.identify.alignment`) ->
-   ``alignment.json``; the model then starts from them (base_nominal, tools);
-2. choose the Chebyshev orders if ``model.order: auto`` (:func:`select_orders`:
-   on the validation set if there is one, else by leave-one-pose-out residuals or K-fold CV by pose);
-3. identify the model (:func:`torchcal.identify.fit`) and write ``model.pt`` and
-   ``fit.json`` at once, so that a later failure loses nothing computed;
-4. evaluate nominal and modeled residuals (joint errors zero) on both sets:
-   mean, max, Gamma 99 %, percent decrease (Table 6) -> ``metrics.json``;
-5. for simulated data with a ``data.truth``: compensate the validation
-   commands, "run" them on the simulated robot and compare with where the
-   nominal model sends the tool (Table 7, Figure 16);
-6. plots (Figures 12-16).
+1. :func:`load_inputs`: the robot, config checks against it, the noise (the
+   config's joint variances or the robot's ``repeatability:``), prior, solver
+   options, the CSV data (identification, validation) and the truth;
+2. :func:`align_inputs`: when the config leaves the tool vectors
+   (``tools: {count: T}``) or the measurement frame (``measurement_frame:
+   estimate``) to the data, estimate them on the nominal robot first
+   (:mod:`torchcal.identify.alignment`); the model then starts from them;
+3. :func:`write_preamble`: the run directory's config.yaml, versions.json,
+   alignment.json and the first log lines;
+4. :func:`choose_orders` (build): the Chebyshev orders, searched if
+   ``model.order: auto`` (:func:`select_orders`: on the validation set if there
+   is one, else by leave-one-pose-out residuals or K-fold CV by pose);
+5. :func:`identify_model` (fit): :func:`torchcal.identify.fit`, then
+   ``model.pt`` and ``fit.json`` at once, so that a later failure loses nothing;
+6. :func:`check_data`: what the data cannot determine (never-measured tools,
+   too few poses, one-sided backlash, parameters pinned beyond the model's own
+   redundancy), as warnings;
+7. :func:`evaluate_sets` (evaluate): nominal and modeled residuals (joint
+   errors zero) on both sets: mean, max, Gamma 99 %, percent decrease (Table 6)
+   -> ``metrics.json``, with a warning when the nominal residual is implausible;
+8. :func:`check_compensation` (compensate-check), for simulated data with a
+   ``data.truth``: compensate the validation commands, "run" them on the
+   simulated robot and compare with where the nominal model sends the tool
+   (Table 7, Figure 16);
+9. plots (Figures 12-16).
 
 Everything inside is SI; tables and files are mm and degrees.
 """
@@ -56,7 +67,8 @@ class RunResult:
     device); fit: the solver's result; metrics: what metrics.json holds (mm);
     table: Table 6 rows (mm, percent); compensation_table: Table 7 rows or
     None; orders: Chebyshev order per joint; selection: the order search
-    (model.order: auto) or None; files: name -> path of everything written.
+    (model.order: auto) or None; files: name -> path of everything written;
+    warnings: see below.
     """
 
     run_dir: Path
@@ -68,6 +80,9 @@ class RunResult:
     orders: list[int]
     selection: object | None = None
     files: dict[str, Path] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    """What the run warned about (also in run.log and metrics.json): data that cannot determine the model,
+    an implausible nominal residual, a CSV read as a European export, ..."""
 
 
 # --------------------------------------------------------------- config -> objects
@@ -121,10 +136,45 @@ def config_alignment(cfg, robot, data: Measurements, label: str = "config"):
     return res.tools, res.base_nominal, res
 
 
-def config_noise(cfg, robot) -> NoiseModel:
-    """NoiseModel (SI) from noise.sigma_m (mm) and the joint variances (deg², mm² for prismatic joints)."""
-    return NoiseModel.from_file_units(cfg.noise.sigma_m, list(cfg.noise.joint_var_fwd), list(cfg.noise.joint_var_bwd),
-                                      robot.joint_map.prismatic.cpu())
+def joint_variance_source(cfg, robot) -> str:
+    """Where the joint variances of :func:`config_noise` come from, for the run log ("joint variances: <source>")."""
+    if cfg.noise.joint_var_fwd is not None:
+        where = cfg.config_file or "the config"
+        return f"noise.joint_var_fwd / joint_var_bwd of {where}"
+    if robot.repeatability is not None:
+        return f"robot '{robot.name}' repeatability ({robot.repeatability.source})"
+    return "none"
+
+
+def config_noise(cfg, robot, label: str | None = None) -> NoiseModel:
+    """NoiseModel (SI) from noise.sigma_m (mm) and the joint variances (deg², mm² for prismatic joints).
+
+    The joint variances are the config's ``noise.joint_var_fwd`` / ``joint_var_bwd`` when given,
+    else the robot's own ``repeatability:`` (its YAML); with neither, a ConfigError naming the keys.
+    The tracker sigma is the config's (default 0.005 mm): a property of the tracker, not of the robot.
+
+    Example:
+        >>> from torchcal.io.config import make_config
+        >>> from torchcal.kinematics import load_robot
+        >>> cfg = make_config({"robot": "fanuc_lrmate200i", "tools": [[0, 0, 100]], "data": {"identification": "x.csv"}})
+        >>> noise = config_noise(cfg, load_robot("fanuc_lrmate200i"))   # the robot's Table 5 variances
+        >>> round(noise.sigma_m * 1e6, 3), noise.joint_var_fwd.shape
+        (5.0, torch.Size([6]))
+    """
+    label = label or cfg.config_file or "config"
+    sigma = float(cfg.noise.sigma_m)
+    if cfg.noise.joint_var_fwd is not None and cfg.noise.joint_var_bwd is not None:
+        return NoiseModel.from_file_units(sigma, list(cfg.noise.joint_var_fwd), list(cfg.noise.joint_var_bwd),
+                                          robot.joint_map.prismatic.cpu())
+    rep = robot.repeatability
+    if rep is None:
+        raise ConfigError(
+            f"{label}: keys 'noise.joint_var_fwd' and 'noise.joint_var_bwd' are not set and robot '{robot.name}' "
+            f"({robot.source or robot.name}) has no 'repeatability:' (joint variances, deg²): give one variance per "
+            f"joint ({robot.joint_map.n}) in the config, e.g. noise.joint_var_fwd=[...] noise.joint_var_bwd=[...], "
+            "or a 'repeatability: {joint_var_fwd, joint_var_bwd, source}' in the robot's YAML")
+    return NoiseModel(units.mm_to_m(sigma), rep.var_fwd.detach().cpu().to(torch.float64),
+                      rep.var_bwd.detach().cpu().to(torch.float64))
 
 
 def config_prior(cfg) -> Prior | None:
@@ -152,15 +202,25 @@ def solver_options(cfg) -> dict:
     return opts
 
 
+def config_error_variable(cfg):
+    """model.error_variable as RobotModel takes it: None (the robot's), 'command', 'joint' or a per-joint list."""
+    ev = cfg.model.error_variable
+    return None if ev is None else (str(ev) if isinstance(ev, str) else [str(e) for e in ev])
+
+
 def model_factory(robot, tools_m: torch.Tensor, backlash, device, base_nominal: torch.Tensor | None = None,
-                  compliance=False):
-    """make_model(orders) -> a fresh all-zero RobotModel on ``device`` (what :func:`select_orders` needs)."""
+                  compliance=False, error_variable=None):
+    """make_model(orders) -> a fresh all-zero RobotModel on ``device`` (what :func:`select_orders` needs).
+
+    error_variable: None keeps the robot's (its YAML's ``error_variable:``), else 'command' / 'joint' / per joint.
+    """
     base_nominal = None if base_nominal is None else base_nominal.detach().cpu()
     tools_m = tools_m.detach().cpu()
+    extra = {} if error_variable is None else {"error_variable": error_variable}
 
     def make(orders):
         return RobotModel(robot, tools_m, orders=list(orders) if not isinstance(orders, int) else orders,
-                          backlash=backlash, base_nominal=base_nominal, compliance=compliance).to(device)
+                          backlash=backlash, base_nominal=base_nominal, compliance=compliance, **extra).to(device)
 
     return make
 
@@ -240,16 +300,26 @@ def compensation_check(model, truth, data: Measurements, noise: NoiseModel | Non
 
 # ------------------------------------------------------------------ reporting
 class _Progress:
-    """Log lines to the run log and, when a rich console is given, a live status line on it."""
+    """Log lines to the run log and, when a rich console is given, a live status line on it.
+
+    warnings: every :meth:`warn` text, in order (they also go to ``metrics.json`` and the CLI's summary).
+    """
 
     def __init__(self, console=None):
         self.console = console
         self._status = None
+        self.warnings: list[str] = []
 
     def info(self, text: str) -> None:
         log.info(text)
         if self.console is not None:
             self.console.log(text)
+
+    def warn(self, text: str) -> None:
+        self.warnings.append(text)
+        log.warning(text)
+        if self.console is not None:
+            self.console.log(f"warning: {text}", markup=False)
 
     def update(self, text: str) -> None:
         log.debug(text)
@@ -270,6 +340,342 @@ class _Progress:
         self.info(f"{text} done in {time.perf_counter() - t0:.1f} s")
 
 
+@contextmanager
+def _collect_warnings(into: list[str], name: str = "torchcal"):
+    """Keep the WARNING records of the ``torchcal`` logger emitted in the block (e.g. a CSV read as a
+    European export) in ``into``, to be replayed into the run log once it exists."""
+
+    class _Keep(logging.Handler):
+        def emit(self, record):
+            into.append(record.getMessage())
+
+    logger = logging.getLogger(name)
+    handler = _Keep(logging.WARNING)
+    logger.addHandler(handler)
+    try:
+        yield into
+    finally:
+        logger.removeHandler(handler)
+
+
+NOMINAL_IMPLAUSIBLE_MM = 20.0
+"""A mean nominal residual above this (mm) is beyond any plausible calibration error: the pipeline warns
+that the robot description (URDF, joint map, tools, frame) may not describe the measured robot."""
+
+
+# ------------------------------------------------------------------- the stages
+@dataclass
+class FitInputs:
+    """Stage 1 (:func:`load_inputs`): everything read and checked before anything is computed or written.
+
+    robot; T: tool count; noise (SI) and noise_source (log line); prior; opts: solver keyword
+    arguments; ident / val: Measurements on ``device`` (val None without a validation set); truth: the
+    simulated truth or None; label: the config file (for messages); notes: warnings from reading.
+    """
+
+    robot: object
+    T: int
+    noise: NoiseModel
+    noise_source: str
+    prior: Prior | None
+    opts: dict
+    ident: Measurements
+    val: Measurements | None
+    truth: object | None
+    device: torch.device
+    label: str
+    notes: list[str] = field(default_factory=list)
+
+
+def load_inputs(cfg) -> FitInputs:
+    """Stage 1, load: robot, config checks against it, noise, prior, solver options, the CSV files, the truth.
+
+    Reads every input first: a typo in the validation file should not cost a fit.
+    Raises DataError / URDFError / ConfigError / TruthError naming the file and key.
+    """
+    label = cfg.config_file or "config"
+    notes: list[str] = []  # warnings while reading (a URDF joint without <axis>, a European CSV), for the run log
+    with _collect_warnings(notes):
+        robot = load_robot(cfg.robot)
+    check_config(cfg, label, robot.joint_map.n)
+    device = torch.device(cfg.device)
+    torch.manual_seed(int(cfg.seed))
+    T = config_tool_count(cfg)
+    noise = config_noise(cfg, robot, label)
+    with _collect_warnings(notes):
+        ident = read_measurements(cfg.data.identification, robot, T).to(device)
+        val = read_measurements(cfg.data.validation, robot, T).to(device) if cfg.data.validation else None
+    truth = None
+    if cfg.data.truth:
+        from .io.truth import load_truth
+
+        truth = load_truth(cfg.data.truth, robot).to(device)
+        if val is None:
+            raise ConfigError(f"{label}: key 'data.truth': the compensation check runs on the validation set; set data.validation")
+    return FitInputs(robot, T, noise, joint_variance_source(cfg, robot), config_prior(cfg), solver_options(cfg),
+                     ident, val, truth, device, label, notes)
+
+
+def align_inputs(cfg, inp: FitInputs):
+    """Stage 2, align: tools / measurement frame left to the data -> (tools_m, base_nominal, AlignmentResult or None).
+
+    The rigid alignment is cheap and runs before anything is written (see :func:`config_alignment`).
+    """
+    return config_alignment(cfg, inp.robot, inp.ident, inp.label)
+
+
+def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: _Progress, files: dict) -> None:
+    """Stage 3, start the run directory: config.yaml, versions.json, what was read (and how), alignment.json."""
+    files["config"] = run_dir / "config.yaml"
+    files["config"].write_text(to_yaml(cfg), encoding="utf-8")
+    files["versions"] = write_json(run_dir / "versions.json", collect_versions(inp.device))
+    progress.info(f"run directory {run_dir}")
+    ident, val = inp.ident, inp.val
+    progress.info(f"robot '{inp.robot.name}' ({inp.robot.joint_map.n} joints), {inp.T} tools; identification "
+                  f"{len(ident)} rows / {ident.n_poses} poses" + (f", validation {len(val)} rows" if val is not None else ""))
+    progress.info(f"joint variances: {inp.noise_source}; tracker sigma {cfg.noise.sigma_m:g} mm (noise.sigma_m)")
+    for note in inp.notes:
+        progress.warn(note)
+    if alignment is None:
+        return
+    a = alignment.summary()
+    files["alignment"] = write_json(run_dir / "alignment.json", a)
+    what = " and ".join(w for w, free in (("measurement frame", alignment.estimated_frame),
+                                          ("tool vectors", alignment.estimated_tools)) if free)
+    progress.info(f"alignment: estimated the {what} on the nominal robot ({a['start']} start, "
+                  f"{alignment.iterations} iterations): residual rms {a['residual_mm']['rms']:.4f} mm, "
+                  f"mean {a['residual_mm']['mean']:.4f} mm, max {a['residual_mm']['max']:.4f} mm")
+    progress.info("alignment: robot base at xyz " + ", ".join(f"{v:.3f}" for v in a["frame"]["xyz_mm"])
+                  + " mm, rpy " + ", ".join(f"{v:.4f}" for v in a["frame"]["rpy_deg"]) + " deg; tools "
+                  + "; ".join("[" + ", ".join(f"{v:.3f}" for v in t) + "]" for t in a["tools_mm"]) + " mm")
+    if not alignment.converged:
+        progress.warn("the alignment refinement did not converge; see alignment.json")
+
+
+def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress, files: dict):
+    """Stage 4, build: the Chebyshev orders per joint -> (orders, OrderSelection or None).
+
+    ``model.order: auto`` searches them (validation set, else leave-one-pose-out or K-fold CV) and writes
+    orders.json; otherwise the config's int or list.
+    """
+    order = cfg.model.order
+    if not isinstance(order, str):
+        return ([int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]), None
+    from .identify.order import select_orders  # "auto": check_config allows no other string
+
+    folds = int(cfg.model.folds)
+    how = ("validation set" if inp.val is not None else
+           "leave-one-pose-out residuals" if folds == 0 else f"{folds}-fold cross-validation")
+    with progress.step(f"choosing Chebyshev orders by {how}") as p:
+        selection = select_orders(make, inp.ident, inp.val, inp.noise, inp.prior, candidates=list(cfg.model.candidates),
+                                  folds=folds, margin=float(cfg.model.margin), seed=int(cfg.seed), progress=p.update,
+                                  joint_window=2,  # per-joint refinement near the uniform optimum: 3x fewer fits
+                                  **inp.opts)
+    orders = [int(o) for o in selection.orders]
+    files["orders"] = write_json(run_dir / "orders.json", {
+        "orders": orders, "criterion": selection.criterion, "score_mm": units.m_to_mm(selection.score),
+        "table": [{**r, "score_mm": units.m_to_mm(r["score"])} for r in selection.table]})
+    progress.info(f"orders {orders} ({selection.criterion})")
+    return orders, selection
+
+
+def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: _Progress, files: dict) -> FitResult:
+    """Stage 5, fit: identify ``model`` in place and write model.pt and fit.json at once (a later failure loses nothing)."""
+    opts = inp.opts
+    with progress.step(f"identifying the model (orders {orders}, {opts['method']})") as p:
+        result = fit(model, inp.ident, inp.noise, inp.prior, callback=lambda it, cost: p.update(
+            f"identifying ({opts['method']}): iteration {it}, cost {cost:.6g}"), **opts)
+    files["model"] = save_model(run_dir, model, orders=orders, config_file=cfg.config_file)
+    files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
+                                                      "orders": orders, "history": list(result.history)})
+    progress.info(f"fit: {result.message} after {result.nit} iterations, cost {result.fun:.6g}")
+    if not result.success:
+        progress.warn("the solver did not converge; see fit.json (raise solver.max_iter?)")
+    return result
+
+
+def structural_pins(make, orders, inp: FitInputs, poses: int | None = None, seed: int = 0) -> list[str]:
+    """Parameters the model itself leaves undetermined (redundant constants, Paper II (18)), whatever the data.
+
+    The gauge fixing (:func:`torchcal.identify.fix_gauge`) on rich synthetic data: quasi-random
+    commands over the controller range, both approach directions at random, every tool; its pinned
+    names are what any data set pins. What a fit pins beyond them, its data cannot determine.
+    """
+    from .identify import CalibrationProblem, fix_gauge
+    from .sim import quasi_random_commands
+
+    model = make(orders)
+    dev = inp.ident.q.device
+    P = CalibrationProblem(model, inp.ident, inp.noise, inp.prior).layout.size
+    poses = poses or max(64, P // max(inp.T, 1) + 32)
+    q = quasi_random_commands(inp.robot.joint_map.limits.to(dev), poses, seed)
+    g = torch.Generator().manual_seed(seed)
+    s = torch.where(torch.rand(poses, q.shape[1], generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0).to(q)
+    R = poses * inp.T
+    tool = torch.arange(inp.T, device=dev).repeat(poses)
+    qr, sr = q.repeat_interleave(inp.T, 0), s.repeat_interleave(inp.T, 0)
+    with torch.no_grad():
+        xyz = model.nominal_points(qr, tool)
+    data = Measurements(qr, tool, xyz, sr, torch.arange(poses, device=dev).repeat_interleave(inp.T),
+                        torch.arange(1, R + 1, device=dev), True, "synthetic gauge check")
+    return fix_gauge(CalibrationProblem(model, data, inp.noise, inp.prior))
+
+
+def _names_short(names: list[str], limit: int = 12) -> str:
+    """'joint2.eps_x.c1, ...' with a count of the rest."""
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, progress: _Progress) -> dict:
+    """Stage 6, what the identification data cannot determine; each finding is a warning (console, run log, metrics).
+
+    - tools of the config never measured in the identification file;
+    - fewer equations (3 per row) than model parameters;
+    - backlash on for a joint whose approach direction never changes in the data (or no dir columns);
+    - parameters the fit had to pin beyond the model's own redundancy (:func:`structural_pins`):
+      the data cannot determine them (e.g. every pose the same), they stay at their start values.
+    - free parameter combinations the data barely determine (:func:`torchcal.analysis.identifiability`).
+    -> {'unobserved_tools', 'parameters', 'equations', 'undetermined': [names], 'one_sided_backlash': [joints],
+    'barely_determined': [combinations]}.
+    """
+    ident, src = inp.ident, inp.ident.source or "data.identification"
+    names = list(inp.robot.joint_map.names)
+    out = {"unobserved_tools": [], "parameters": int(result.x.numel()) + len(result.pinned),
+           "equations": 3 * len(ident), "undetermined": [], "one_sided_backlash": [], "barely_determined": []}
+    seen = set(torch.unique(ident.tool).tolist())
+    missing = [t for t in range(inp.T) if t not in seen]
+    if missing:
+        out["unobserved_tools"] = missing
+        progress.warn(f"{src}: tool{'s' if len(missing) > 1 else ''} {missing} of the {inp.T} in 'tools' "
+                      f"{'are' if len(missing) > 1 else 'is'} never measured: {'their' if len(missing) > 1 else 'its'} "
+                      "vector cannot be identified (measure every tool, or remove it from 'tools')")
+    P, E = out["parameters"], out["equations"]
+    if E < P:
+        per_pose = max(len(seen), 1) * 3
+        progress.warn(f"{src}: too few poses for the model: {len(ident)} rows give {E} equations for {P} parameters; "
+                      f"measure at least {-(-P // per_pose)} poses with {len(seen)} tool{'s' if len(seen) != 1 else ''}, "
+                      "or lower model.order")
+    bl = model.joint_errors.backlash_orders.cpu().tolist()
+    on = [j for j, b in enumerate(bl) if b >= 0]
+    if on and not ident.has_direction:
+        out["one_sided_backlash"] = [names[j] for j in on]
+        progress.warn(f"{src}: model.backlash is on but the file has no dir1..dir{len(names)} columns: the backlash terms "
+                      "cannot be identified (set model.backlash=false, or give the approach directions)")
+    elif on:
+        d = ident.direction.cpu()
+        one_sided = []
+        for j in on:
+            signs = set(torch.unique(d[:, j]).tolist()) - {0.0}
+            if len(signs) < 2:
+                sign = "+1" if signs == {1.0} else "-1" if signs == {-1.0} else "no direction"
+                out["one_sided_backlash"].append(names[j])
+                one_sided.append((j, f"'{names[j]}' (dir{j + 1}: {sign} only)"))
+        if one_sided:
+            fix = [-1 if j in {k for k, _ in one_sided} else b for j, b in enumerate(bl)]
+            many = len(one_sided) > 1
+            progress.warn(f"{src}: joint{'s' if many else ''} {', '.join(t for _, t in one_sided)} "
+                          f"approach{'' if many else 'es'} from one side only: {'their' if many else 'its'} backlash "
+                          f"cannot be identified; measure both approach directions, or turn it off there "
+                          f"(model.backlash={fix})")
+    if result.pinned:
+        try:
+            structural = set(structural_pins(make, orders, inp, seed=int(cfg.seed)))
+        except Exception as exc:  # a diagnostic must not cost the run; say that it could not be made
+            log.warning("identifiability check skipped: %s: %s", type(exc).__name__, exc)
+            structural = None
+        if structural is not None:
+            extra = [n for n in result.pinned if n not in structural]
+            count = len(result.pinned) - len(structural)
+            if count > 0 and extra:
+                out["undetermined"] = extra
+                progress.warn(f"{src}: the data cannot determine {count} of the model's {P} parameters (beyond the "
+                              f"{len(structural)} that no data can tell apart); they stay at their start values "
+                              f"(fit.json 'pinned_names'): {_names_short(extra)}. Spread the poses over the joint "
+                              "ranges and measure every tool, or lower model.order")
+    try:  # what is left free but barely determined: torchcal.analysis.identifiability at the solution
+        from .analysis.identifiability import identifiability
+
+        ia = identifiability(model, ident, inp.noise, inp.prior, pinned=result.pinned, v=result.v)
+        combos = ia.undetermined
+    except Exception as exc:  # a diagnostic must not cost the run
+        log.warning("identifiability check skipped: %s: %s", type(exc).__name__, exc)
+        combos = []
+    if combos:
+        out["barely_determined"] = [str(c) for c in combos]
+        many = len(combos) > 1
+        progress.warn(f"{src}: {len(combos)} combination{'s' if many else ''} of the free parameters "
+                      f"{'are' if many else 'is'} barely determined by the data (relative singular value < "
+                      f"{ia.rtol:g}, torchcal.analysis.identifiability); the fit holds {'them' if many else 'it'} "
+                      f"near the prior, e.g. {combos[0]}")
+    return out
+
+
+def evaluate_sets(inp: FitInputs, model, progress: _Progress) -> tuple[dict, dict, list[dict]]:
+    """Stage 7, evaluate: nominal and modeled residuals of every set -> (sets, evaluations, Table 6 rows).
+
+    Warns when the nominal residual is beyond any plausible calibration error
+    (:data:`NOMINAL_IMPLAUSIBLE_MM`): the percent decrease then measures a wrong description, not a calibration.
+    """
+    sets = {"Identification": inp.ident} | ({"Validation": inp.val} if inp.val is not None else {})
+    evaluations = {name: evaluate(model, d) for name, d in sets.items()}
+    for name, ev in evaluations.items():
+        s = ev["modeled_stats"]
+        progress.info(f"{name.lower()}: mean {ev['nominal_stats'].mean:.4f} -> {s.mean:.4f} mm "
+                      f"({ev['decrease']['mean']:.2f} % decrease), max {s.max:.4f} mm, Gamma 99 % {s.gamma99:.4f} mm")
+    nominal = evaluations["Identification"]["nominal_stats"].mean
+    if nominal > NOMINAL_IMPLAUSIBLE_MM:
+        progress.warn(f"the nominal residual (identification mean {nominal:.1f} mm) is far beyond any plausible calibration "
+                      f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): the robot description may not be the robot, and the percent "
+                      f"decrease means little. Check the URDF of '{inp.robot.name}' (joint axes: a joint without <axis> turns "
+                      "about x; origins), the joint map (offsets, coupling, units), the tool vectors and the measurement "
+                      "frame (measurement_frame: estimate when the tracker is not at the robot base)")
+    return sets, evaluations, table6(evaluations)
+
+
+def fit_metrics(orders, selection, result: FitResult, alignment, sets: dict, evaluations: dict, table) -> dict:
+    """What metrics.json holds (mm, percent); Table 7 and the warnings are added by later stages."""
+    return {
+        "units": "mm, percent",
+        "orders": orders,
+        "order_selection": None if selection is None else selection.criterion,
+        "fit": {"converged": bool(result.success), "iterations": int(result.nit), "cost": float(result.fun)},
+        "alignment": None if alignment is None else alignment.summary(),
+        "sets": {name.lower(): {"rows": len(sets[name]), "poses": sets[name].n_poses,
+                                "nominal": vars(ev["nominal_stats"]), "modeled": vars(ev["modeled_stats"]),
+                                "decrease_percent": ev["decrease"]} for name, ev in evaluations.items()},
+        "table6": table,
+        "table7": None,
+    }
+
+
+def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: dict, progress: _Progress):
+    """Stage 8, compensate-check (simulated data with a truth): Table 7 -> (rows, compensation_check dict).
+
+    Adds 'table7' and 'compensation' to ``metrics``.
+    """
+    val = inp.val
+    with progress.step(f"compensating {len(val)} validation commands and measuring them on the simulated truth"):
+        comp = compensation_check(model, inp.truth, val, inp.noise, int(cfg.seed) + 1,
+                                  **compensation_kwargs(cfg.compensation.tol_deg, cfg.compensation.max_iter))
+    res = comp["result"]
+    flagged = int((~res.converged | ~res.within_limits).sum())
+    ns = evaluations["Validation"]["nominal_stats"]
+    cs = residual_stats(comp["compensated"]).scaled(units.m_to_mm(1.0))
+    rows = [_row("Validation", "Nominal", ns, None),
+            _row("Validation", "Modeled", evaluations["Validation"]["modeled_stats"], ns),
+            _row("Validation", "Compensated", cs, ns)]
+    metrics["table7"] = rows
+    ok = (res.converged & res.within_limits).cpu()
+    metrics["compensation"] = {**res.summary(), "flagged": flagged, "compensated": vars(cs),
+                               # what a controller would run: flagged commands would be rejected
+                               "compensated_unflagged": vars(residual_stats(comp["compensated"].cpu()[ok]).scaled(
+                                   units.m_to_mm(1.0))) if ok.any() else None}
+    progress.info(f"compensated: mean {ns.mean:.4f} -> {cs.mean:.4f} mm "
+                  f"({percent_decrease(ns.mean, cs.mean):.2f} % decrease); {flagged} commands flagged "
+                  "(not converged or outside the joint range)")
+    return rows, comp
+
+
 # ------------------------------------------------------------------- the run
 def run_fit(cfg, console=None) -> RunResult:
     """Run one calibration from a config (see :mod:`torchcal.io.config`) and write its run directory.
@@ -277,6 +683,14 @@ def run_fit(cfg, console=None) -> RunResult:
     console: a rich Console for progress (None: quiet, the run log still records
     everything). Raises DataError / URDFError / ConfigError for bad inputs,
     before anything is computed; see :mod:`torchcal.io.rundir` for the layout.
+    A KeyboardInterrupt after the run directory exists carries it as ``exc.run_dir``
+    (the CLI prints where the partial run is).
+
+    Example:
+        >>> from torchcal.io.config import load_config
+        >>> result = run_fit(load_config("data/fanuc/fit.yaml", ["model.order=2"]))   # doctest: +SKIP
+        >>> result.metrics["sets"]["validation"]["modeled"]["mean"]                  # doctest: +SKIP
+        0.0123
     """
     if cfg.threads is None:
         return _run_fit(cfg, console)
@@ -289,138 +703,62 @@ def run_fit(cfg, console=None) -> RunResult:
 
 
 def _run_fit(cfg, console=None) -> RunResult:
-    label = cfg.config_file or "config"
-    robot = load_robot(cfg.robot)
-    check_config(cfg, label, robot.joint_map.n)
-    device = torch.device(cfg.device)
-    torch.manual_seed(int(cfg.seed))
-    T = config_tool_count(cfg)
-    noise = config_noise(cfg, robot)
-    prior = config_prior(cfg)
-    opts = solver_options(cfg)
-
-    # read every input first: a typo in the validation file should not cost a fit
-    ident = read_measurements(cfg.data.identification, robot, T).to(device)
-    val = read_measurements(cfg.data.validation, robot, T).to(device) if cfg.data.validation else None
-    truth = None
-    if cfg.data.truth:
-        from .io.truth import load_truth
-
-        truth = load_truth(cfg.data.truth, robot).to(device)
-        if val is None:
-            raise ConfigError(f"{label}: key 'data.truth': the compensation check runs on the validation set; set data.validation")
-
-    # tools / measurement frame left to the data: the rigid alignment (cheap) before anything is written
-    tools_m, base_nominal, alignment = config_alignment(cfg, robot, ident, label)
-
+    """The stages in order: load, align, (run directory), build / select orders, fit, check data, evaluate,
+    compensate-check, plots; each writes its files as soon as it has them."""
+    inp = load_inputs(cfg)
+    tools_m, base_nominal, alignment = align_inputs(cfg, inp)
     run_dir = make_run_dir(cfg.out)
     files: dict[str, Path] = {}
     progress = _Progress(console)
-    with run_log(run_dir):
-        files["config"] = run_dir / "config.yaml"
-        files["config"].write_text(to_yaml(cfg), encoding="utf-8")
-        files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
-        progress.info(f"run directory {run_dir}")
-        progress.info(f"robot '{robot.name}' ({robot.joint_map.n} joints), {T} tools; identification "
-                      f"{len(ident)} rows / {ident.n_poses} poses" + (f", validation {len(val)} rows" if val is not None else ""))
-        if alignment is not None:
-            files["alignment"] = write_json(run_dir / "alignment.json", alignment.summary())
-            a = alignment.summary()
-            what = " and ".join(w for w, free in (("measurement frame", alignment.estimated_frame),
-                                                  ("tool vectors", alignment.estimated_tools)) if free)
-            progress.info(f"alignment: estimated the {what} on the nominal robot ({a['start']} start, "
-                          f"{alignment.iterations} iterations): residual rms {a['residual_mm']['rms']:.4f} mm, "
-                          f"mean {a['residual_mm']['mean']:.4f} mm, max {a['residual_mm']['max']:.4f} mm")
-            progress.info("alignment: robot base at xyz " + ", ".join(f"{v:.3f}" for v in a["frame"]["xyz_mm"])
-                          + " mm, rpy " + ", ".join(f"{v:.4f}" for v in a["frame"]["rpy_deg"]) + " deg; tools "
-                          + "; ".join("[" + ", ".join(f"{v:.3f}" for v in t) + "]" for t in a["tools_mm"]) + " mm")
-            if not alignment.converged:
-                log.warning("the alignment refinement did not converge; see alignment.json")
-        make = model_factory(robot, tools_m, config_backlash(cfg), device, base_nominal, cfg.model.compliance)
-
-        selection = None
-        order = cfg.model.order
-        if isinstance(order, str):  # "auto" (check_config allows no other string)
-            from .identify.order import select_orders
-
-            folds = int(cfg.model.folds)
-            how = ("validation set" if val is not None else
-                   "leave-one-pose-out residuals" if folds == 0 else f"{folds}-fold cross-validation")
-            with progress.step(f"choosing Chebyshev orders by {how}") as p:
-                selection = select_orders(make, ident, val, noise, prior, candidates=list(cfg.model.candidates),
-                                          folds=folds, margin=float(cfg.model.margin), seed=int(cfg.seed), progress=p.update,
-                                          joint_window=2,  # per-joint refinement near the uniform optimum: 3x fewer fits
-                                          **opts)
-            orders = [int(o) for o in selection.orders]
-            files["orders"] = write_json(run_dir / "orders.json", {
-                "orders": orders, "criterion": selection.criterion, "score_mm": units.m_to_mm(selection.score),
-                "table": [{**r, "score_mm": units.m_to_mm(r["score"])} for r in selection.table]})
-            progress.info(f"orders {orders} ({selection.criterion})")
-        else:
-            orders = [int(order)] * robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
-
-        model = make(orders)
-        with progress.step(f"identifying the model (orders {orders}, {opts['method']})") as p:
-            result = fit(model, ident, noise, prior, callback=lambda it, cost: p.update(
-                f"identifying ({opts['method']}): iteration {it}, cost {cost:.6g}"), **opts)
-        # the model first: whatever fails later, the fit is kept
-        files["model"] = save_model(run_dir, model, orders=orders, config_file=cfg.config_file)
-        files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
-                                                          "orders": orders, "history": list(result.history)})
-        progress.info(f"fit: {result.message} after {result.nit} iterations, cost {result.fun:.6g}")
-        if not result.success:
-            log.warning("the solver did not converge; see fit.json (raise solver.max_iter?)")
-
-        sets = {"Identification": ident} | ({"Validation": val} if val is not None else {})
-        evaluations = {name: evaluate(model, d) for name, d in sets.items()}
-        table = table6(evaluations)
-        metrics = {
-            "units": "mm, percent",
-            "orders": orders,
-            "order_selection": None if selection is None else selection.criterion,
-            "fit": {"converged": bool(result.success), "iterations": int(result.nit), "cost": float(result.fun)},
-            "alignment": None if alignment is None else alignment.summary(),
-            "sets": {name.lower(): {"rows": len(sets[name]), "poses": sets[name].n_poses,
-                                    "nominal": vars(ev["nominal_stats"]), "modeled": vars(ev["modeled_stats"]),
-                                    "decrease_percent": ev["decrease"]} for name, ev in evaluations.items()},
-            "table6": table,
-            "table7": None,
-        }
-        files["metrics"] = write_json(run_dir / "metrics.json", metrics)
-        files["residuals"] = _write_residuals(run_dir / "residuals.csv", sets, evaluations)
-        for name, ev in evaluations.items():
-            s = ev["modeled_stats"]
-            progress.info(f"{name.lower()}: mean {ev['nominal_stats'].mean:.4f} -> {s.mean:.4f} mm "
-                          f"({ev['decrease']['mean']:.2f} % decrease), max {s.max:.4f} mm, Gamma 99 % {s.gamma99:.4f} mm")
-
-        comp_table, comp = None, None
-        if truth is not None:
-            with progress.step(f"compensating {len(val)} validation commands and measuring them on the simulated truth"):
-                comp = compensation_check(model, truth, val, noise, int(cfg.seed) + 1,
-                                          **compensation_kwargs(cfg.compensation.tol_deg, cfg.compensation.max_iter))
-            res = comp["result"]
-            flagged = int((~res.converged | ~res.within_limits).sum())
-            ns = evaluations["Validation"]["nominal_stats"]
-            cs = residual_stats(comp["compensated"]).scaled(units.m_to_mm(1.0))
-            comp_table = [_row("Validation", "Nominal", ns, None),
-                          _row("Validation", "Modeled", evaluations["Validation"]["modeled_stats"], ns),
-                          _row("Validation", "Compensated", cs, ns)]
-            metrics["table7"] = comp_table
-            ok = (res.converged & res.within_limits).cpu()
-            metrics["compensation"] = {**res.summary(), "flagged": flagged, "compensated": vars(cs),
-                                       # what a controller would run: flagged commands would be rejected
-                                       "compensated_unflagged": vars(residual_stats(comp["compensated"].cpu()[ok]).scaled(
-                                           units.m_to_mm(1.0))) if ok.any() else None}
+    try:
+        with run_log(run_dir):
+            write_preamble(run_dir, cfg, inp, alignment, progress, files)
+            make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal,
+                                 cfg.model.compliance, config_error_variable(cfg))
+            orders, selection = choose_orders(cfg, inp, make, run_dir, progress, files)
+            model = make(orders)
+            result = identify_model(cfg, inp, model, orders, run_dir, progress, files)
+            diagnostics = check_data(cfg, inp, model, make, orders, result, progress)
+            sets, evaluations, table = evaluate_sets(inp, model, progress)
+            metrics = fit_metrics(orders, selection, result, alignment, sets, evaluations, table)
+            metrics["data_checks"] = diagnostics
+            metrics["warnings"] = progress.warnings
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
-            progress.info(f"compensated: mean {ns.mean:.4f} -> {cs.mean:.4f} mm "
-                          f"({percent_decrease(ns.mean, cs.mean):.2f} % decrease); {flagged} commands flagged "
-                          "(not converged or outside the joint range)")
+            files["residuals"] = _write_residuals(run_dir / "residuals.csv", sets, evaluations)
+            comp_table, comp = None, None
+            if inp.truth is not None:
+                comp_table, comp = check_compensation(cfg, inp, model, evaluations, metrics, progress)
+                files["metrics"] = write_json(run_dir / "metrics.json", metrics)
+            if cfg.plots:
+                with progress.step("plotting"):
+                    files.update(_plots(run_dir / "plots", model, evaluations, comp))
+            progress.info(f"done: {run_dir}")
+    except KeyboardInterrupt as exc:
+        exc.run_dir = run_dir  # the CLI names the partial run directory
+        raise
+    return RunResult(run_dir, model, result, metrics, table, comp_table, orders, selection, files, progress.warnings)
 
-        if cfg.plots:
-            with progress.step("plotting"):
-                files.update(_plots(run_dir / "plots", model, evaluations, comp))
-        progress.info(f"done: {run_dir}")
-    return RunResult(run_dir, model, result, metrics, table, comp_table, orders, selection, files)
+
+def predict_file(run_dir, input, output, device=None) -> int:
+    """``torchcal predict``: the points x, y, z (mm, measurement frame) an identified model predicts for
+    the commands of a CSV (tool, q1..qN [, dir1..dirN]); other columns are kept, measured x, y, z replaced.
+
+    -> the number of rows written. Raises RunDirError / DataError naming the folder or file.
+    """
+    from .io.csv import points_to_file, read_table
+    from .io.rundir import load_model
+
+    model = load_model(run_dir, device=device)
+    data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
+    data = data.to(model.device)
+    with torch.no_grad():
+        p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
+    mm = points_to_file(p)
+    out = df.copy()
+    for i, c in enumerate(("x", "y", "z")):
+        out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
+    write_table(output, out)
+    return len(df)
 
 
 def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:
@@ -473,7 +811,22 @@ def _plots(folder: Path, model, evaluations: dict, comp: dict | None) -> dict[st
 
 
 __all__ = [
+    "NOMINAL_IMPLAUSIBLE_MM",
+    "FitInputs",
     "RunResult",
+    "align_inputs",
+    "check_compensation",
+    "check_data",
+    "choose_orders",
+    "config_backlash",
+    "config_error_variable",
+    "evaluate_sets",
+    "fit_metrics",
+    "identify_model",
+    "joint_variance_source",
+    "load_inputs",
+    "structural_pins",
+    "write_preamble",
     "compensation_check",
     "compensation_kwargs",
     "compensation_targets",
@@ -485,6 +838,7 @@ __all__ = [
     "config_tools",
     "evaluate",
     "model_factory",
+    "predict_file",
     "run_fit",
     "solver_options",
     "table6",

@@ -101,15 +101,13 @@ def main(argv=None):
                   + ", ".join(f"J{j + 1} {np.median(np.abs(d[:, j])):.1f}" for j in range(6))
                   + "; max |d| " + ", ".join(f"{np.abs(d[:, j]).max():.0f}" for j in range(6)))
 
-    # Joint variances: the IRB 120's are not published per joint; its datasheet gives a position
-    # repeatability RP = 0.01 mm. Taking RP = 3 sigma at the arm's ~0.56 m reach gives sigma_theta ~ 6e-6 rad
-    # (1.2e-7 deg^2) for every joint. Paper II's Table 5 (a FANUC, 10-1000x larger) would let the implicit-loop
-    # MLE explain systematic error as joint noise and degrade the model (measured: order 0 0.268 mm vs 0.215 mm).
-    sigma_theta_deg = np.degrees(0.01e-3 / 3.0 / 0.56)
-    var = [float(sigma_theta_deg**2)] * robot.n
-    noise = NoiseModel.from_file_units(args.sigma_m, var, var)
-    console.print(f"noise: sigma_m {args.sigma_m} mm (reflector-to-reflector distances), joint sigma {sigma_theta_deg * 1e3:.2f} mdeg "
-                  "(datasheet repeatability)")
+    # Joint variances come from the robot's own YAML (urdf/abb_irb120.yaml, `repeatability:`): the IRB 120's
+    # are not published per joint; its datasheet position repeatability RP = 0.01 mm taken as 3 sigma at the
+    # arm's ~0.56 m reach gives sigma_theta ~ 6e-6 rad for every joint. Paper II's Table 5 (a FANUC, 10-1000x
+    # larger) would let the implicit-loop MLE explain systematic error as joint noise (order 0: 0.268 vs 0.215 mm).
+    noise = NoiseModel.from_robot(robot, sigma_m=units.mm_to_m(args.sigma_m))
+    console.print(f"noise: sigma_m {args.sigma_m} mm (reflector-to-reflector distances); joint variances from the robot: "
+                  f"{robot.repeatability.source}", markup=False)
     al = align(robot, ident, n_tools=3)
     console.print(f"alignment (no guess, start '{al.start}'): rigid rms {al.rms * MM:.3f} mm; tools (mm) "
                   f"{np.round(al.tools.numpy() * MM, 2).tolist()}")
@@ -142,7 +140,9 @@ def main(argv=None):
     keep(run("constant geometric (order 0)", 0, False))
     for k in range(1, args.max_order + 1):
         keep(run(f"order {k}", k, False))
-        keep(run(f"order {k} + backlash", k, True))
+        keep(run(f"order {k} + backlash", k, True))  # backlash at its own default order (1)
+        if k > 1:
+            keep(run(f"order {k} + backlash of order {k}", k, k))
     keep(run("order 0 + compliance", 0, False, "functions"))
     for k in (2, 4, 6):
         if k <= args.max_order:
@@ -201,7 +201,8 @@ def main(argv=None):
     with torch.no_grad():
         tools_cal = base_model.tools().detach().clone()
     on_top = RobotModel(exp.robot, tools_cal, orders=best_model.joint_errors.orders[:, 0].tolist(),
-                        backlash=best_model.joint_errors.has_backlash, base_nominal=base_model.base.nominal.detach().clone(),
+                        backlash=best_model.joint_errors.backlash_orders.tolist() if best_model.joint_errors.has_backlash else None,
+                        base_nominal=base_model.base.nominal.detach().clone(),
                         compliance="functions" if getattr(best_model, "compliance", None) is not None else False)
     fit(on_top, ident, noise, Prior())
     with torch.no_grad():

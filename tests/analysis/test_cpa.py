@@ -70,6 +70,27 @@ def test_sweeps_follow_table8_and_turn_one_urdf_joint(fanuc):
     assert cmds[1][:, [0, 3, 4, 5]].abs().max() == 0
 
 
+def test_full_turn_rule_is_for_revolute_joints_only(tmp_path):
+    """A 400 mm prismatic sweep keeps its last point: 360 is a full turn in degrees, not in mm."""
+    from conftest import PRISMATIC_URDF
+
+    from torchcal.analysis import SweepRange
+    from torchcal.kinematics import load_robot
+
+    assert SweepRange(-180.0, 180.0, 5.0).values().size == 72  # 180 repeats -180: dropped
+    v = SweepRange(0.0, 400.0, 50.0).values(prismatic=True)
+    np.testing.assert_allclose(v, np.arange(0.0, 401.0, 50.0))  # 9 points, 400 mm kept
+    assert SweepRange(0.0, 400.0, 50.0).values().size == 8  # the same numbers in degrees: a full turn
+
+    path = tmp_path / "rpr.urdf"
+    path.write_text(PRISMATIC_URDF.replace('upper="0.5"', 'upper="0.6"'))
+    robot = load_robot(path)
+    table = (SweepRange(-90.0, 90.0, 10.0), SweepRange(100.0, 500.0, 50.0), SweepRange(-180.0, 180.0, 10.0))
+    cmds = cpa_sweep_commands(robot, table)
+    assert [c.shape[0] for c in cmds] == [19, 9, 36]
+    torch.testing.assert_close(cmds[1][-1, 1], torch.tensor(0.5, dtype=F64))  # the last point, 500 mm, in metres
+
+
 def test_validation_commands_are_seeded_and_inside_the_ranges(fanuc):
     a = cpa_validation_commands(fanuc, per_joint=60, seed=4)
     b = cpa_validation_commands(fanuc, per_joint=60, seed=4)

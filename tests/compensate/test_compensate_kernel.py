@@ -19,10 +19,13 @@ def soa(q):
     return q.T.contiguous()
 
 
-@pytest.fixture(scope="module")
-def model(fanuc, tools_m):
-    # errors far larger than a real robot's so that every term shows
-    return randomize(RobotModel(fanuc, tools_m, orders=6, backlash=True), 11, rot=2e-2, trans=5e-3)
+@pytest.fixture(scope="module", params=["command", "joint", ["command", "joint", "joint", "command", "joint", "command"]],
+                ids=["command", "joint", "mixed"])
+def model(fanuc, tools_m, request):
+    # errors far larger than a real robot's so that every term shows; the FANUC's θ3 = q2 + q3 makes
+    # the error variable matter (command: J3's series follows q3; joint: it follows q2 + q3)
+    return randomize(RobotModel(fanuc, tools_m, orders=6, backlash=True, error_variable=request.param), 11,
+                     rot=2e-2, trans=5e-3)
 
 
 @pytest.mark.parametrize("use_fused", BACKENDS)

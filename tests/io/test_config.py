@@ -5,7 +5,6 @@ from pathlib import Path
 
 import pytest
 
-from torchcal.identify import PAPER2_JOINT_VAR_FWD
 from torchcal.io.config import ConfigError, check_config, load_config, make_config
 
 MINIMAL = """\
@@ -33,7 +32,9 @@ def test_defaults_and_relative_paths(cfg_file):
     cfg = load_config(cfg_file)
     assert cfg.model.order == 3
     assert cfg.model.backlash is True
-    assert list(cfg.noise.joint_var_fwd) == list(PAPER2_JOINT_VAR_FWD)  # Paper II Table 5 by default
+    # joint variances default to null: the robot's repeatability (pipeline.config_noise), not one robot's table
+    assert cfg.noise.joint_var_fwd is None and cfg.noise.joint_var_bwd is None
+    assert cfg.model.error_variable is None
     assert cfg.noise.sigma_m == 0.005
     assert cfg.solver.method == "lm"
     # paths written in the file resolve against the file's folder, not the working directory
@@ -110,7 +111,7 @@ def test_required_keys_and_per_joint_lengths(cfg_file, tmp_path):
     cfg = load_config(cfg_file, ["model.order=[1,2,3]"])
     with pytest.raises(ConfigError, match=r"key 'model.order': has 3 entries but the robot has 6 joints"):
         check_config(cfg, str(cfg_file), n_joints=6)
-    cfg = load_config(cfg_file, ["noise.joint_var_bwd=[1e-6,1e-6]"])
+    cfg = load_config(cfg_file, ["noise.joint_var_fwd=[1e-6,1e-6,1e-6,1e-6,1e-6,1e-6]", "noise.joint_var_bwd=[1e-6,1e-6]"])
     with pytest.raises(ConfigError, match=r"key 'noise.joint_var_bwd': has 2 entries"):
         check_config(cfg, str(cfg_file), n_joints=6)
 
@@ -182,3 +183,22 @@ def test_unknown_tools_and_measurement_frame(cfg_file):
 def test_bad_tools_and_frames_name_the_key(cfg_file, override, key):
     with pytest.raises(ConfigError, match=f"key '{key}'"):
         load_config(cfg_file, [override])
+
+
+def test_joint_variances_both_or_neither_and_error_variable(cfg_file):
+    with pytest.raises(ConfigError, match=r"key 'noise.joint_var_bwd': is null but noise.joint_var_fwd is set"):
+        load_config(cfg_file, ["noise.joint_var_fwd=[1,1,1,1,1,1]"])
+    cfg = load_config(cfg_file, ["noise.joint_var_fwd=[1,1,1,1,1,1]", "noise.joint_var_bwd=[2,2,2,2,2,2]"])
+    check_config(cfg, str(cfg_file), n_joints=6)
+    assert load_config(cfg_file, ["model.error_variable=joint"]).model.error_variable == "joint"
+    with pytest.raises(ConfigError, match=r"key 'model.error_variable': 'encoder'"):
+        load_config(cfg_file, ["model.error_variable=encoder"])
+    cfg = load_config(cfg_file, ["model.error_variable=[joint,command]"])
+    with pytest.raises(ConfigError, match=r"key 'model.error_variable': has 2 entries but the robot has 6 joints"):
+        check_config(cfg, str(cfg_file), n_joints=6)
+
+
+def test_config_error_is_a_torchcal_error():
+    from torchcal.exceptions import TorchcalError
+
+    assert issubclass(ConfigError, TorchcalError) and issubclass(ConfigError, ValueError)

@@ -190,3 +190,41 @@ def test_prediction_input_needs_no_pose_or_xyz(tmp_path, fanuc):
     # compensation input: no tool needed; a tool column is then just carried through
     data, _ = read_table(path, fanuc, n_tools=None, require_xyz=False)
     assert data.tool.tolist() == [0, 0] and list(data.extra["tool"]) == ["1", "0"]
+
+
+def test_european_export_is_read_with_a_note(tmp_path, fanuc, caplog):
+    """';' separators and decimal commas (a spreadsheet in a European locale): read, and said so."""
+    plain = read_measurements(write(tmp_path, [HEADER, *GOOD], "plain.csv"), fanuc, n_tools=2)
+    eu = [HEADER.replace(",", ";")] + [r.replace(",", ";") for r in GOOD]
+    eu[1] = eu[1].replace(";10;20;", ";10,0;20,5;").replace(";100;", ";100,25;")
+    eu[3] = eu[3][: -len(";c")] + ";comment, with comma"
+    path = write(tmp_path, eu, "europe.csv")
+    with caplog.at_level("WARNING", logger="torchcal"):
+        data, df = read_table(path, fanuc, 2)
+    notes = [r.getMessage() for r in caplog.records]
+    assert any("europe.csv" in n and "European" in n and "decimal commas" in n for n in notes)
+    assert df.attrs["notes"] and "';'" in df.attrs["notes"][0]
+    assert data.q[0, 1].item() == pytest.approx(math.radians(20.5), abs=1e-15)
+    assert data.xyz[0, 0].item() == pytest.approx(0.10025, abs=1e-15)
+    torch.testing.assert_close(data.q[1:], plain.q[1:], rtol=0, atol=0)
+    torch.testing.assert_close(data.xyz[1:], plain.xyz[1:], rtol=0, atol=0)
+    assert list(data.extra["label"])[2] == "comment, with comma"  # other columns as written
+    # a bad cell is still reported with its row and column, not as "has N fields"
+    eu[2] = eu[2].replace(";101;", ";1o1;")
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, eu, "europe_bad.csv"), fanuc, 2)
+    assert "row 2 (line 3), column 'x'" in str(err.value) and "fields" not in str(err.value)
+
+
+def test_one_field_header_says_what_separates_fields(tmp_path, fanuc):
+    lines = [HEADER.replace(",", "\t")] + [r.replace(",", "\t") for r in GOOD]
+    lines[1] = lines[1].replace("\t100\t", "\t100,5\t")  # a decimal comma makes the rows split on ','
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, lines, "tabs.csv"), fanuc, 2)
+    assert "the contract separates fields with ','" in str(err.value)
+
+
+def test_data_error_is_a_torchcal_error():
+    from torchcal.exceptions import TorchcalError
+
+    assert issubclass(DataError, TorchcalError) and issubclass(DataError, ValueError)

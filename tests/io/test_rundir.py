@@ -19,13 +19,32 @@ def test_run_dir_placement(tmp_path):
     assert make_run_dir(tmp_path / "empty") == tmp_path / "empty"  # empty -> itself
     (out / "model.pt").write_text("earlier run")
     a, b = make_run_dir(out), make_run_dir(out)
-    # never reuses a folder: two runs in the same second get distinct timestamped folders
-    assert a.parent == out and b.parent == out and a != b
-    assert a.is_dir() and not any(a.iterdir())
+    # out holds a run: the next runs go beside it, never inside it, never into one another
+    assert a == tmp_path / "runs-2" and a.is_dir() and not any(a.iterdir())
+    (a / "config.yaml").write_text("second run")
+    assert make_run_dir(out) == tmp_path / "runs-3"
+    assert b == a  # an empty folder left by a run that never started is reused
+    assert sorted(p.name for p in out.iterdir()) == ["model.pt"]
     assert (out / "model.pt").read_text() == "earlier run"
+    # a folder of earlier runs (not a run itself): a fresh timestamped folder inside it
+    many = tmp_path / "many"
+    (many / "old").mkdir(parents=True)
+    c, d = make_run_dir(many), make_run_dir(many)
+    assert c.parent == many and d.parent == many and c != d and c.name != "old"
     (tmp_path / "file").write_text("x")
     with pytest.raises(RunDirError, match="not a folder"):
         make_run_dir(tmp_path / "file")
+
+
+def test_second_fit_goes_beside_the_first(tmp_path):
+    """A run writes config.yaml first; the next make_run_dir(out) must not nest into it."""
+    out = tmp_path / "out"
+    first = make_run_dir(out)
+    (first / "config.yaml").write_text("robot: x")
+    (first / "plots").mkdir()
+    second = make_run_dir(out)
+    assert second.parent == tmp_path and second != first
+    assert not second.is_relative_to(first)
 
 
 def test_model_round_trip(tmp_path, fanuc, tools_m):

@@ -262,3 +262,14 @@ def test_cli(tmp_path, session):
     r = CliRunner().invoke(app, [str(a) for a in args + ["--robot", "abb_irb120", out]])
     assert r.exit_code == 2
     assert "joints.txt" in r.output and "row 1 (line 1), column '2 (J2)'" in r.output
+
+
+def test_tracker_errors_are_torchcal_errors(tmp_path):
+    from torchcal.exceptions import TorchcalError
+
+    joints = tmp_path / "J.txt"
+    joints.write_text("0 0 0 0 0 0\n")
+    with pytest.raises(TorchcalError, match="no target reflector files"):
+        import_tracker(joints, [], [], None, 0.1, False, 1.0)
+    with pytest.raises(ValueError, match="file not found"):  # still a ValueError for older except clauses
+        read_rows(tmp_path / "missing.txt", ["x", "y", "z"])

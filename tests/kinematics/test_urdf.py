@@ -100,3 +100,53 @@ def test_bad_sources():
         load_robot("no_such_robot")
     with pytest.raises(URDFError, match="not a readable URDF"):
         load_urdf("<robot name='x'><link name='a'></robot>")
+
+
+def _fanuc_xml():
+    from torchcal.kinematics import urdf_dir
+
+    return (urdf_dir() / "fanuc_lrmate200i.urdf").read_text()
+
+
+def test_missing_parent_link_names_the_joint_and_the_link():
+    xml = _fanuc_xml().replace('<parent link="link5"/>', '<parent link="link5x"/>')
+    with pytest.raises(URDFError) as err:
+        load_urdf(xml, end_link="flange")
+    msg = str(err.value)
+    assert "joint 'joint6'" in msg and "'link5x'" in msg and "not defined" in msg
+    xml = _fanuc_xml().replace('<child link="link5"/>', '<child link="link5b"/>')
+    with pytest.raises(URDFError, match="joint 'joint5' names child link 'link5b'"):
+        load_urdf(xml, end_link="flange")
+
+
+def test_joint_without_axis_is_logged(caplog):
+    import re
+
+    xml = re.sub(r'(<joint name="joint2".*?)<axis[^>]*/>', r"\1", _fanuc_xml(), count=1, flags=re.S)
+    assert xml != _fanuc_xml()
+    with caplog.at_level("WARNING", logger="torchcal"):
+        chain = load_urdf(xml, end_link="flange")
+    assert chain.axes[1].tolist() == [1.0, 0.0, 0.0]
+    assert any("joint 'joint2' has no <axis>" in r.getMessage() for r in caplog.records)
+
+
+def test_urdf_error_is_a_torchcal_error():
+    from torchcal.exceptions import TorchcalError
+
+    with pytest.raises(TorchcalError):
+        load_robot("no_such_robot")
+    assert issubclass(URDFError, ValueError)
+
+
+def test_unknown_error_variable_names_the_file_and_the_key(tmp_path):
+    from torchcal.kinematics import urdf_dir
+
+    text = (urdf_dir() / "fanuc_lrmate200i.yaml").read_text()
+    assert "error_variable: command" in text
+    path = tmp_path / "my_robot.yaml"
+    path.write_text(text.replace("error_variable: command", "error_variable: encoder")
+                    .replace("urdf: ", f"urdf: {urdf_dir()}/", 1) if "urdf: " in text else text)
+    with pytest.raises(URDFError) as err:
+        load_robot(path)
+    msg = str(err.value)
+    assert str(path) in msg and "error_variable" in msg and "'encoder'" in msg

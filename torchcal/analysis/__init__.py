@@ -1,6 +1,8 @@
 """Analysis of models and robots: residual statistics (Gamma 99 %, Fig. 13), Circle Point
 Analysis (6.1, Tables 8-12), ISO 9283 repeatability (5.3) and joint variances (5.4, (53)-(54))."""
 
+from .confounding import BacklashTerm, ConfoundingReport, backlash_confounding
+from .coverage import DirectionCoverage
 from .cpa import (
     PAPER2_TABLE8,
     AxisFit,
@@ -50,16 +52,20 @@ from .stats import (
 __all__ = [
     "PAPER2_TABLE8",
     "AxisFit",
+    "BacklashTerm",
     "CPAModel",
     "CircleFit",
     "Combination",
+    "ConfoundingReport",
     "CorrelatedPair",
     "Identifiability",
     "DHParameters",
+    "DirectionCoverage",
     "JointVariancePlan",
     "JointVarianceTable",
     "ResidualStats",
     "SweepRange",
+    "backlash_confounding",
     "cpa_sweep_commands",
     "cpa_validation_commands",
     "dh_from_axes",

@@ -42,18 +42,25 @@ class SweepRange:
     end: float
     step: float
 
-    def values(self) -> np.ndarray:
+    def values(self, prismatic: bool = False) -> np.ndarray:
         """Commanded values start, start + step, ... <= end (file units).
 
-        A sweep that covers a full turn (end - start >= 360) drops its last
-        value when it repeats the first one, as Table 8 counts 72 points for
-        -180..180 step 5.
+        A revolute sweep that covers a full turn (end - start >= 360 deg)
+        drops its last value when it repeats the first one, as Table 8 counts
+        72 points for -180..180 step 5. prismatic: the values are mm, where
+        360 means nothing: every value is kept.
+
+        Example:
+            >>> len(SweepRange(-180.0, 180.0, 5.0).values())
+            72
+            >>> len(SweepRange(0.0, 400.0, 100.0).values(prismatic=True))
+            5
         """
         if not self.step > 0 or not self.end > self.start:
             raise ValueError(f"sweep range needs start < end and step > 0, got {self}")
         k = np.arange(int(math.floor((self.end - self.start) / self.step + 1e-9)) + 1)
         v = self.start + k * self.step
-        if v.size > 1 and v[-1] - v[0] >= 360.0 - 1e-9:
+        if not prismatic and v.size > 1 and v[-1] - v[0] >= 360.0 - 1e-9:
             v = v[:-1]
         return v
 
@@ -117,7 +124,7 @@ def cpa_sweep_commands(robot: Robot, table=PAPER2_TABLE8, home=None) -> list[tor
     scale = units.joint_scale(robot.joint_map.prismatic)
     out = []
     for i, r in enumerate(table):
-        vals = torch.as_tensor(r.values(), dtype=torch.float64) * scale[i]
+        vals = torch.as_tensor(r.values(prismatic=bool(robot.joint_map.prismatic[i])), dtype=torch.float64) * scale[i]
         out.append(single_joint_commands(robot, i, vals, home))
     return out
 

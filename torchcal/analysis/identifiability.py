@@ -215,19 +215,20 @@ class Identifiability:
 def reduced_jacobian(A: torch.Tensor, C: torch.Tensor, w_v: torch.Tensor, f: torch.Tensor | None = None):
     """Whitened Jacobian (and residual) with each row's joint errors marginalized.
 
-    A: (R, 3, P) whitened parameter Jacobian; C: (R, 3, n) whitened joint-error
-    Jacobian; w_v: (R, n) joint-error precisions; f: optional (R, 3) whitened
-    residual at v = 0.
-    -> (R, 3, P) A~ (and (R, 3) f~ = L_r^-1 f_r when f is given) with A~_r = L_r^-1 A_r, L_r L_r^T = I + C_r W_v,r^-1 C_r^T, so that
+    A: (R, d, P) whitened parameter Jacobian; C: (R, d, n) whitened joint-error
+    Jacobian; w_v: (R, n) joint-error precisions; f: optional (R, d) whitened
+    residual at v = 0 (d = 3 for position targets, any d for other instruments).
+    -> (R, d, P) A~ (and (R, d) f~ = L_r^-1 f_r when f is given) with A~_r = L_r^-1 A_r, L_r L_r^T = I + C_r W_v,r^-1 C_r^T, so that
     A~^T A~ equals the Schur complement H_bb - H_bv H_vv^-1 H_vb of :mod:`torchcal.identify.lm`.
     """
-    eye = torch.eye(3, dtype=A.dtype, device=A.device)
+    eye = torch.eye(A.shape[1], dtype=A.dtype, device=A.device)
     Sigma = eye + (C / w_v[:, None, :]) @ C.transpose(1, 2)
-    L = torch.linalg.cholesky(Sigma)
-    At = torch.linalg.solve_triangular(L, A, upper=False)
+    # d x d per row: an explicit inverse of the factor and one batched product beat R triangular solves
+    Linv = torch.linalg.inv(torch.linalg.cholesky(Sigma))
+    At = Linv @ A
     if f is None:
         return At
-    return At, torch.linalg.solve_triangular(L, f[..., None], upper=False)[..., 0]
+    return At, (Linv @ f[..., None])[..., 0]
 
 
 def _pin(problem: CalibrationProblem, names) -> list[str]:
@@ -265,7 +266,9 @@ def identifiability(
     corr_threshold: |correlation| reported as a pair; top: components listed
     per undetermined combination. The model's values are left unchanged.
     """
-    noise = noise or NoiseModel.paper2()
+    from ..identify.fit import resolve_noise
+
+    noise = resolve_noise(model, noise)  # the robot's repeatability unless given
     problem = CalibrationProblem(model, data, noise, prior, fixed)
     # prior by name: CalibrationProblem.set_layout mis-indexes it when a whole group gets pinned
     full_names = problem.layout.names()

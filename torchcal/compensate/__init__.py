@@ -4,6 +4,10 @@
 ``model.flange(q_new, direction, base=False) == model.nominal_flange(q_nom)``
 for many poses at once: the paper's fixed-Jacobian iteration on a fast
 flange-only kernel, damped least squares for the rows that do not contract.
+Every command stays within ``max_correction`` (default 5 deg) of its nominal
+one; rows that would need more (next to singularities) are flagged, not
+swung (``CompensationResult.correction``; ``direction_outside`` when the
+model records its identification data's direction coverage).
 """
 
 from .damped import DampedResult, damped_least_squares

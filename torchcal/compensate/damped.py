@@ -8,6 +8,9 @@ Marquardt with the *current* model Jacobian (error slopes included), the
 damping adapted per pose (Nielsen's rule), so steps shrink along directions
 whose singular values are small instead of blowing up. Rows that cannot be
 brought to zero error end at their lowest-error iterate and are flagged.
+With ``q_ref`` the correction is bounded (a box |q - q_ref| <= max_correction,
+steps <= max_step) and optionally damped toward q_ref (Tikhonov ``lam``), so
+that near-null directions do not swing the joints; see :func:`damped_least_squares`.
 
 All rows are solved together (a loop over iterations, masks over rows);
 finished rows leave the working set. SI units: m, rad; orientation errors are
@@ -68,7 +71,8 @@ class DampedResult:
 
     q: (M, n) lowest-error iterate; converged: (M,) bool; iterations: (M,) long;
     pose_error: (M, 6) de at q (m, rad); residual: (M,) weighted norm (m);
-    step: (M,) norm of the last step (rad / m).
+    step: (M,) norm of the last step (rad / m); blocked: (M,) bool, stopped at
+    the bound (``stop_at_bound``).
     """
 
     q: torch.Tensor
@@ -77,6 +81,7 @@ class DampedResult:
     pose_error: torch.Tensor
     residual: torch.Tensor
     step: torch.Tensor
+    blocked: torch.Tensor | None = None
 
 
 class _Eval:
@@ -109,6 +114,11 @@ def damped_least_squares(
     stall_rtol: float = 1e-10,
     window: int = 5,
     window_rtol: float = 1e-8,
+    q_ref: torch.Tensor | None = None,
+    lam: float = 0.0,
+    max_step: float | None = None,
+    max_correction: float | None = None,
+    stop_at_bound: bool = False,
 ) -> DampedResult:
     """Solve model.flange(q, direction, base=False) = target for every row by Levenberg-Marquardt.
 
@@ -128,6 +138,19 @@ def damped_least_squares(
     step below tol without changing the result.) window, window_rtol: a row
     whose cost fell by less than this fraction over the last `window`
     iterations is stuck the same way and stops, flagged.
+
+    Bounded, minimum-norm corrections (q_ref: (M, n) reference commands, the
+    nominal ones in :func:`.compensate`): the cost becomes
+    ½|r(q)|² + ½ lam² |q - q_ref|², Tikhonov damping toward q_ref (lam in m
+    per rad), so directions whose singular values are well below lam (the
+    wrist's q4/q6 combination at q5 = 0) stay at q_ref instead of drifting;
+    each step is scaled to max|dq| <= max_step (rad / m) and every iterate is
+    kept inside the box |q - q_ref| <= max_correction. lam > 0 biases the
+    solution (residual ~ lam² |q - q_ref| / sigma), so a converged command
+    needs a final pass with lam = 0 (what :func:`.compensate` does).
+    stop_at_bound: a row whose step runs into the box stops there, flagged
+    (the optimum lies outside it; creeping along the box's faces costs many
+    iterations for nothing a flagged row needs). DampedResult.blocked marks them.
     """
     M, n = q0.shape
     dtype, device = q0.dtype, q0.device
@@ -137,9 +160,18 @@ def damped_least_squares(
     it_out = torch.zeros(M, dtype=torch.long, device=device)
     step_out = torch.full((M,), float("inf"), dtype=dtype, device=device)
     de_out = torch.zeros(M, 6, dtype=dtype, device=device)
+    blk_out = torch.zeros(M, dtype=torch.bool, device=device)
     if M == 0:
-        return DampedResult(q_out, conv_out, it_out, de_out, torch.zeros(0, dtype=dtype, device=device), step_out)
+        return DampedResult(q_out, conv_out, it_out, de_out, torch.zeros(0, dtype=dtype, device=device), step_out, blk_out)
     eye = torch.eye(n, dtype=dtype, device=device)
+    lam2 = float(lam) ** 2
+    ref = q0.clone() if q_ref is None else q_ref.to(dtype)
+    if max_correction is not None:
+        q0 = torch.minimum(torch.maximum(q0, ref - max_correction), ref + max_correction)
+
+    def prior(q, ref):
+        d = q - ref
+        return 0.5 * lam2 * (d * d).sum(-1)
 
     idx = torch.arange(M, device=device)
     q = q0.clone()
@@ -149,7 +181,7 @@ def damped_least_squares(
     de, OR = pose_residual(Ra, pa, Rn, pn)
     r = weighted(de, length)
     Jr = residual_jacobian(de, OR, J, length)
-    cost = 0.5 * (r * r).sum(-1)
+    cost = 0.5 * (r * r).sum(-1) + (prior(q, ref) if lam2 else 0.0)
     cost = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf")))
     A = Jr.transpose(1, 2) @ Jr
     mu = damping * A.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(1e-12)
@@ -157,20 +189,37 @@ def damped_least_squares(
     it = torch.zeros(M, dtype=torch.long, device=device)
     step = torch.full((M,), float("inf"), dtype=dtype, device=device)
     cost_ref = cost.clone()
+    hits = torch.zeros(M, dtype=torch.long, device=device)
 
     for k_it in range(max_iter):
         A = Jr.transpose(1, 2) @ Jr
         g = (Jr.transpose(1, 2) @ r[..., None])[..., 0]  # gradient of ½|r|²
+        if lam2:
+            A = A + lam2 * eye
+            g = g + lam2 * (q - ref)
         dq, info = torch.linalg.solve_ex(A + mu[:, None, None] * eye, -g)
         dq = torch.where((info == 0)[:, None] & torch.isfinite(dq), dq, torch.zeros_like(dq))
+        if max_step is not None:  # trust bound: scale the step, keep its direction
+            big = dq.abs().amax(-1, keepdim=True)
+            dq = dq * torch.clamp(max_step / big.clamp_min(1e-300), max=1.0)
         qt = q + dq
+        blocked = None
+        if max_correction is not None:  # stay in the box around q_ref
+            qb = torch.minimum(torch.maximum(qt, ref - max_correction), ref + max_correction)
+            if stop_at_bound:  # twice: a first, overshooting LM step is no evidence yet
+                hits = hits + (qb != qt).any(-1).long()
+                blocked = hits >= 2
+            qt = qb
+            dq = qt - q
         # evaluate the trial with its Jacobian: most steps are accepted and need it next
         Rt, pt, Jt = ev.flange_jacobian(qt, s)
         de_t, OR_t = pose_residual(Rt, pt, Rn, pn)
         rt = weighted(de_t, length)
-        cost_t = 0.5 * (rt * rt).sum(-1)
+        cost_t = 0.5 * (rt * rt).sum(-1) + (prior(qt, ref) if lam2 else 0.0)
         cost_t = torch.where(torch.isfinite(cost_t), cost_t, torch.full_like(cost_t, float("inf")))
-        pred = 0.5 * (dq * (mu[:, None] * dq - g)).sum(-1)  # Nielsen: decrease the linear model predicts
+        # Nielsen: the decrease the linear model predicts for the step taken (scaled or clipped:
+        # -g·dq - ½ dq·A dq; for the plain LM step this is ½ dq·(mu dq - g))
+        pred = -(dq * (g + 0.5 * (A @ dq[..., None])[..., 0])).sum(-1)
         rho = (cost - cost_t) / pred.clamp_min(1e-300)
         acc = (cost_t < cost) & (rho > 0)
         # an accepted, nearly undamped step that no longer lowers the cost: stationary point
@@ -186,7 +235,7 @@ def damped_least_squares(
         it += 1
         step = dq.norm(dim=-1)
         small = step < tol
-        conv = small & (torch.sqrt(2.0 * cost) <= residual_tol)
+        conv = small & ((r * r).sum(-1).sqrt() <= residual_tol)
         # stalled: a vanishing step far from zero error (least-squares optimum of an
         # unreachable target, or damping so large that nothing moves any more)
         stall = ((small | flat) & ~conv) | (mu > 1e20) | ~torch.isfinite(cost)
@@ -195,14 +244,18 @@ def damped_least_squares(
             # point (or crawling along a singular direction); keep the best, flag it
             stall = stall | (~conv & (cost > (1.0 - window_rtol) * cost_ref))
             cost_ref = cost
+        if blocked is not None:
+            stall = stall | (blocked & ~conv)
         done = conv | stall
         if bool(done.any()):
             d = done.nonzero()[:, 0]
             rows = idx[d]
             q_out[rows], conv_out[rows], it_out[rows], step_out[rows], de_out[rows] = q[d], conv[d], it[d], step[d], de[d]
+            if blocked is not None:
+                blk_out[rows] = blocked[d]
             keep = (~done).nonzero()[:, 0]
-            idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref = (
-                x[keep] for x in (idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref)
+            idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits = (
+                x[keep] for x in (idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits)
             )
             s = None if s is None else s[keep]
             if idx.numel() == 0:
@@ -210,4 +263,4 @@ def damped_least_squares(
     if idx.numel():  # iteration limit: keep the lowest-error iterate, not converged
         q_out[idx], it_out[idx], step_out[idx], de_out[idx] = q, it, step, de
     res = weighted(de_out, length).norm(dim=-1)
-    return DampedResult(q_out, conv_out, it_out, de_out, res, step_out)
+    return DampedResult(q_out, conv_out, it_out, de_out, res, step_out, blk_out)

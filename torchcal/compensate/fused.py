@@ -154,7 +154,7 @@ def _build():
                 m[6] * K[0, 2] + m[7] * K[1, 2] + m[8] * K[2, 2])
 
     @njit(parallel=True, cache=True)
-    def flange_soa(qT, sT, use_s, errors, coupling, offset, lo, width, table, has_bl,
+    def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                    oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian):
         """F_a(q, s) (errors=True) or F_n(q) into outR (3, 3, B), outp (3, B); with jacobian=True also
         the body Jacobian w.r.t. the controller commands into outJ (6, n, B), as FlangeKernel."""
@@ -163,6 +163,7 @@ def _build():
         nchunks = (B + _CHUNK - 1) // _CHUNK
         for c in numba.prange(nchunks):
             th = np.empty(n)
+            ue = np.empty(n)  # the error series' variables: command (Paper II (24)) or joint variable
             zs = np.empty((n, 3))  # joint axis after E_i, world
             os_ = np.empty((n, 3))  # origin of the frame joint i moves in, world
             ws = np.empty((n, 3))  # velocity of E_i's rotation per unit joint motion, world
@@ -173,13 +174,17 @@ def _build():
                     for j in range(n):
                         x += coupling[i, j] * qT[j, b]
                     th[i] = x
+                    y = eoffset[i]
+                    for j in range(n):
+                        y += ecoupling[i, j] * qT[j, b]
+                    ue[i] = y
                 # running pose of the chain in scalars (registers)
                 R = (baseR[0, 0], baseR[0, 1], baseR[0, 2], baseR[1, 0], baseR[1, 1], baseR[1, 2],
                      baseR[2, 0], baseR[2, 1], baseR[2, 2])
                 p0, p1, p2 = basep[0], basep[1], basep[2]
                 for i in range(n):
                     if errors:
-                        lam = 2.0 * (th[i] - lo[i]) / width[i] - 1.0
+                        lam = 2.0 * (ue[i] - lo[i]) / width[i] - 1.0
                         w0, w1, w2, d0, d1, d2, bl = series(table, i, lam, Km, has_bl, False)
                         if has_bl and use_s:
                             w2 += bl * sT[i, b]
@@ -225,14 +230,10 @@ def _build():
                             outJ[r, j, b] = 0.0
                     for i in range(n):
                         wx, wy, wz = (0.0, 0.0, 0.0) if prismatic[i] else (zs[i, 0], zs[i, 1], zs[i, 2])
-                        if errors:
-                            wx, wy, wz = wx + ws[i, 0], wy + ws[i, 1], wz + ws[i, 2]
                         rx, ry, rz = p0 - os_[i, 0], p1 - os_[i, 1], p2 - os_[i, 2]
                         vx, vy, vz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
                         if prismatic[i]:
                             vx, vy, vz = vx + zs[i, 0], vy + zs[i, 1], vz + zs[i, 2]
-                        if errors:
-                            vx, vy, vz = vx + ds[i, 0], vy + ds[i, 1], vz + ds[i, 2]
                         # into the flange frame (R^T), then to controller commands (chain rule through the coupling)
                         col = (R[0] * vx + R[3] * vy + R[6] * vz, R[1] * vx + R[4] * vy + R[7] * vz,
                                R[2] * vx + R[5] * vy + R[8] * vz,
@@ -243,6 +244,19 @@ def _build():
                             if cij != 0.0:
                                 for r in range(6):
                                     outJ[r, j, b] += col[r] * cij
+                        if errors:
+                            # the error series' slopes move with u = A_u q + b_u, not with the joint variable
+                            sx, sy, sz = ws[i, 0], ws[i, 1], ws[i, 2]
+                            tx, ty, tz = sy * rz - sz * ry + ds[i, 0], sz * rx - sx * rz + ds[i, 1], sx * ry - sy * rx + ds[i, 2]
+                            col = (R[0] * tx + R[3] * ty + R[6] * tz, R[1] * tx + R[4] * ty + R[7] * tz,
+                                   R[2] * tx + R[5] * ty + R[8] * tz,
+                                   R[0] * sx + R[3] * sy + R[6] * sz, R[1] * sx + R[4] * sy + R[7] * sz,
+                                   R[2] * sx + R[5] * sy + R[8] * sz)
+                            for j in range(n):
+                                cij = ecoupling[i, j]
+                                if cij != 0.0:
+                                    for r in range(6):
+                                        outJ[r, j, b] += col[r] * cij
 
     return flange_soa
 
@@ -270,7 +284,8 @@ class FusedFlange:
             return np.ascontiguousarray(t.detach().cpu().numpy())
 
         self.n = k.n
-        self.model = (np_(k.coupling), np_(k.offset[:, 0]), np_(k.lo[:, 0]), np_(k.width[:, 0]), np_(k.table),
+        self.model = (np_(k.coupling), np_(k.offset[:, 0]), np_(k.error_coupling), np_(k.error_offset[:, 0]),
+                      np_(k.lo[:, 0]), np_(k.width[:, 0]), np_(k.table),
                       bool(k.has_backlash))
         self.chain = (np_(k.oR), np_(k.op), np_(k.axes), np_(k.Ka), np_(k.Ka2), np_(k.prismatic), bool(k.z_axes),
                       np_(k.tipR), np_(k.tipp))

@@ -103,6 +103,9 @@ class FlangeKernel:
             self.dtype, self.device = model.dtype, model.device
             self.coupling = model.coupling.detach().clone()
             self.offset = model.offset.detach().clone()[:, None]
+            # the variable each joint's error series follows: command (Paper II (24)) or URDF joint variable
+            self.error_coupling = model.error_coupling.detach().clone()
+            self.error_offset = model.error_offset.detach().clone()[:, None]
             lo, hi = je.ranges[:, 0], je.ranges[:, 1]
             self.lo = lo.detach().clone()[:, None]
             self.width = (hi - lo).detach().clone()[:, None]
@@ -144,15 +147,20 @@ class FlangeKernel:
         """Controller commands (n, B) -> URDF joint variables (n, B)."""
         return self.coupling @ qT + self.offset
 
-    def error_twists(self, theta: torch.Tensor, sT: torch.Tensor | None, slopes: bool = False):
-        """Joint error terms e (n, 6, B) of (23) + backlash (13) at joint variables theta (n, B).
+    def error_variables(self, qT: torch.Tensor) -> torch.Tensor:
+        """Controller commands (n, B) -> the error series' variables u (n, B)."""
+        return self.error_coupling @ qT + self.error_offset
 
-        slopes: also return de/dtheta (n, 6, B) (differentiated recurrence, as
+    def error_twists(self, u: torch.Tensor, sT: torch.Tensor | None, slopes: bool = False):
+        """Joint error terms e (n, 6, B) of (23) + backlash (13) at error variables u (n, B).
+
+        slopes: also return de/du (n, 6, B) (differentiated recurrence, as
         :func:`torchcal.basis.chebyshev_with_derivative`).
         """
-        n, B = theta.shape
+        n, B = u.shape
         Km = self.Km
-        lam = 2.0 * (theta - self.lo) / self.width - 1.0
+        theta = u
+        lam = 2.0 * (u - self.lo) / self.width - 1.0
         lam2 = 2.0 * lam
         basis = torch.empty(n, Km, B, dtype=theta.dtype, device=theta.device)
         basis[:, 0] = 1.0
@@ -268,10 +276,11 @@ class FlangeKernel:
         theta = self.joint_variables(qT)
         n, B = theta.shape
         if errors:
+            u = self.error_variables(qT)
             if jacobian:
-                e, ed = self.error_twists(theta, sT, slopes=True)
+                e, ed = self.error_twists(u, sT, slopes=True)
             else:
-                e = self.error_twists(theta, sT)
+                e = self.error_twists(u, sT)
             RE = self.error_rotations(e[:, :3])
             M = torch.matmul(self.oR, RE.reshape(n, 3, 3 * B)).reshape(n, 3, 3, B)
             t = torch.baddbmm(self.op[:, :, None], self.oR, e[:, 3:])
@@ -346,15 +355,18 @@ class FlangeKernel:
         z = V[:, 0]
         rev = (~self.prismatic)[:, None, None]
         w = torch.where(rev, z, torch.zeros_like(z)) if self.any_prismatic else z
-        if errors:
-            w = w + V[:, 1]
         v = torch.linalg.cross(w, p[None] - o, dim=1)
         if self.any_prismatic:
             v = v + torch.where(rev, torch.zeros_like(z), z)
-        if errors:
-            v = v + V[:, 2]
         Jt = _rot_t_vec(R, torch.cat([v, w], 1).reshape(-1, 2, 3, v.shape[-1])).reshape(-1, 6, v.shape[-1])  # (n, 6, B)
-        return torch.einsum("irb,ij->rjb", Jt, self.coupling)  # controller space
+        J = torch.einsum("irb,ij->rjb", Jt, self.coupling)  # controller space through θ = A q + offset
+        if errors:
+            # the error series' slopes move with u = A_u q + b_u, not with θ
+            ws = V[:, 1]
+            vs = torch.linalg.cross(ws, p[None] - o, dim=1) + V[:, 2]
+            Js = _rot_t_vec(R, torch.cat([vs, ws], 1).reshape(-1, 2, 3, vs.shape[-1])).reshape(-1, 6, vs.shape[-1])
+            J = J + torch.einsum("irb,ij->rjb", Js, self.error_coupling)
+        return J
 
     # ------------------------------------------------------------------ public
     def flange(self, qT: torch.Tensor, sT: torch.Tensor | None = None):

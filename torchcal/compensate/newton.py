@@ -16,6 +16,20 @@ targets out of the modeled robot's reach) are handed to damped least squares
 with the current model Jacobian (:mod:`.damped`); rows that never converge
 come out flagged with their lowest-error solution, never dropped.
 
+Bounded corrections: a compensated command is a calibration-sized change of
+the nominal one. Next to a singularity the exact solution of (46) can lie
+tens of degrees away (at q5 = 0 a small orientation error turns q4 and q6
+by up to 90 degrees) or on another branch; sending it makes the robot swing.
+compensate() therefore keeps every row within ``max_correction`` of q_nom
+(steps within ``max_step``): the fast path's rows that converge further away
+and the rows near singularities (small singular values of the Jacobian) go
+to the damped path, which first minimizes |r|² + λ²|q - q_nom|² (Tikhonov
+damping toward q_nom: the null space, e.g. the wrist's q4/q6 combination,
+stays at q_nom), then polishes without λ inside the same box. Rows that
+cannot meet the tolerance within the bound are flagged (not converged) with
+that bounded best effort; ``CompensationResult.correction`` is each row's
+largest |q_new - q_nom|.
+
 The fast path runs on :class:`.kernel.FlangeKernel` (pose index last; on the
 CPU in float64 its evaluations are the numba-compiled kernel of
 :mod:`.fused`, elsewhere torch ops); the damped path and every reported
@@ -24,6 +38,7 @@ figure can be checked against ``RobotModel.flange`` directly.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -50,6 +65,11 @@ class CompensationResult:
     within_limits: (B,) bool, q inside model.command_limits.
     sigma_min: (B,) smallest singular value of the nominal Jacobian at q_nom
         with orientation rows times ``length`` (m / rad), or None when not asked for.
+    correction: (B,) largest |q_new - q_nom| over the joints (rad / m); never
+        above compensate()'s max_correction.
+    direction_outside: (B,) bool, the row's approach directions at q_new lie
+        outside what the identification data covered (``model.coverage``), or
+        None when the model carries no coverage or no directions were given.
     """
 
     q: torch.Tensor
@@ -61,6 +81,8 @@ class CompensationResult:
     damped: torch.Tensor
     within_limits: torch.Tensor
     sigma_min: torch.Tensor | None = None
+    correction: torch.Tensor | None = None
+    direction_outside: torch.Tensor | None = None
 
     @property
     def position_error(self) -> torch.Tensor:
@@ -83,14 +105,21 @@ class CompensationResult:
             "max_iterations": int(self.iterations.max()) if c.numel() else 0,
             "max_position_error_converged_m": float(self.position_error[c].max()) if c.any() else 0.0,
             "max_orientation_error_converged_rad": float(self.orientation_error[c].max()) if c.any() else 0.0,
+            "max_correction_converged": float(self.correction[c].max()) if self.correction is not None and c.any() else 0.0,
+            "direction_outside": int(self.direction_outside.sum()) if self.direction_outside is not None else None,
         }
 
 
 # ---------------------------------------------------------------------------- core
-def nominal_jacobian_inverse(J: torch.Tensor):
+def nominal_jacobian_inverse(J: torch.Tensor, sigma_floor: float = 0.0, length: float = 1.0):
     """Inverse (n == 6) or pseudo-inverse of nominal body Jacobians.
 
     J: (6, n, B) -> P: (n, 6, B) with P J = I, and ok: (B,) bool (finite, non-singular).
+    sigma_floor: rows whose smallest singular value (orientation rows times
+    ``length``, m / rad) is below this are not ok either; the bound used is
+    1 / ||P||_F <= sigma_min, so a row is let through only when it is well
+    clear of the floor (inv_ex succeeds on numerically singular matrices, and
+    a chord step through such an inverse moves the null space at will).
     The inverse is formed once per pose and reused every iteration: an
     inexact inverse only slows the fixed-point iteration (the residual (47) is
     always exact), it does not move its fixed point.
@@ -103,6 +132,9 @@ def nominal_jacobian_inverse(J: torch.Tensor):
         P = torch.linalg.pinv(Jb)
         ok = torch.ones(Jb.shape[0], dtype=torch.bool, device=J.device)
     ok = ok & torch.isfinite(P).all(-1).all(-1)
+    if sigma_floor > 0.0:
+        fro2 = (P[..., :3] ** 2).sum((-1, -2)) + (P[..., 3:] ** 2).sum((-1, -2)) / length**2
+        ok = ok & (fro2 * sigma_floor**2 < 1.0)
     return P.permute(1, 2, 0).contiguous(), ok
 
 
@@ -138,6 +170,9 @@ def fixed_jacobian_iterations(
     length: float,
     residual_tol: float,
     broyden: bool = True,
+    qref: torch.Tensor | None = None,
+    max_step: float | None = None,
+    max_correction: float | None = None,
 ):
     """Paper II's iteration (47)-(51) with a fixed (pseudo-)inverse Jacobian, all poses at once.
 
@@ -149,10 +184,15 @@ def fixed_jacobian_iterations(
     residual_tol: a row converges at q^r when ||dq^r|| < tol (51) *and* the
     weighted pose error evaluated at q^r is below this (m);
     broyden: refine the stored inverse by Broyden's rank-1 update after each
-    step (see below) instead of keeping it fixed as in (49).
+    step (see below) instead of keeping it fixed as in (49);
+    qref: (n, B) reference commands (q_nom) for the bounds, default qT;
+    max_step: unused here (the contraction test bounds the steps);
+    max_correction: a row that reaches (51) further than this from qref
+    (any joint, rad / m) is not ok: it is handed on with its best iterate.
     -> dict of q (n, B) (q^r for converged rows; the lowest-error iterate
        for failed ones), de (6, B) the error at q for converged rows,
-       step (B,) ||dq^r||, iterations (B,) updates made, ok (B,) bool.
+       step (B,) ||dq^r||, iterations (B,) updates made, ok (B,) bool, far (B,)
+       bool: reached (51) outside max_correction (not ok).
     Finished rows leave the working set, so a few slow rows do not make the
     whole batch iterate.
 
@@ -172,12 +212,14 @@ def fixed_jacobian_iterations(
     step_out = torch.full((B,), float("inf"), dtype=dtype, device=device)
     it_out = torch.zeros(B, dtype=torch.long, device=device)
     ok_out = torch.zeros(B, dtype=torch.bool, device=device)
+    far_out = torch.zeros(B, dtype=torch.bool, device=device)
 
     idx = start.nonzero()[:, 0]
     st = {
         "q": qT[:, idx], "s": None if sT is None else sT[:, idx], "R": Rn[..., idx], "p": pn[:, idx], "P": P[..., idx],
         "best_q": qT[:, idx], "best_res": torch.full((idx.numel(),), float("inf"), dtype=dtype, device=device),
         "prev": torch.full((idx.numel(),), float("inf"), dtype=dtype, device=device), "last": None, "idx": idx,
+        "ref": None if max_correction is None else (qT if qref is None else qref)[:, idx],
     }
     live = torch.ones(idx.numel(), dtype=torch.bool, device=device)
     any_dead = False
@@ -211,6 +253,14 @@ def fixed_jacobian_iterations(
         if bool(finished.any()):
             f = finished.nonzero()[:, 0]
             rows, d = st["idx"][f], done[f]
+            if max_correction is not None:
+                # a solution further than max_correction from q_nom is another branch or a swing next to
+                # a singularity, not a calibration-sized correction: the row goes on to the bounded path.
+                # (The iterates in between need no check: each step is at most `contraction` times the
+                # one before, so they stay within |dq^0| / (1 - contraction) of the start.)
+                far = d & ((q[:, f] - st["ref"][:, f]).abs().amax(0) > max_correction)
+                d = d & ~far
+                far_out[rows] = far
             q_out[:, rows] = torch.where(d, q[:, f], st["best_q"][:, f])
             de_out[:, rows] = de[:, f]
             step_out[rows] = step[f]
@@ -234,7 +284,7 @@ def fixed_jacobian_iterations(
         # (50)
         st["q"] = st["q"] + dq
         st["prev"], st["last"] = step, dq
-    return {"q": q_out, "de": de_out, "step": step_out, "iterations": it_out, "ok": ok_out}
+    return {"q": q_out, "de": de_out, "step": step_out, "iterations": it_out, "ok": ok_out, "far": far_out}
 
 
 def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
@@ -291,6 +341,9 @@ def compensate(
     broyden: bool = True,
     refresh: int = 2,
     refresh_model: bool = True,
+    max_step: float | None = math.radians(5.0),
+    max_correction: float | None = math.radians(5.0),
+    null_damping: float = 1e-3,
 ) -> CompensationResult:
     """Compensated joint commands for many poses, Paper II (46)-(52).
 
@@ -320,7 +373,27 @@ def compensate(
     refresh: times a row that does not contract gets its Jacobian re-evaluated
         at its best iterate (nominal chain, fast kernel) before it goes to the
         damped path; 0 is the paper's single Jacobian at q_nom.
+    max_step: trust bound, the largest change of any joint in one update
+        (rad / m; default 5 deg); None: unbounded.
+    max_correction: bound on |q_new - q_nom| for every joint and every row,
+        flagged or not (rad / m; default 5 deg). The correction is a
+        calibration-sized one (typically < 1 deg); a row whose exact solution
+        lies further away (next to a singularity a small orientation error
+        would swing q4 and q6 by tens of degrees) is not converged: it comes
+        out flagged with a bounded best effort instead of a command that
+        makes the robot swing. None: unbounded (the paper's behaviour).
+    null_damping: Tikhonov damping toward q_nom on the damped path (m / rad,
+        like ``length``-weighted singular values): directions of the Jacobian
+        with singular values well below it (the q4/q6 combination that does
+        not move the flange at q5 = 0) stay at q_nom. That pass is followed by
+        an undamped one inside the same bounds, so converged rows meet (46)
+        to residual_tol; a row that does not converge there keeps its lowest
+        error if that stays inside the bounds (an unreachable target), else
+        the damped (minimum-swing) solution. 0 disables the pass.
     -> :class:`CompensationResult`; float64, on the model's device.
+    Fast path first: rows whose Jacobian at q_nom is clear of 0.1 null_damping
+    (null_damping after a refresh) and whose fixed-Jacobian iteration ends
+    inside the bounds never reach the damped path.
     """
     _check_inputs(model, q_nom, direction)
     dtype, device = model.dtype, model.device
@@ -352,25 +425,29 @@ def compensate(
             Js = J.permute(2, 0, 1).clone()
             Js[:, 3:] *= length
             sig[sl] = torch.linalg.svdvals(Js)[:, -1]
-        P, invertible = nominal_jacobian_inverse(J)
+        P, invertible = nominal_jacobian_inverse(J, 0.1 * null_damping, length)
         out = fixed_jacobian_iterations(
-            kernel, qT, sT, Rn, pn, P, invertible, tol, max_iter, contraction, length, residual_tol, broyden
+            kernel, qT, sT, Rn, pn, P, invertible, tol, max_iter, contraction, length, residual_tol, broyden,
+            qT, max_step, max_correction,
         )
-        qc, de, st, it, okc = out["q"], out["de"], out["step"], out["iterations"], out["ok"]
+        qc, de, st, it, okc, far = out["q"], out["de"], out["step"], out["iterations"], out["ok"], out["far"]
         # Rows that did not contract moved far from q_nom (near a singularity a
         # small orientation error needs tenths of a radian): linearize again at
         # their best iterate and repeat, still on the fast kernel.
         for _ in range(refresh):
-            f = (~okc).nonzero()[:, 0]
+            f = (~okc & ~far).nonzero()[:, 0]  # a row that converged beyond the bound would only do it again
             if f.numel() == 0:
                 break
             sf = None if sT is None else sT[:, f]
             _, _, Jf = (kernel.flange_jacobian(qc[:, f], sf) if refresh_model else kernel.nominal_flange_jacobian(qc[:, f]))
-            Pf, okf = nominal_jacobian_inverse(Jf)
+            # (a stricter floor here: at a row's best iterate the modeled joint may sit just off a
+            # singularity that the solution lies on, where a chord step moves the null space freely)
+            Pf, okf = nominal_jacobian_inverse(Jf, null_damping, length)
             o = fixed_jacobian_iterations(
-                kernel, qc[:, f], sf, Rn[..., f], pn[:, f], Pf, okf, tol, max_iter, contraction, length, residual_tol, broyden
+                kernel, qc[:, f], sf, Rn[..., f], pn[:, f], Pf, okf, tol, max_iter, contraction, length, residual_tol, broyden,
+                qT[:, f], max_step, max_correction,
             )
-            qc[:, f], de[:, f], st[f], okc[f] = o["q"], o["de"], o["step"], o["ok"]
+            qc[:, f], de[:, f], st[f], okc[f], far[f] = o["q"], o["de"], o["step"], o["ok"], o["far"]
             it[f] += o["iterations"]
         q_out[sl], step[sl], iters[sl], ok[sl] = qc.T, st, it, okc
         de_out[sl] = de.T
@@ -382,15 +459,51 @@ def compensate(
         for c0 in range(0, k.numel(), chunk_size):
             kk = k[c0:c0 + chunk_size]
             tk = target[c0:c0 + chunk_size]
-            res = damped_least_squares(
-                model, q_out[kk], tk, None if direction is None else direction[kk],
-                tol=tol, max_iter=max_damped_iter, damping=damping, length=length, residual_tol=residual_tol,
-                kernel=kernel,
-            )
+            dk = None if direction is None else direction[kk]
+            if max_correction is not None:
+                # start from the fast path's best iterate only when it is a bounded correction (rows
+                # whose best lies on another branch restart at q_nom)
+                away = (q_out[kk] - q_nom[kk]).abs().amax(-1) > max_correction
+                q_out[kk] = torch.where(away[:, None], q_nom[kk], q_out[kk])
+            opts = dict(tol=tol, max_iter=max_damped_iter, damping=damping, length=length, residual_tol=residual_tol,
+                        kernel=kernel, q_ref=q_nom[kk], max_step=max_step, max_correction=max_correction,
+                        stop_at_bound=True)
+            if null_damping:
+                # first pass: only picks the branch and the null-space component (the polish below
+                # restores the accuracy), so a loose tolerance and few iterations do; rows whose exact
+                # solution lies outside the bounds would otherwise crawl along the box's faces
+                first = dict(opts, tol=max(tol, 1e-8), max_iter=min(max_damped_iter, 20))
+                res = damped_least_squares(model, q_out[kk], tk, dk, lam=null_damping, **first)
+            else:
+                res = damped_least_squares(model, q_out[kk], tk, dk, **opts)
             q_out[kk], ok[kk], step[kk], de_out[kk] = res.q, res.converged, res.step, res.pose_error
             iters[kk] += res.iterations
+            if null_damping:
+                # the damped pass leaves a bias of ~lam² |dq| / sigma: polish without it, inside the same
+                # bounds. Rows blocked by the bounds already (the damped optimum lies outside) keep the
+                # damped pass's iterate: flagged, with the smallest swing
+                m = (~res.converged & ~res.blocked).nonzero()[:, 0]
+                if m.numel():
+                    km = kk[m]
+                    opts["q_ref"] = q_nom[km]
+                    # from there Levenberg-Marquardt needs a handful of steps (a solution outside the
+                    # bounds runs into the box and stops)
+                    opts["max_iter"] = min(max_damped_iter, 20)
+                    pol = damped_least_squares(model, res.q[m], tk[m], None if dk is None else dk[m], **opts)
+                    iters[km] += pol.iterations
+                    # converged, or stopped at a stationary point of the error inside the bounds (an
+                    # unreachable target's best pose): take it; run into the bounds: keep the damped pass
+                    c = (pol.converged | ~pol.blocked).nonzero()[:, 0]
+                    kc = km[c]
+                    q_out[kc], ok[kc], step[kc], de_out[kc] = pol.q[c], pol.converged[c], pol.step[c], pol.pose_error[c]
 
     lim = model.command_limits.to(dtype)
     within = ((q_out >= lim[:, 0]) & (q_out <= lim[:, 1])).all(-1)
     residual = torch.sqrt((de_out[:, :3] ** 2).sum(-1) + length**2 * (de_out[:, 3:] ** 2).sum(-1))
-    return CompensationResult(q_out, ok, iters, de_out, residual, step, damped, within, sig)
+    correction = (q_out - q_nom).abs().amax(-1) if n else torch.zeros(B, dtype=dtype, device=device)
+    outside = None
+    coverage = getattr(model, "coverage", None)
+    if coverage is not None and direction is not None:
+        # the approach pattern of the command actually sent (the bins may differ from q_nom's)
+        outside = coverage.outside(q_out, direction).to(device=device, dtype=torch.bool)
+    return CompensationResult(q_out, ok, iters, de_out, residual, step, damped, within, sig, correction, outside)

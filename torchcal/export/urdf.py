@@ -217,6 +217,9 @@ def export_urdf(model, path, base: str = "joint", measurement_frame: bool = Fals
     if spec is not None:
         out = copy.deepcopy(spec)
         out["urdf"] = path.name
+        # the remainder's series follow the model's error variables, whatever the source YAML said
+        ev = list(getattr(model, "error_variable", robot.joint_map.error_variable))
+        out["error_variable"] = ev[0] if len(set(ev)) == 1 else ev
         if "root_link" in out or root_link != chain.root_link:
             out["root_link"] = root_link
         out.setdefault("end_link", chain.end_link)
@@ -260,7 +263,8 @@ def urdf_only_model(model, export: UrdfExport):
     with torch.no_grad():
         tools = model.tools().detach().clone()
     base_nominal = None if export.measurement_frame else model.base.nominal.detach().clone()
-    out = RobotModel(export.robot.to(model.device), tools, orders=0, backlash=None, base_nominal=base_nominal)
+    out = RobotModel(export.robot.to(model.device), tools, orders=0, backlash=None, base_nominal=base_nominal,
+                     error_variable=getattr(model, "error_variable", None))
     return out.to(model.device)
 
 

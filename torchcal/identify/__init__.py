@@ -1,12 +1,13 @@
 """Identification (Paper II (28)-(33)): the MLE objective, gauge fixing, solvers and results."""
 
-from .fit import SOLVERS, fit
+from .blocks import GaussianPrior, ParamBlock
+from .fit import SOLVERS, fit, resolve_noise
 from .gauge import dependent_columns, fix_gauge
-from .layout import ParameterLayout
+from .layout import ParameterLayout, parameter_groups
 from .lbfgs import lbfgs
 from .lm import levenberg_marquardt
 from .order import OrderSelection, held_out_errors, loo_residuals, paired_improvement, pose_folds, score_orders, select_orders
-from .problem import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, CalibrationProblem, NoiseModel, Prior
+from .problem import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, CalibrationProblem, NoiseModel, Prior, raw_residual, row_errors
 from .result import FitResult
 
 __all__ = [
@@ -15,8 +16,10 @@ __all__ = [
     "SOLVERS",
     "CalibrationProblem",
     "FitResult",
+    "GaussianPrior",
     "NoiseModel",
     "OrderSelection",
+    "ParamBlock",
     "ParameterLayout",
     "Prior",
     "dependent_columns",
@@ -27,7 +30,11 @@ __all__ = [
     "levenberg_marquardt",
     "loo_residuals",
     "paired_improvement",
+    "parameter_groups",
     "pose_folds",
+    "raw_residual",
+    "resolve_noise",
+    "row_errors",
     "score_orders",
     "select_orders",
 ]

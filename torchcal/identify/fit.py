@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 from ..measurements import Measurements
 from .gauge import fix_gauge
 from .lbfgs import lbfgs
@@ -10,6 +12,21 @@ from .problem import CalibrationProblem, NoiseModel, Prior
 from .result import FitResult
 
 SOLVERS = {"lm": levenberg_marquardt, "lbfgs": lbfgs}
+
+log = logging.getLogger("torchcal")
+
+
+def resolve_noise(model, noise: NoiseModel | None) -> NoiseModel:
+    """``noise``, or the robot's own (:meth:`NoiseModel.from_robot`) when None, logging where it comes from."""
+    if noise is not None:
+        return noise
+    robot = getattr(model, "robot", None)
+    if robot is None:
+        raise ValueError(f"{type(model).__name__} has no robot to take the joint repeatability from: pass noise=")
+    noise = NoiseModel.from_robot(robot)
+    log.info("joint repeatability of robot '%s' from %s; sigma_m = %.3g mm", robot.name, noise.source,
+             noise.sigma_m * 1e3)
+    return noise
 
 
 def fit(
@@ -20,22 +37,38 @@ def fit(
     method: str = "lm",
     fixed=(),
     gauge: bool = True,
+    instrument=None,
+    blocks=(),
+    fixed_rows=None,
+    v0=None,
     **solver_options,
 ) -> FitResult:
     """Identify ``model``'s error parameters from ``data`` by maximum likelihood (Paper II (33)).
 
     model: a :class:`torchcal.RobotModel`, updated in place, starting from its
-    current values; noise: tracker sigma and joint variances (default: Paper
-    II's); prior: Gaussian prior on the parameters (None for none); method:
-    'lm' (Levenberg-Marquardt with the joint errors eliminated per row, the
-    default: converges in tens of iterations) or 'lbfgs' (autograd + L-BFGS,
-    strong Wolfe, needs thousands); fixed: parameter groups held at their
-    value (e.g. 'tools', 'base'); gauge: pin exactly redundant parameters first.
+    current values; noise: tracker sigma and joint variances (None: the
+    robot's declared repeatability, :meth:`NoiseModel.from_robot`, its source
+    logged on the 'torchcal' logger); prior: Gaussian prior on the parameters
+    (None for none); method: 'lm' (Levenberg-Marquardt with the joint errors
+    eliminated per row, the default: converges in tens of iterations) or
+    'lbfgs' (autograd + L-BFGS, strong Wolfe, needs thousands); fixed:
+    parameter groups held at their value (e.g. 'tools', 'base'); gauge: pin
+    exactly redundant parameters first; instrument: the measurement model
+    (:mod:`torchcal.measure`; default point targets on ``data.xyz``); blocks:
+    parameter-only residual blocks (:mod:`torchcal.identify.blocks`, e.g.
+    :class:`GaussianPrior`); fixed_rows: (R,) bool, rows whose joint errors
+    are held at ``v0`` (R, n) (online identification, Paper III).
+    When the data carry approach directions, ``model.coverage`` records them
+    (:class:`torchcal.analysis.coverage.DirectionCoverage`).
     """
     if method not in SOLVERS:
         raise ValueError(f"unknown solver '{method}', choose from {sorted(SOLVERS)}")
-    problem = CalibrationProblem(model, data, noise or NoiseModel.paper2(), prior, fixed)
+    problem = CalibrationProblem(model, data, resolve_noise(model, noise), prior, fixed, instrument, blocks, fixed_rows, v0)
     pinned = fix_gauge(problem) if gauge else []
     result = SOLVERS[method](problem, **solver_options)
     result.pinned = pinned
+    if data.has_direction and hasattr(model, "command_limits"):
+        from ..analysis.coverage import DirectionCoverage
+
+        model.coverage = DirectionCoverage.from_data(data.q, data.direction, model.command_limits)
     return result

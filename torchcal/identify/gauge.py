@@ -43,24 +43,18 @@ def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: 
     return dependent
 
 
-def gauge_priority(names: list[str]) -> torch.Tensor:
-    """Order in which columns claim identifiability: base, tools, joints root to tip (low order first), compliance.
+_ROLE_RANK = {"frame": 0, "tool": 1, "compliance": 3}
+
+
+def gauge_priority(roles: list[str]) -> torch.Tensor:
+    """Order in which columns claim identifiability, by declared role: frame, tools, joints root to tip
+    (low order first; and any other role), compliance.
 
     The gravity compliance comes last: where its functions duplicate a joint's
     own Chebyshev series exactly (not the case for the default functions), the
     geometric term is kept.
     """
-    def key(i_name):
-        i, name = i_name
-        if name.startswith("base."):
-            return (0, i)
-        if name.startswith("tool"):
-            return (1, i)
-        if name.startswith("compliance."):
-            return (3, i)
-        return (2, i)
-
-    return torch.tensor([i for i, _ in sorted(enumerate(names), key=key)], dtype=torch.long)
+    return torch.tensor(sorted(range(len(roles)), key=lambda i: (_ROLE_RANK.get(roles[i], 2), i)), dtype=torch.long)
 
 
 def fix_gauge(problem, rtol: float = 1e-7):
@@ -73,7 +67,7 @@ def fix_gauge(problem, rtol: float = 1e-7):
     x = layout.get().to(problem.model.device)
     _, A, _ = problem.linearize(x, problem.v_zero())
     Af = A.reshape(-1, A.shape[-1])
-    drop = dependent_columns(Af, gauge_priority(layout.names()), rtol).to(x.device)
+    drop = dependent_columns(Af, gauge_priority(layout.roles()), rtol).to(x.device)
     names = [n for n, d in zip(layout.names(), drop.tolist()) if d]
     problem.set_layout(layout.without(drop))
     return names

@@ -1,4 +1,9 @@
-"""A flat view of a model's free parameters, for solvers that work on one vector."""
+"""A flat view of a model's free parameters, for solvers that work on one vector.
+
+What each entry is (its name, role, kind and default prior scale) comes from
+the modules' declarations (:class:`torchcal.params.ParamGroup`, see
+:func:`parameter_groups`), never from parameter names.
+"""
 
 from __future__ import annotations
 
@@ -7,20 +12,43 @@ from typing import Iterable
 import torch
 from torch import nn
 
+from ..params import ANGLE, ParamGroup
 
-def _masks(model: nn.Module) -> dict[str, torch.Tensor]:
-    """Which entries of each parameter are free (unused Chebyshev orders are not)."""
-    masks = {}
+
+def parameter_groups(model: nn.Module) -> list[ParamGroup]:
+    """Every learnable parameter of ``model`` with its declaration, in ``named_parameters()`` order.
+
+    Uses ``model.parameter_groups()`` where the model has one; otherwise walks
+    ``model.named_modules()`` and asks each module that declares its
+    parameters (``param_groups(prefix)``) for them. A parameter no module
+    declares is an error: its kind and prior would have to be guessed.
+    """
+    if callable(getattr(model, "parameter_groups", None)):
+        groups = list(model.parameter_groups())
+    else:
+        groups = []
+        for prefix, module in model.named_modules():
+            declare = getattr(module, "param_groups", None)
+            if callable(declare) and module is not model:
+                groups += list(declare(prefix))
+    by_name: dict[str, ParamGroup] = {}
+    for g in groups:
+        if g.name in by_name:
+            raise ValueError(f"parameter '{g.name}' is declared twice (two modules' param_groups())")
+        by_name[g.name] = g
+    out = []
     for name, p in model.named_parameters():
-        masks[name] = torch.ones_like(p, dtype=torch.bool)
-    je = getattr(model, "joint_errors", None)
-    if je is not None:
-        masks["joint_errors.coef"] = je.mask.expand_as(je.coef).clone()
-        masks["joint_errors.backlash"] = je.backlash_mask.clone()
-    comp = getattr(model, "compliance", None)
-    if comp is not None:
-        masks["compliance.coef"] = comp.mask.clone()
-    return masks
+        g = by_name.pop(name, None)
+        if g is None:
+            raise ValueError(f"{type(model).__name__}: parameter '{name}' {tuple(p.shape)} has no declaration; "
+                             f"its module must list it in param_groups() (kind, unit, prior sigma), "
+                             f"or the model must provide parameter_groups()")
+        if g.mask.shape != p.shape:
+            raise ValueError(f"ParamGroup '{name}': mask shape {tuple(g.mask.shape)} != parameter shape {tuple(p.shape)}")
+        out.append(g)
+    if by_name:
+        raise ValueError(f"{type(model).__name__}: declared parameter groups {sorted(by_name)} are not parameters of the model")
+    return out
 
 
 class ParameterLayout:
@@ -29,20 +57,29 @@ class ParameterLayout:
     fixed: names (or prefixes, e.g. 'tools') of parameters held at their value;
     masks: optional {name: bool tensor} narrowing which entries are free
     (used to pin the redundant parameters, see :func:`torchcal.identify.gauge.fix_gauge`).
+    ``entries`` lists (name, parameter, free mask) per group with a free entry;
+    ``groups`` the matching declarations.
     """
 
-    def __init__(self, model: nn.Module, fixed: Iterable[str] = (), masks: dict[str, torch.Tensor] | None = None):
+    def __init__(self, model: nn.Module, fixed: Iterable[str] = (), masks: dict[str, torch.Tensor] | None = None,
+                 groups: list[ParamGroup] | None = None):
         self.model = model
         self.fixed = tuple(fixed)
+        self._all_groups = parameter_groups(model) if groups is None else groups
         params = dict(model.named_parameters())
         self.entries: list[tuple[str, nn.Parameter, torch.Tensor]] = []
-        for name, mask in _masks(model).items():
+        self.groups: list[ParamGroup] = []
+        for g in self._all_groups:
+            name = g.name
             if any(name == f or name.startswith(f + ".") for f in self.fixed):
                 continue
+            p = params[name]
+            mask = g.mask.to(device=p.device, dtype=torch.bool).clone()
             if masks is not None and name in masks:
                 mask = mask & masks[name].to(mask.device)
             if mask.any():
-                self.entries.append((name, params[name], mask))
+                self.entries.append((name, p, mask))
+                self.groups.append(g)
         self.size = sum(int(m.sum()) for _, _, m in self.entries)
 
     def without(self, drop: torch.Tensor) -> "ParameterLayout":
@@ -54,7 +91,7 @@ class ParameterLayout:
             keep[m] = ~drop[i : i + k].to(m.device)
             masks[name] = keep
             i += k
-        return ParameterLayout(self.model, self.fixed, masks)
+        return ParameterLayout(self.model, self.fixed, masks, self._all_groups)
 
     def get(self) -> torch.Tensor:
         """Current free values (P,)."""
@@ -78,6 +115,10 @@ class ParameterLayout:
             p[m] = x[i : i + k].to(p)
             i += k
 
+    def has_jacobians(self, J: dict[str, torch.Tensor]) -> bool:
+        """Whether ``J`` holds a Jacobian for every free group."""
+        return all(name in J for name, _, _ in self.entries)
+
     def flatten_jacobian(self, J: dict[str, torch.Tensor], rows: int) -> torch.Tensor:
         """Stack per-group Jacobians (B, c, *param_shape) into (B, c, P) in layout order."""
         cols = []
@@ -89,34 +130,33 @@ class ParameterLayout:
             g = J[name]
             B, c = g.shape[:2]
             cols.append(g.reshape(B, c, -1)[:, :, m.flatten()])
+        if not cols:
+            return torch.zeros(rows, 0, 0)
         return torch.cat(cols, -1)
 
-    def names(self) -> list[str]:
-        """A readable name for each free entry, e.g. 'joint3.eps_z.c2', 'base.delta_x', 'tool1.dz'."""
+    def _per_entry(self, values) -> list:
+        """Flatten a per-group, per-entry attribute to the free entries, layout order."""
         out = []
-        for name, p, m in self.entries:
-            out += [n for n, keep in zip(self._entry_names(name, p), m.flatten().tolist()) if keep]
+        for g, (_, _, m) in zip(self.groups, self.entries):
+            out += [val for val, keep in zip(values(g), m.flatten().tolist()) if keep]
         return out
 
-    def _entry_names(self, name: str, p: torch.Tensor) -> list[str]:
-        je = getattr(self.model, "joint_errors", None)
-        if name == "joint_errors.coef" and je is not None:
-            return je.parameter_names()[0]
-        if name == "joint_errors.backlash" and je is not None:
-            return je.parameter_names()[1]
-        comp = getattr(self.model, "compliance", None)
-        if name == "compliance.coef" and comp is not None:
-            return comp.parameter_names()
-        if name == "base.twist":
-            return [f"base.{t}" for t in ("eps_x", "eps_y", "eps_z", "delta_x", "delta_y", "delta_z")]
-        if name == "tools.delta":
-            return [f"tool{t}.d{a}" for t in range(p.shape[0]) for a in "xyz"]
-        return [f"{name}[{i}]" for i in range(p.numel())]
+    def names(self) -> list[str]:
+        """A readable name for each free entry, e.g. 'joint3.eps_z.c2', 'base.eps_x', 'tool1.dz' (declared)."""
+        return self._per_entry(lambda g: g.entry_names)
+
+    def roles(self) -> list[str]:
+        """Declared role of each free entry: 'joint', 'backlash', 'frame', 'tool', 'compliance', ..."""
+        return self._per_entry(lambda g: [g.role] * g.mask.numel())
+
+    def kinds(self) -> list[str]:
+        """Declared kind of each free entry: 'angle', 'length' or 'dimensionless'."""
+        return self._per_entry(lambda g: g.kinds)
+
+    def prior_sigma(self) -> torch.Tensor:
+        """(P,) declared default prior standard deviation of each free entry, SI."""
+        return torch.tensor(self._per_entry(lambda g: g.prior_sigma.flatten().tolist()), dtype=torch.float64)
 
     def is_rotation(self) -> torch.Tensor:
-        """(P,) bool: which free entries are angles (rad) rather than lengths (m)."""
-        flags = []
-        for n in self.names():
-            term = n.split(".")[-2] if n.count(".") >= 2 else n.split(".")[-1]
-            flags.append(term.startswith("eps") or term == "backlash" or "compliance" in n)
-        return torch.tensor(flags, dtype=torch.bool)
+        """(P,) bool: which free entries are angles (rad) rather than lengths (m) or numbers (declared kinds)."""
+        return torch.tensor([k == ANGLE for k in self.kinds()], dtype=torch.bool)

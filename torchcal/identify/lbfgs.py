@@ -15,8 +15,8 @@ from __future__ import annotations
 import time
 
 import torch
-from torch.func import functional_call
 
+from .blocks import block_normal_equations
 from .problem import CalibrationProblem
 from .result import FitResult
 
@@ -37,25 +37,28 @@ def lbfgs(
     t0 = time.perf_counter()
     layout = problem.layout
     model = problem.model
-    data = problem.data
     x0 = layout.get().to(model.device)
-    f, A, C = problem.linearize(x0, problem.v_zero())
-    R, _, P = A.shape
+    v_start = problem.v_zero()
+    f, A, C = problem.linearize(x0, v_start)  # C is zero on rows whose v is not solved for
+    R, d, P = A.shape
     n = C.shape[-1]
-    H_vv = C.transpose(1, 2) @ C + torch.diag_embed(problem.w_v)
+    free = problem.v_free[:, None, None].to(A)
+    Ct = C.transpose(1, 2)
+    H_vv = Ct @ C + torch.diag_embed(problem.w_v)
     L_v = torch.linalg.cholesky(H_vv)
-    Y = torch.linalg.solve_triangular(L_v, C.transpose(1, 2) @ A, upper=False).reshape(R * n, P)
-    Af = A.reshape(R * 3, P)
-    S = Af.T @ Af + torch.diag(problem.prior_precision) - Y.T @ Y
+    eye_n = torch.eye(n, dtype=A.dtype, device=A.device).expand(R, n, n)
+    Li_v = torch.linalg.solve_triangular(L_v, eye_n, upper=False)  # (R, n, n) L_v^-1
+    H_vb = Ct @ A
+    Y = (Li_v @ H_vb).reshape(R * n, P)
+    Af = A.reshape(R * d, P)
+    H_blk = block_normal_equations(problem.blocks, x0, layout)[0] if problem.blocks else 0.0
+    S = Af.T @ Af + torch.diag(problem.prior_precision) + H_blk - Y.T @ Y
     L_b = torch.linalg.cholesky(S + 1e-12 * torch.diag(torch.diagonal(S)))
     eye_b = torch.eye(P, dtype=S.dtype, device=S.device)
     M_b = torch.linalg.solve_triangular(L_b.T, eye_b, upper=True)  # x = x0 + L_b^-T z
-    M_v = torch.linalg.solve_triangular(L_v.transpose(1, 2), torch.eye(n, dtype=S.dtype, device=S.device).expand(R, n, n), upper=True)
+    M_v = Li_v.transpose(1, 2) * free  # v = v_start + L_v^-T z_v - K dx on free rows; fixed rows stay
     # block-LDL change of variables: v follows b as in the Schur elimination
-    K = torch.cholesky_solve(C.transpose(1, 2) @ A, L_v)  # (R, n, P) = H_vv^-1 H_vb
-    if not problem.estimate_v:
-        M_v = torch.zeros_like(M_v)
-        K = torch.zeros_like(K)
+    K = (Li_v.transpose(1, 2) @ (Li_v @ H_vb)) * free  # (R, n, P) = H_vv^-1 H_vb
     z = torch.zeros(P + R * n, dtype=torch.float64, device=model.device, requires_grad=True)
     opt = torch.optim.LBFGS([z], lr=1.0, max_iter=50, history_size=history_size, tolerance_grad=1e-300,
                             tolerance_change=1e-300, line_search_fn="strong_wolfe")
@@ -63,14 +66,12 @@ def lbfgs(
 
     def unpack(zz):
         dx = M_b @ zz[:P]
-        v = (M_v @ zz[P:].reshape(R, n, 1))[..., 0] - K @ dx
+        v = v_start + (M_v @ zz[P:].reshape(R, n, 1))[..., 0] - K @ dx
         return x0 + dx, v
 
     def objective(zz):
         x, v = unpack(zz)
-        p = functional_call(model, layout.as_dict(x), (data.q, data.tool, problem.direction, v))
-        f = (p - data.xyz) * problem.inv_sigma_m
-        return problem.cost_from(f, x, v)
+        return problem.cost_from(problem.whitened_residual(x, v), x, v)
 
     def closure():
         nonlocal nfev
@@ -100,9 +101,9 @@ def lbfgs(
     # gradient in the original variables (x, v), for a report comparable with LM's
     xg = x.clone().requires_grad_(True)
     vg = v.clone().requires_grad_(True)
-    pg = functional_call(model, layout.as_dict(xg), (data.q, data.tool, problem.direction, vg))
-    gx, gvv = torch.autograd.grad(problem.cost_from((pg - data.xyz) * problem.inv_sigma_m, xg, vg), (xg, vg))
-    grad = torch.cat([gx, gvv.reshape(-1) if problem.estimate_v else torch.zeros_like(gvv.reshape(-1))])
+    gx, gvv = torch.autograd.grad(problem.cost_from(problem.whitened_residual(xg, vg), xg, vg), (xg, vg))
+    gvv = gvv * problem.v_free[:, None].to(gvv)
+    grad = torch.cat([gx, gvv.reshape(-1)])
     return FitResult(
         x=x.clone(), v=v.clone(), success=success, message=message, nit=int(it), nfev=nfev, fun=history[-1],
         grad_norm=float(grad.norm()), time=time.perf_counter() - t0, method="lbfgs", history=history,

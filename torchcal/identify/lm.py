@@ -8,6 +8,10 @@ per row, batched) and solve only for the model parameters b:
     S = H_bb - sum_r H_bv,r H_vv,r^-1 H_vb,r,   S db = -(g_b - sum_r H_bv,r H_vv,r^-1 g_v,r)
     dv_r = -H_vv,r^-1 (g_v,r + H_vb,r db)
 
+for any residual dimension d per row (S is formed as sum_r A_r^T (I_d - C_r H_vv,r^-1 C_r^T) A_r,
+one P x Rd product). Parameter-only blocks add J^T J and J^T r to the b equations;
+rows with frozen joint errors (online identification) keep dv_r = 0.
+
 Damping follows Nielsen's rule on Marquardt's diagonal scaling, so the solver
 is invariant to the units of the parameters (rad vs m).
 """
@@ -18,36 +22,60 @@ import time
 
 import torch
 
+from .blocks import block_normal_equations
 from .problem import CalibrationProblem
 from .result import FitResult
 
 
-def _schur_step(f, A, C, w_v, v, lam_b, dx, mu):
-    """One damped Gauss-Newton step with v eliminated. Shapes: f (R,3), A (R,3,P), C (R,3,n)."""
-    R, _, P = A.shape
+def _schur_step(f, A, C, w_v, v, lam_b, dx, mu, H_blk=None, g_blk=None, v_free=None):
+    """One damped Gauss-Newton step with v eliminated. Shapes: f (R,d), A (R,d,P), C (R,d,n), any d.
+
+    H_blk (P, P), g_blk (P,): parameter-only blocks' J^T J and J^T r; v_free:
+    (R,) bool, rows whose joint errors move (others get dv = 0).
+    -> db (P,), dv (R, n), gradient of V w.r.t. (b, v) (P + R n,).
+    """
+    R, d, P = A.shape
     n = C.shape[-1]
-    Af = A.reshape(R * 3, P)
-    H_bb = Af.T @ Af + torch.diag(lam_b)
+    Af = A.reshape(R * d, P)
+    diag_bb = (A * A).sum((0, 1)) + lam_b  # diagonal of H_bb (for Marquardt's scaling)
     g_b = Af.T @ f.reshape(-1) + lam_b * dx
-    H_vv = C.transpose(1, 2) @ C + torch.diag_embed(w_v)
-    g_v = (C.transpose(1, 2) @ f[..., None])[..., 0] + w_v * v
-    H_vb = C.transpose(1, 2) @ A  # (R, n, P)
-    H_bb_d = H_bb + mu * torch.diag(torch.diagonal(H_bb))
+    if H_blk is not None:
+        diag_bb = diag_bb + torch.diagonal(H_blk)
+        g_b = g_b + g_blk
+    Ct = C.transpose(1, 2)  # (R, n, d)
+    H_vv = Ct @ C + torch.diag_embed(w_v)
+    g_v = (Ct @ f[..., None])[..., 0] + w_v * v
+    if v_free is not None:
+        g_v = g_v * v_free[:, None].to(g_v)
     H_vv_d = H_vv + mu * torch.diag_embed(torch.diagonal(H_vv, dim1=1, dim2=2))
     L = torch.linalg.cholesky(H_vv_d)
-    Y = torch.linalg.solve_triangular(L, H_vb, upper=False)  # L^-1 H_vb
-    z = torch.linalg.solve_triangular(L, g_v[..., None], upper=False)  # L^-1 g_v
-    Yf = Y.reshape(R * n, P)
-    S = H_bb_d - Yf.T @ Yf
-    rhs = -(g_b - Yf.T @ z.reshape(-1))
+    # L^-1 explicitly (n x n per row): batched triangular solves with P right-hand sides are slow on the CPU
+    eye = torch.eye(n, dtype=A.dtype, device=A.device).expand(R, n, n)
+    Li = torch.linalg.solve_triangular(L, eye, upper=False)
+    W = Li @ Ct  # (R, n, d): Y = L^-1 H_vb = W A
+    z = Li @ g_v[..., None]  # L^-1 g_v (R, n, 1)
+    # S = sum_r A_r^T (I - W_r^T W_r) A_r + damped diagonal: one (P x Rd) @ (Rd x P) product
+    M = torch.eye(d, dtype=A.dtype, device=A.device) - W.transpose(1, 2) @ W  # (R, d, d)
+    S = Af.T @ (M @ A).reshape(R * d, P)
+    if H_blk is not None:
+        S = S + H_blk
+    S = 0.5 * (S + S.T) + torch.diag(lam_b + mu * diag_bb)
+    rhs = -(g_b - Af.T @ (W.transpose(1, 2) @ z).reshape(-1))
     Ls, info = torch.linalg.cholesky_ex(S)
     if int(info) != 0:
         db = torch.linalg.lstsq(S, rhs[:, None]).solution[:, 0]
     else:
         db = torch.cholesky_solve(rhs[:, None], Ls)[:, 0]
-    dv = -torch.cholesky_solve(g_v[..., None] + H_vb @ db[None, :, None], L)[..., 0]
+    dv = -(Li.transpose(1, 2) @ (z + W @ (A @ db[:, None])))[..., 0]
     grad = torch.cat([g_b, g_v.reshape(-1)]) * 2.0
     return db, dv, grad
+
+
+def _blocks(problem: CalibrationProblem, x: torch.Tensor):
+    """Parameter-only blocks at x: J^T J, J^T r, |r|^2 (None, None, None without blocks)."""
+    if not problem.blocks:
+        return None, None, None
+    return block_normal_equations(problem.blocks, x, problem.layout)
 
 
 def levenberg_marquardt(
@@ -70,8 +98,10 @@ def levenberg_marquardt(
     v = problem.v_zero()
     w_v = problem.w_v
     lam_b = problem.prior_precision
+    v_free = problem.v_free
     f, A, C = problem.linearize(x, v)
-    cost = float(problem.cost_from(f, x, v))
+    H_blk, g_blk, c_blk = _blocks(problem, x)
+    cost = float(problem.cost_from(f, x, v, c_blk))
     history = [cost]
     mu, nu = mu0, 2.0
     nfev, message, success = 1, "maximum number of iterations reached", False
@@ -81,10 +111,12 @@ def levenberg_marquardt(
         dx_prior = x - problem.prior_mean
         accepted = False
         for _ in range(30):
-            db, dv, grad = _schur_step(f, A, C, w_v, v, lam_b, dx_prior, mu)
+            db, dv, grad = _schur_step(f, A, C, w_v, v, lam_b, dx_prior, mu, H_blk, g_blk, v_free)
             x_new, v_new = x + db, v + dv
             lin = f + (A @ db[:, None])[..., 0] + (C @ dv[..., None])[..., 0]
-            predicted = cost - float(problem.cost_from(lin, x_new, v_new))
+            # blocks' Gauss-Newton model: |r + J db|^2 = c + 2 g^T db + db^T H db
+            lin_blk = None if H_blk is None else c_blk + 2 * (g_blk @ db) + db @ (H_blk @ db)
+            predicted = cost - float(problem.cost_from(lin, x_new, v_new, lin_blk))
             f_new = problem.residual(x_new, v_new)
             nfev += 1
             new_cost = float(problem.cost_from(f_new, x_new, v_new))
@@ -111,6 +143,7 @@ def levenberg_marquardt(
         if callback is not None:
             callback(it, cost)
         f, A, C = problem.linearize(x, v)
+        H_blk, g_blk, c_blk = _blocks(problem, x)
         if actual <= ftol * cost and predicted <= ftol * cost * 10:
             success, message = True, "converged: relative cost reduction below ftol"
             break
@@ -118,7 +151,7 @@ def levenberg_marquardt(
             success, message = True, "converged: parameter step below xtol"
             break
     layout.set(x)
-    _, _, grad = _schur_step(f, A, C, w_v, v, lam_b, x - problem.prior_mean, 0.0)
+    _, _, grad = _schur_step(f, A, C, w_v, v, lam_b, x - problem.prior_mean, 0.0, H_blk, g_blk, v_free)
     return FitResult(
         x=x.detach().clone(), v=v.detach().clone(), success=success, message=message, nit=it, nfev=nfev,
         fun=cost, grad_norm=float(grad.norm()), time=time.perf_counter() - t0, method="lm",

@@ -22,9 +22,9 @@ from typing import Callable, Iterable, Sequence
 import torch
 
 from ..measurements import Measurements
-from .fit import fit
+from .fit import fit, resolve_noise
 from .gauge import fix_gauge
-from .problem import CalibrationProblem, NoiseModel, Prior
+from .problem import CalibrationProblem, NoiseModel, Prior, row_errors
 
 
 @dataclass
@@ -47,10 +47,8 @@ class OrderSelection:
 
 
 def _row_errors(model, data: Measurements) -> torch.Tensor:
-    """(R,) |predicted - measured| with the joint errors at zero (m)."""
-    with torch.no_grad():
-        p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
-    return (p - data.xyz).norm(dim=1)
+    """(R,) |predicted - measured| with the joint errors at zero (m), through the problem's residual."""
+    return row_errors(model, data)
 
 
 def _mean_residual(model, data: Measurements) -> float:
@@ -83,19 +81,20 @@ def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | N
     held-out error is sigma_m (g_i + A_i db_i). fixed, gauge: as given to
     :func:`fit`, so that the same parameters are free.
     """
-    problem = CalibrationProblem(model, data, noise, prior, fixed)
+    problem = CalibrationProblem(model, data, resolve_noise(model, noise), prior, fixed)
     if gauge:
         fix_gauge(problem)
     x = problem.layout.get().to(problem.model.device)
     v = problem.v_zero() if v is None else v.to(x)
     f, A, C = problem.linearize(x, v)
-    R, _, P = A.shape
+    R, d, P = A.shape
     g = f - (C @ v[..., None])[..., 0]
-    cov = torch.eye(3, dtype=f.dtype, device=f.device) + C @ (C / problem.w_v[:, None, :]).transpose(1, 2)
+    cov = torch.eye(d, dtype=f.dtype, device=f.device) + C @ (C / problem.w_v[:, None, :]).transpose(1, 2)
     L = torch.linalg.cholesky(cov)
-    At = torch.linalg.solve_triangular(L, A, upper=False)  # (R, 3, P)
-    ft = torch.linalg.solve_triangular(L, g[..., None], upper=False)[..., 0]  # (R, 3)
-    Af = At.reshape(R * 3, P)
+    Li = torch.linalg.solve_triangular(L, torch.eye(d, dtype=f.dtype, device=f.device).expand(R, d, d), upper=False)
+    At = Li @ A  # (R, d, P)
+    ft = (Li @ g[..., None])[..., 0]  # (R, d)
+    Af = At.reshape(R * d, P)
     S = Af.T @ Af + torch.diag(problem.prior_precision)
     Ls, info = torch.linalg.cholesky_ex(S)
     if int(info) != 0:  # no prior and a direction the data leave free: the fit's damping chose it, a nudge here
@@ -110,20 +109,20 @@ def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | N
     k = int(counts.max())
     start = torch.cumsum(counts, 0) - counts
     within = torch.arange(R, device=pose.device) - start[slot_of[order]]
-    Ab = torch.zeros(N, k, 3, P, dtype=A.dtype, device=A.device)
-    fb = torch.zeros(N, k, 3, dtype=A.dtype, device=A.device)
+    Ab = torch.zeros(N, k, d, P, dtype=A.dtype, device=A.device)
+    fb = torch.zeros(N, k, d, dtype=A.dtype, device=A.device)
     Ab[slot_of[order], within] = At[order]
     fb[slot_of[order], within] = ft[order]
-    Ab, fb = Ab.reshape(N, 3 * k, P), fb.reshape(N, 3 * k)
-    SiAT = torch.cholesky_solve(Ab.permute(2, 0, 1).reshape(P, N * 3 * k), Ls).reshape(P, N, 3 * k).permute(1, 0, 2)  # S^-1 A~_i^T
-    H = Ab @ SiAT  # (N, 3k, 3k)
-    eye = torch.eye(3 * k, dtype=A.dtype, device=A.device)
+    Ab, fb = Ab.reshape(N, d * k, P), fb.reshape(N, d * k)
+    SiAT = torch.cholesky_solve(Ab.permute(2, 0, 1).reshape(P, N * d * k), Ls).reshape(P, N, d * k).permute(1, 0, 2)  # S^-1 A~_i^T
+    H = Ab @ SiAT  # (N, dk, dk)
+    eye = torch.eye(d * k, dtype=A.dtype, device=A.device)
     # a pose that alone determines some direction has H_ii -> I: its held-out error is unbounded, say so
     sol, info = torch.linalg.solve_ex(eye - H, fb[..., None])
     bad = (info != 0) | ~torch.isfinite(sol).all(-1).all(-1)
     sol = torch.where(bad[:, None, None], torch.zeros_like(sol), sol)
     db = (SiAT @ sol)[..., 0]  # (N, P)
-    e = (g + (A @ db[slot_of][..., None])[..., 0]).norm(dim=-1) / problem.inv_sigma_m
+    e = problem.instrument.unwhiten(g + (A @ db[slot_of][..., None])[..., 0]).norm(dim=-1)
     return torch.where(bad[slot_of], torch.full_like(e, float("inf")), e)
 
 
@@ -146,6 +145,7 @@ def held_out_errors(
     """
     if validation is not None or folds == 0:
         model = make_model(orders)
+        noise = resolve_noise(model, noise)
         r = fit(model, data, noise, prior, **fit_options)
         if validation is not None:
             return _row_errors(model, validation)
@@ -211,8 +211,9 @@ def select_orders(
     (one fit per trial), K for K-fold cross-validation (K fits per trial);
     ignored when ``validation`` is given.
     """
-    noise = noise or NoiseModel.paper2()
     candidates = sorted(set(int(c) for c in candidates))
+    if noise is None:
+        noise = resolve_noise(make_model([candidates[0]] * data.n_joints), None)
     n = data.n_joints
     table: list[dict] = []
     errors: dict[tuple, torch.Tensor] = {}  # held-out error per row of each candidate tried

@@ -1,27 +1,36 @@
-"""The implicit-loop maximum-likelihood objective of Paper II (31)-(33), with an optional prior.
+"""The implicit-loop maximum-likelihood objective of Paper II (31)-(33), for any instrument.
 
-    V(v, b) = sum_r |p_r - P(q_r + v_r; b)|^2 / sigma_m^2      measurement errors xi (31)-(32)
+    V(v, b) = sum_r |S_r (h(q_r + v_r; b) - y_r)|^2            instrument residuals, d per row (31)-(32)
             + sum_r v_r^T Sigma_v(s_r)^-1 v_r                  joint positioning errors (32)
             + (b - b_0)^T Sigma_b^-1 (b - b_0)                 prior (Paper III (31))
+            + sum_blocks |r_k(b)|^2                            parameter-only blocks (full-covariance prior, ...)
 
 with one joint-error vector v_r per measured row (pose x tool configuration),
-Sigma_v from the forward/backward joint variances of Table 5 chosen by each
+h what the instrument reports for the modeled robot (:mod:`torchcal.measure`;
+tool points in the measurement frame for Paper II, d = 3), S_r its per-row
+whitening, Sigma_v from the forward/backward joint variances chosen by each
 joint's approach direction, and the prior fixing the gauge: constant terms of
 neighbouring E_i are redundant (only combinations are identifiable), and a weak
 prior picks the smallest-norm member of each redundant family instead of
 letting the solver wander. Everything is whitened so that V is a plain sum of
-squares.
+squares. All residuals go through one function (:func:`raw_residual`).
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import torch
+from torch.func import functional_call
 
 from .. import units
+from ..measure import Instrument, PointTargets, row_jacobians
 from ..measurements import Measurements
+from .blocks import block_cost
 from .layout import ParameterLayout
+
+log = logging.getLogger("torchcal")
 
 # Paper II, Table 5: joint variances of the FANUC LR Mate 200i, deg^2, forward / backward
 PAPER2_JOINT_VAR_FWD = (3.6e-6, 3.6e-7, 8.4e-6, 3.0e-5, 2.7e-5, 5.6e-4)
@@ -33,12 +42,14 @@ class NoiseModel:
     """Measurement and joint-repeatability noise, SI.
 
     sigma_m: tracker standard deviation per axis (m); joint_var_fwd / _bwd:
-    (n,) joint variances (rad^2 / m^2) for forward / backward approach.
+    (n,) joint variances (rad^2 / m^2) for forward / backward approach;
+    source: where the joint variances come from (logged by :func:`fit`).
     """
 
     sigma_m: float
     joint_var_fwd: torch.Tensor
     joint_var_bwd: torch.Tensor
+    source: str = ""
 
     @classmethod
     def from_file_units(cls, sigma_m_mm: float, var_fwd_deg2, var_bwd_deg2, prismatic=None) -> "NoiseModel":
@@ -51,8 +62,25 @@ class NoiseModel:
 
     @classmethod
     def paper2(cls) -> "NoiseModel":
-        """sigma_m = 0.005 mm and the joint variances of Table 5."""
-        return cls.from_file_units(0.005, PAPER2_JOINT_VAR_FWD, PAPER2_JOINT_VAR_BWD)
+        """sigma_m = 0.005 mm and the joint variances of Table 5 (FANUC LR Mate 200i): for explicit use."""
+        out = cls.from_file_units(0.005, PAPER2_JOINT_VAR_FWD, PAPER2_JOINT_VAR_BWD)
+        out.source = "Paper II, Table 5 (NoiseModel.paper2)"
+        return out
+
+    @classmethod
+    def from_robot(cls, robot, sigma_m: float = 5e-6) -> "NoiseModel":
+        """sigma_m (m) and the joint variances of ``robot.repeatability`` (its YAML's ``repeatability:``).
+
+        Raises ValueError naming the robot when it declares none.
+        """
+        rep = getattr(robot, "repeatability", None)
+        if rep is None:
+            name = getattr(robot, "name", repr(robot))
+            src = getattr(robot, "source", "")
+            raise ValueError(f"robot '{name}'{f' ({src})' if src else ''} declares no joint repeatability: add a "
+                             f"'repeatability:' section (joint_var_fwd, joint_var_bwd in deg², source) to its YAML, "
+                             f"or pass noise=NoiseModel(...) explicitly")
+        return cls(float(sigma_m), rep.var_fwd.clone(), rep.var_bwd.clone(), rep.source or getattr(robot, "name", ""))
 
     def joint_variance(self, direction: torch.Tensor) -> torch.Tensor:
         """(R, n) variance of each row's joint error: forward, backward, or their mean where unknown."""
@@ -63,70 +91,172 @@ class NoiseModel:
 
 @dataclass
 class Prior:
-    """Gaussian prior on the error parameters, centred on zero (no error).
+    """Gaussian prior on the error parameters, centred on ``mean`` (default zero: no error).
 
-    rotation / translation: sigma of the joint error terms (rad / m);
-    frame_rotation / frame_translation: sigma of the base frame and tool
-    corrections; compliance: sigma of the gravity compliance coefficients
-    (``compliance.coef``, rad per unit configuration function: per unit sin/cos
-    in 'functions' mode, rad/(N·m) in 'gravity' mode). Besides the exact
-    redundancies that :mod:`.gauge` pins, an
+    Each entry's sigma is its module's declared prior (:class:`torchcal.params.ParamGroup`),
+    overridden by role and kind where a field here is set (None keeps the
+    declaration): roles 'joint' / 'backlash' take rotation (angles, rad) /
+    translation (lengths, m); 'frame' / 'tool' take frame_rotation /
+    frame_translation; 'compliance' takes compliance (``compliance.coef``, rad
+    per unit configuration function: per unit sin/cos in 'functions' mode,
+    rad/(N·m) in 'gravity' mode). Nothing is read from parameter names.
+    Besides the exact redundancies that :mod:`.gauge` pins, an
     order-m model has near-redundant directions (a constant error after joint
     i is a sin/cos of q_i before it, which a Chebyshev series reproduces to
     ~1e-6): the data cannot place the model along them, the prior does. The
     defaults are ~1e-5 of the data's information on well-determined
     combinations and about 20x the paper's largest constant errors.
+    mean: (P,) in the order of the full layout (before gauge fixing), SI.
     """
 
-    rotation: float = 1e-2
-    translation: float = 1e-3
-    frame_rotation: float = 0.1
-    frame_translation: float = 1e-2
+    rotation: float | None = 1e-2
+    translation: float | None = 1e-3
+    frame_rotation: float | None = 0.1
+    frame_translation: float | None = 1e-2
     mean: torch.Tensor | None = field(default=None, repr=False)
-    compliance: float = 1e-2
+    compliance: float | None = 1e-2
+
+    def sigma(self, layout: ParameterLayout) -> torch.Tensor:
+        """(P,) prior standard deviations in layout order (declared, then overridden by role + kind)."""
+        sigma = layout.prior_sigma().tolist()
+        for i, (role, kind) in enumerate(zip(layout.roles(), layout.kinds())):
+            if role in ("joint", "backlash"):
+                o = {"angle": self.rotation, "length": self.translation}.get(kind)
+            elif role in ("frame", "tool"):
+                o = {"angle": self.frame_rotation, "length": self.frame_translation}.get(kind)
+            elif role == "compliance":
+                o = self.compliance
+            else:
+                o = None
+            if o is not None:
+                sigma[i] = float(o)
+        return torch.tensor(sigma, dtype=torch.float64)
 
     def precision(self, layout: ParameterLayout) -> torch.Tensor:
         """(P,) inverse variances in layout order."""
-        rot = layout.is_rotation()
-        frame = torch.tensor([n.startswith(("base.", "tool")) for n in layout.names()], dtype=torch.bool)
-        comp = torch.tensor([n.startswith("compliance.") for n in layout.names()], dtype=torch.bool)
-        sigma = torch.where(
-            frame,
-            torch.where(rot, self.frame_rotation, self.frame_translation),
-            torch.where(rot, self.rotation, self.translation),
-        ).to(torch.float64)
-        sigma = torch.where(comp, torch.tensor(self.compliance, dtype=torch.float64), sigma)
-        return 1.0 / sigma**2
+        return 1.0 / self.sigma(layout) ** 2
+
+
+def raw_residual(model, instrument: Instrument, q, tool, direction, v, observed, params=None) -> torch.Tensor:
+    """THE residual: what ``instrument`` reports for ``model`` minus what it reported.  -> (B, d), unwhitened.
+
+    q: (B, n); tool: (B,); direction: (B, n) or None; v: (B, n) or None;
+    observed: (B, d); params: optional {name: tensor} replacing model
+    parameters (functional, differentiable).
+    """
+    if params:
+        pred = functional_call(_InstrumentPredict(model, instrument), _prefixed(params), (q, tool, direction, v))
+    else:
+        pred = instrument.predict(model, q, tool, direction, v)
+    return instrument.residual(pred, observed)
+
+
+class _InstrumentPredict(torch.nn.Module):
+    """instrument.predict(model, ...) as a module whose parameters are the model's (for functional_call)."""
+
+    def __init__(self, model, instrument):
+        super().__init__()
+        self.model = model
+        self.instrument = instrument
+
+    def forward(self, q, tool, direction, v):
+        return self.instrument.predict(self.model, q, tool, direction, v)
+
+
+def _prefixed(params: dict) -> dict:
+    return {f"model.{k}": t for k, t in params.items()}
+
+
+def default_instrument(data: Measurements, noise: NoiseModel) -> PointTargets:
+    """Paper II's instrument: the tracker points of ``data``, isotropic sigma_m."""
+    return PointTargets.from_measurements(data, noise.sigma_m)
+
+
+def row_errors(model, data: Measurements, instrument: Instrument | None = None, v=None) -> torch.Tensor:
+    """(R,) norm of each row's raw residual (m for point targets), joint errors v (default zero)."""
+    if instrument is None:
+        if torch.isnan(data.xyz).any():
+            raise ValueError(f"{data.source}: data has rows without a measured x, y, z")
+        instrument = PointTargets(data.xyz, sigma=1.0)
+    with torch.no_grad():
+        r = raw_residual(model, instrument, data.q, data.tool, data.direction if data.has_direction else None, v,
+                         instrument.observed)
+    return r.norm(dim=-1)
 
 
 class CalibrationProblem:
-    """Whitened residuals and Jacobians of V for one model and one data set.
+    """Whitened residuals and Jacobians of V for one model, one instrument and one data set.
 
-    model: a :class:`torchcal.model.RobotModel` (or anything with ``points`` and
-    ``point_jacobians``); data: identification measurements; fixed: parameter
-    names held fixed; prior: None for none (then redundant combinations are
-    left to the solver's damping).
+    model: a :class:`torchcal.model.RobotModel` (or any module the instrument
+    can predict from, its parameters declared, see
+    :func:`~torchcal.identify.layout.parameter_groups`); data: identification
+    rows (q, tool, direction, pose); noise: joint variances (and sigma_m for
+    the default instrument); prior: diagonal prior (None for none: then
+    redundant combinations are left to the solver's damping); fixed:
+    parameter names held fixed; instrument: the measurement model (default:
+    :class:`~torchcal.measure.PointTargets` on ``data.xyz`` with sigma_m);
+    blocks: parameter-only residual blocks (:mod:`.blocks`); fixed_rows: (R,)
+    bool, rows whose joint errors are held at v0 (R, n) rather than solved for.
+    jacobian: 'auto' (closed form where the instrument/model give it, else
+    autograd), 'closed' or 'autodiff'.
     """
 
-    def __init__(self, model, data: Measurements, noise: NoiseModel, prior: Prior | None = Prior(), fixed=()):
-        if torch.isnan(data.xyz).any():
-            raise ValueError(f"{data.source}: identification data has rows without a measured x, y, z")
+    def __init__(self, model, data: Measurements, noise: NoiseModel, prior: Prior | None = Prior(), fixed=(),
+                 instrument: Instrument | None = None, blocks=(), fixed_rows: torch.Tensor | None = None,
+                 v0: torch.Tensor | None = None, jacobian: str = "auto"):
+        if jacobian not in ("auto", "closed", "autodiff"):
+            raise ValueError(f"jacobian must be 'auto', 'closed' or 'autodiff', got {jacobian!r}")
+        device = model.device
         self.model = model
-        self.data = data.to(model.device)
+        self.data = data.to(device)
         self.noise = noise
+        if instrument is None:
+            instrument = default_instrument(data, noise)
+        if len(instrument) != len(data):
+            raise ValueError(f"{data.source}: the instrument has {len(instrument)} rows, the data {len(data)}")
+        self.instrument = instrument.to(device)
+        self.observed = self.instrument.observed
+        self.blocks = list(blocks)
+        self.jacobian = jacobian
         self.layout = ParameterLayout(model, fixed)
         self.direction = self.data.direction if data.has_direction else None
+        R, n = self.data.q.shape
         var = noise.joint_variance(self.data.direction)
         self.estimate_v = bool((var > 0).all())
         # without joint variances the joint errors are not estimated: unit weight and a zero Jacobian keep v at 0
         self.w_v = 1.0 / var if self.estimate_v else torch.ones_like(var)
-        self.inv_sigma_m = 1.0 / noise.sigma_m
-        if prior is None:
-            self.prior_precision = torch.zeros(self.layout.size, dtype=torch.float64, device=model.device)
-            self.prior_mean = torch.zeros(self.layout.size, dtype=torch.float64, device=model.device)
+        fr = torch.zeros(R, dtype=torch.bool, device=device) if fixed_rows is None else torch.as_tensor(fixed_rows).to(device)
+        if fr.shape != (R,) or fr.dtype != torch.bool:
+            raise ValueError(f"fixed_rows must be a ({R},) bool mask, got {tuple(fr.shape)} {fr.dtype}")
+        self.fixed_rows = fr
+        self.v_free = (~fr) & self.estimate_v  # (R,) rows whose joint errors are solved for
+        if v0 is None:
+            self.v0 = torch.zeros_like(self.data.q)
         else:
-            self.prior_precision = prior.precision(self.layout).to(model.device)
-            self.prior_mean = (prior.mean if prior.mean is not None else torch.zeros(self.layout.size, dtype=torch.float64)).to(model.device)
+            v0 = torch.as_tensor(v0).to(self.data.q)
+            if v0.shape != (R, n):
+                raise ValueError(f"v0 must have shape ({R}, {n}), got {tuple(v0.shape)}")
+            self.v0 = v0.clone()  # the start of every row; fixed rows stay there
+        # the v term of V counts only rows whose v is solved for (a fixed row's is a constant)
+        self.w_v_cost = self.w_v * self.v_free[:, None].to(self.w_v)
+        if prior is None:
+            self.prior_precision = torch.zeros(self.layout.size, dtype=torch.float64, device=device)
+            self.prior_mean = torch.zeros(self.layout.size, dtype=torch.float64, device=device)
+        else:
+            self.prior_precision = prior.precision(self.layout).to(device)
+            self.prior_mean = (prior.mean if prior.mean is not None else torch.zeros(self.layout.size, dtype=torch.float64)).to(device)
+
+    @property
+    def inv_sigma_m(self) -> float:
+        """1 / sigma of an isotropic instrument (compatibility; prefer ``instrument.whiten``)."""
+        sigma = getattr(self.instrument.weight, "sigma", None)
+        if sigma is None:
+            raise AttributeError("the instrument's whitening is not isotropic; use problem.instrument.whiten / unwhiten")
+        return 1.0 / sigma
+
+    @property
+    def dim(self) -> int:
+        return self.instrument.dim
 
     def set_layout(self, layout: ParameterLayout) -> None:
         """Switch to another view of the free parameters (prior re-indexed to match)."""
@@ -150,29 +280,71 @@ class CalibrationProblem:
         return len(self.data)
 
     def v_zero(self) -> torch.Tensor:
-        return torch.zeros_like(self.data.q)
+        """Starting joint errors (R, n): v0 on fixed rows, zero elsewhere."""
+        return self.v0.clone()
+
+    # ------------------------------------------------------------ residuals
+    def whitened_residual(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Whitened residual (R, d) at free values x (P,) and joint errors v (R, n); differentiable in both."""
+        raw = raw_residual(self.model, self.instrument, self.data.q, self.data.tool, self.direction, v, self.observed,
+                           self.layout.as_dict(x))
+        return self.instrument.whiten(raw)
 
     @torch.no_grad()
     def residual(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """Whitened measurement residual (R, 3) = (P(q + v) - p) / sigma_m at parameters x."""
+        """Whitened residual (R, d) at parameters x (also written into the model)."""
         self.layout.set(x)
-        p = self.model.points(self.data.q, self.data.tool, self.direction, v)
-        return (p - self.data.xyz) * self.inv_sigma_m
+        return self.whitened_residual(x, v)
 
-    def cost_from(self, f: torch.Tensor, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """V from a whitened residual and the current x, v."""
+    def cost_from(self, f: torch.Tensor, x: torch.Tensor, v: torch.Tensor, block_cost_value=None) -> torch.Tensor:
+        """V from a whitened residual and the current x, v (blocks evaluated at x unless their cost is given)."""
         dx = x - self.prior_mean
-        return (f * f).sum() + (self.w_v * v * v).sum() + (self.prior_precision * dx * dx).sum()
+        cost = (f * f).sum() + (self.w_v_cost * v * v).sum() + (self.prior_precision * dx * dx).sum()
+        if self.blocks:
+            cost = cost + (block_cost(self.blocks, x, self.layout) if block_cost_value is None else block_cost_value)
+        return cost
 
     def cost(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         return self.cost_from(self.residual(x, v), x, v)
 
     @torch.no_grad()
-    def linearize(self, x: torch.Tensor, v: torch.Tensor):
-        """Whitened residual f (R, 3), parameter Jacobian A (R, 3, P) and joint-error Jacobian C (R, 3, n)."""
+    def linearize(self, x: torch.Tensor, v: torch.Tensor, jacobian: str | None = None):
+        """Whitened residual f (R, d), parameter Jacobian A (R, d, P) and joint-error Jacobian C (R, d, n).
+
+        C is zero on rows whose joint errors are not solved for (fixed rows,
+        or a noise model without joint variances).
+        """
+        mode = jacobian or self.jacobian
         self.layout.set(x)
-        p, J = self.model.point_jacobians(self.data.q, self.data.tool, self.direction, v)
-        f = (p - self.data.xyz) * self.inv_sigma_m
-        A = self.layout.flatten_jacobian(J, self.rows) * self.inv_sigma_m
-        C = J["v"] * self.inv_sigma_m if self.estimate_v else torch.zeros_like(J["v"])
+        out = None
+        if mode != "autodiff":
+            out = self.instrument.predict_jacobians(self.model, self.data.q, self.data.tool, self.direction, v)
+            if out is not None and not self.layout.has_jacobians(out[1]):
+                out = None
+            if out is None and mode == "closed":
+                raise ValueError(f"{type(self.instrument).__name__} gives no closed-form Jacobians for every free group "
+                                 f"of {type(self.model).__name__}")
+        if out is not None:
+            pred, J = out
+            raw = self.instrument.residual(pred, self.observed)
+            Jv = J["v"]
+        else:
+            raw, J, Jv = self._autodiff(x, v)
+        f = self.instrument.whiten(raw)
+        A = self.instrument.whiten(self.layout.flatten_jacobian(J, self.rows))
+        C = self.instrument.whiten(Jv) * self.v_free[:, None, None].to(Jv)
         return f, A, C
+
+    def _autodiff(self, x: torch.Tensor, v: torch.Tensor):
+        """Raw residual (R, d), {group: (R, d, *shape)}, (R, d, n) by torch.func, vmapped over rows."""
+        model, instrument = self.model, self.instrument
+        wrapper = _InstrumentPredict(model, instrument)
+
+        def fn(params, vr, q, tool, s, y):
+            pred = functional_call(wrapper, _prefixed(params), (q, tool, s, vr))
+            return instrument.residual(pred, y)
+
+        with torch.enable_grad():
+            raw, J, Jv = row_jacobians(fn, self.layout.as_dict(x), v, self.data.q, self.data.tool, self.direction,
+                                       self.observed)
+        return raw.detach(), {k: t.detach() for k, t in J.items()}, Jv.detach()

@@ -23,11 +23,12 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from .. import units
-from ..errors.joint import MAX_ORDER
-from ..identify import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, SOLVERS, Prior
+from ..exceptions import TorchcalError
+from ..error_models.joint import MAX_ORDER
+from ..identify import SOLVERS, Prior
 
 
-class ConfigError(ValueError):
+class ConfigError(TorchcalError, ValueError):
     """A config that cannot be used; the message names the file (or override) and the key."""
 
 
@@ -63,16 +64,21 @@ class ModelConfig:
     compliance: Any = False
     """Gravity compliance (arm sag): false, true (torques from the URDF inertials when every moving link has
     one, else arm-angle functions), "gravity" or "functions"."""
+    error_variable: Any = None
+    """The variable each joint's error series is evaluated on: null (the robot's ``error_variable:``, 'command'
+    by default), 'command' (the controller command q_i, Paper II (24)), 'joint' (the URDF joint variable), or a
+    per-joint list of those."""
 
 
 @dataclass
 class NoiseConfig:
     sigma_m: float = 0.005
-    """Tracker standard deviation per axis, mm (Paper II 5.2)."""
-    joint_var_fwd: list[float] = field(default_factory=lambda: list(PAPER2_JOINT_VAR_FWD))
-    """Joint variance per joint, forward approach, deg² (mm² for prismatic joints); default Paper II Table 5."""
-    joint_var_bwd: list[float] = field(default_factory=lambda: list(PAPER2_JOINT_VAR_BWD))
-    """Joint variance per joint, backward approach, deg² (mm²); default Paper II Table 5."""
+    """Tracker standard deviation per axis, mm (Paper II 5.2): a property of the tracker, not of the robot."""
+    joint_var_fwd: Optional[list[float]] = None
+    """Joint variance per joint, forward approach, deg² (mm² for prismatic joints); null = the robot's
+    ``repeatability:`` (its YAML; e.g. Paper II Table 5 for the bundled FANUC). Give both or neither."""
+    joint_var_bwd: Optional[list[float]] = None
+    """Joint variance per joint, backward approach, deg² (mm²); null = the robot's ``repeatability:``."""
 
 
 @dataclass
@@ -137,7 +143,8 @@ class FitConfig:
     threads: Optional[int] = None
     """torch intra-op CPU threads during the run; null = torch's default (1 is often fastest on small, shared machines)."""
     out: str = "runs"
-    """Run directory; if it exists and is not empty, the run goes to <out>/<timestamp>."""
+    """Run directory; if it already holds a run, the run goes beside it (<out>-2, ...); if it is another
+    non-empty folder, to <out>/<timestamp> (see torchcal.io.rundir.make_run_dir)."""
     plots: bool = True
     config_file: Optional[str] = None
     """Set by load_config: the YAML this config came from (provenance)."""
@@ -265,6 +272,14 @@ def load_config(path, overrides: Sequence[str] = ()) -> DictConfig:
 
     -> a struct-mode DictConfig (unknown keys cannot be added later either).
     Raises :class:`ConfigError` naming the file / override and the key.
+
+    Example:
+        >>> import pathlib, tempfile
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "fit.yaml"
+        >>> _ = path.write_text("robot: fanuc_lrmate200i\\ntools: [[0, 0, 100]]\\ndata: {identification: ident.csv}\\n")
+        >>> cfg = load_config(path, ["model.order=4"])
+        >>> cfg.model.order, cfg.noise.sigma_m, cfg.noise.joint_var_fwd    # null: the robot's repeatability
+        (4, 0.005, None)
     """
     path = Path(path)
     if not path.is_file():
@@ -390,13 +405,26 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
 
     if not cfg.noise.sigma_m > 0:
         fail("noise.sigma_m", f"{cfg.noise.sigma_m}: the tracker sigma (mm) must be positive")
-    for key in ("joint_var_fwd", "joint_var_bwd"):
+    given = [key for key in ("joint_var_fwd", "joint_var_bwd") if cfg.noise[key] is not None]
+    if len(given) == 1:
+        other = ({"joint_var_fwd", "joint_var_bwd"} - set(given)).pop()
+        fail(f"noise.{other}", f"is null but noise.{given[0]} is set: give both joint variance lists, or neither "
+                               "(then the robot's repeatability is used)")
+    for key in given:
         var = _plain(cfg.noise[key])
         if any(v < 0 for v in var):
             fail(f"noise.{key}", f"{var}: variances (deg²) cannot be negative")
         if n_joints is not None and len(var) != n_joints:
-            fail(f"noise.{key}", f"has {len(var)} entries but the robot has {n_joints} joints "
-                                 "(the default is Paper II's 6-joint FANUC table; set one variance per joint)")
+            fail(f"noise.{key}", f"has {len(var)} entries but the robot has {n_joints} joints (set one variance per joint)")
+    ev = _plain(cfg.model.error_variable)
+    choices = ("command", "joint")
+    if isinstance(ev, list):
+        if not all(e in choices for e in ev):
+            fail("model.error_variable", f"{ev}: a per-joint list must hold 'command' or 'joint'")
+        if n_joints is not None and len(ev) != n_joints:
+            fail("model.error_variable", f"has {len(ev)} entries but the robot has {n_joints} joints")
+    elif ev is not None and ev not in choices:
+        fail("model.error_variable", f"{ev!r}: give null (the robot's), 'command', 'joint' or a per-joint list")
 
     if cfg.prior.enabled:
         for key in ("rotation_deg", "translation_mm", "frame_rotation_deg", "frame_translation_mm"):

@@ -21,6 +21,8 @@ Rows are never dropped. Units are converted with :mod:`torchcal.units` only.
 from __future__ import annotations
 
 import csv as _csv
+import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +31,7 @@ import pandas as pd
 import torch
 
 from .. import units
+from ..exceptions import TorchcalError
 from ..measurements import Measurements
 
 MAX_LISTED = 20
@@ -63,7 +66,7 @@ class Problem:
         return (", ".join(where) + ": " if where else "") + self.message
 
 
-class DataError(ValueError):
+class DataError(TorchcalError, ValueError):
     """An input data file that cannot be used; lists every problem with file, row, line and column.
 
     path: the file; problems: list of :class:`Problem` (all of them, not only the listed ones).
@@ -98,13 +101,35 @@ def direction_columns(n: int) -> list[str]:
     return [f"dir{i + 1}" for i in range(n)]
 
 
-def _scan(path: Path) -> tuple[list[str], list[int], list[int]]:
+log = logging.getLogger("torchcal.io.csv")
+
+CONTRACT_COLUMN = re.compile(r"^(pose|tool|x|y|z|q\d+|dir\d+)$")
+"""Names of the columns the contract interprets (the ones a decimal comma is read in)."""
+
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+(?:[eE][+-]?\d+)?$")
+
+
+def _delimiter(path: Path) -> str:
+    """',' (the contract) or ';' for a European spreadsheet export (``;`` separators, decimal commas).
+
+    Judged on the header line: a header split by ';' into more fields than by ','
+    (the contract's header has no ';') is a ';'-separated file.
+    """
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            first = fh.readline()
+    except (OSError, UnicodeDecodeError):
+        return ","  # _scan reports it
+    return ";" if first.count(";") > first.count(",") else ","
+
+
+def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[int]]:
     """Header names, first file line and field count of every record (csv module: knows quoted newlines)."""
     if not path.is_file():
         raise DataError(path, [Problem(None, None, "file not found")])
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
-            reader = _csv.reader(fh)
+            reader = _csv.reader(fh, delimiter=delimiter)
             header = next(reader, None)
             starts, widths, prev = [], [], reader.line_num
             for rec in reader:
@@ -125,8 +150,15 @@ def _read_raw(path: Path) -> pd.DataFrame:
 
     ``df.attrs['lines']`` holds the file line each row starts on. Structural
     problems (header, field counts) are all reported before pandas reads.
+
+    A European spreadsheet export (``;`` between fields, ``,`` as the decimal
+    mark) is recognised from its header and read as such, with a warning on
+    the ``torchcal`` logger and the note in ``df.attrs['notes']``: decimal
+    commas are read in the contract's columns (pose, tool, q*, dir*, x, y, z);
+    other columns are carried through as written.
     """
-    names, starts, widths = _scan(path)
+    sep = _delimiter(path)
+    names, starts, widths = _scan(path, sep)
     problems = []
     seen: dict[str, int] = {}
     for i, name in enumerate(names):
@@ -140,10 +172,14 @@ def _read_raw(path: Path) -> pd.DataFrame:
         if w and w != len(names):
             problems.append(Problem(r + 1, None, f"has {w} fields, the header has {len(names)}", line))
     if problems:
+        if sep == "," and len(names) == 1 and any(w > 1 for w in widths):
+            # e.g. a tab- or space-separated file: say so once instead of one line per row
+            problems = [Problem(None, None, f"the header has one field ({names[0][:60]!r}) but the rows have "
+                                            f"{max(widths)}: the contract separates fields with ','")] + problems[:3]
         raise DataError(path, problems)
     try:
         df = pd.read_csv(path, dtype=str, keep_default_na=False, skip_blank_lines=False, encoding="utf-8-sig",
-                         skipinitialspace=True)
+                         skipinitialspace=True, sep=sep)
     except pd.errors.ParserError as exc:
         raise DataError(path, [Problem(None, None, f"not a well-formed CSV: {exc}".strip())]) from None
     if len(df) != len(starts):  # the two readers disagree: trust neither with line numbers
@@ -161,6 +197,20 @@ def _read_raw(path: Path) -> pd.DataFrame:
     if len(df) == 0:
         raise DataError(path, [Problem(None, None, "no data rows after the header")])
     df.attrs["lines"] = list(starts[:end])
+    df.attrs["notes"] = []
+    if sep == ";":
+        converted = []
+        for c in df.columns:
+            if CONTRACT_COLUMN.match(c):
+                comma = df[c].str.match(_DECIMAL_COMMA)
+                if comma.any():
+                    df.loc[comma, c] = df.loc[comma, c].str.replace(",", ".", regex=False)
+                    converted.append(c)
+        note = (f"{path}: read as a European spreadsheet export (';' between fields"
+                + (f", decimal commas in {', '.join(converted)})" if converted else ")")
+                + "; the contract is ',' between fields and '.' as the decimal mark")
+        df.attrs["notes"].append(note)
+        log.warning(note)
     return df
 
 
@@ -352,6 +402,15 @@ def read_measurements(path, robot, n_tools: int | None, require_xyz: bool = True
     robot: a :class:`torchcal.kinematics.Robot` (joint count, units, controller
     range); n_tools: number of tools in the config. Raises :class:`DataError`
     listing every problem.
+
+    Example:
+        >>> import pathlib, tempfile
+        >>> from torchcal.kinematics import load_robot
+        >>> path = pathlib.Path(tempfile.mkdtemp()) / "m.csv"
+        >>> _ = path.write_text("pose,tool,q1,q2,q3,q4,q5,q6,x,y,z\\n0,0,90,0,0,0,0,0,500,0,300\\n")
+        >>> data = read_measurements(path, load_robot("fanuc_lrmate200i"), n_tools=1)
+        >>> round(data.q[0, 0].item(), 6), data.xyz[0].tolist()     # SI inside: rad, m
+        (1.570796, [0.5, 0.0, 0.3])
     """
     return read_table(path, robot, n_tools, require_xyz)[0]
 

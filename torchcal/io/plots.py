@@ -45,9 +45,10 @@ def _save(fig, path) -> Path:
 
 @torch.no_grad()
 def joint_error_curves(model, samples: int = 201) -> dict:
-    """The six error terms of every E_i sampled over its joint variable's range (the data of Figure 12).
+    """The six error terms of every E_i sampled over its error variable's range (the data of Figure 12).
 
-    -> dict with 'theta' (samples, n) joint variables (rad / m), 'forward' and
+    -> dict with 'theta' (samples, n) error variables (rad / m): the joint
+    command q_i or the URDF θ_i, per ``model.error_variable``), 'forward' and
     'backward' (samples, n, 6) error terms (rad, m) for approach direction +1 /
     -1 (identical without backlash), 'prismatic' (n,) bool.
     """
@@ -94,8 +95,10 @@ def plot_joint_errors(model, path, samples: int = 201, title: str | None = None)
         if i == 0:
             ax_r.legend(fontsize=7, ncol=4, loc="upper left")
             ax_t.legend(fontsize=7, ncol=3, loc="upper left")
-        ax_r.set_xlabel(f"joint variable ({xunit})", fontsize=8)
-        ax_t.set_xlabel(f"joint variable ({xunit})", fontsize=8)
+        var = getattr(model, "error_variable", ["joint"] * n)[i]
+        xlabel = f"command {names[i]} ({xunit})" if var == "command" else f"joint variable ({xunit})"
+        ax_r.set_xlabel(xlabel, fontsize=8)
+        ax_t.set_xlabel(xlabel, fontsize=8)
     fig.suptitle(title or "Joint-dependent error terms of each E_i (Paper II, Fig. 12)")
     fig.tight_layout()
     return _save(fig, path)

@@ -14,9 +14,11 @@ Layout written by :func:`torchcal.pipeline.run_fit`::
       plots/*.png      Figure 12 (joint_errors), 13 (distribution_*), 14-15 (residuals_*),
                        16 (compensation_validation, with a truth)
 
-Where it goes: ``out`` itself when it does not exist or is an empty folder;
-otherwise a fresh ``<out>/<YYYYmmdd-HHMMSS>`` inside it, so re-running a
-config never overwrites an earlier run (and never fails for it).
+Where it goes (:func:`make_run_dir`): ``out`` itself when it does not exist or
+is an empty folder; ``out-2``, ``out-3``, ... beside it when ``out`` already holds
+a run; a fresh ``<out>/<YYYYmmdd-HHMMSS>`` when ``out`` is a folder of other
+things (e.g. earlier runs). Re-running a config never overwrites an earlier run,
+never nests inside one, and never fails for it.
 """
 
 from __future__ import annotations
@@ -34,23 +36,69 @@ from pathlib import Path
 
 import torch
 
+from ..exceptions import TorchcalError
+
 MODEL_FILE = "model.pt"
 MODEL_FORMAT = "torchcal.RobotModel"
 MODEL_FORMAT_VERSION = 1
 
 
-class RunDirError(ValueError):
+class RunDirError(TorchcalError, ValueError):
     """A run directory that cannot be created or read; the message names the folder."""
 
 
+RUN_MARKERS = ("config.yaml", "run.log", "model.pt", "versions.json", "metrics.json")
+"""Files that make a folder a run directory (what :func:`torchcal.pipeline.run_fit` writes first)."""
+
+
+def is_run_dir(folder) -> bool:
+    """Whether ``folder`` holds a run (any of :data:`RUN_MARKERS`)."""
+    folder = Path(folder)
+    return folder.is_dir() and any((folder / m).exists() for m in RUN_MARKERS)
+
+
+def _fresh(path: Path) -> bool:
+    """Create ``path`` as a new folder (or take it when it is an empty folder); False when it is taken."""
+    try:
+        path.mkdir(parents=True)
+        return True
+    except FileExistsError:
+        return path.is_dir() and not any(path.iterdir()) and not is_run_dir(path)
+
+
 def make_run_dir(out) -> Path:
-    """Create the run directory for ``out``: ``out`` if absent or empty, else ``out/<timestamp>`` (never reuses one)."""
+    """Create the run directory for ``out``; runs go side by side, never inside another run.
+
+    - ``out`` absent or an empty folder: ``out`` itself;
+    - ``out`` is itself a run directory (an earlier fit wrote there): the next
+      free sibling ``out-2``, ``out-3``, ...;
+    - ``out`` is a folder of other things (e.g. earlier runs): a fresh
+      ``out/<YYYYmmdd-HHMMSS>`` inside it.
+
+    Never reuses a folder, never writes into an earlier run.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> tmp = pathlib.Path(tempfile.mkdtemp())
+        >>> first = make_run_dir(tmp / "runs"); (first / "config.yaml").write_text("robot: x")
+        8
+        >>> make_run_dir(tmp / "runs").name
+        'runs-2'
+    """
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise RunDirError(f"{out}: exists and is not a folder; choose another 'out'")
-    if not out.exists() or not any(out.iterdir()):
+    if not out.exists() or (not any(out.iterdir())):
         out.mkdir(parents=True, exist_ok=True)
         return out
+    if is_run_dir(out):
+        for k in range(2, 10000):
+            run = out.with_name(f"{out.name}-{k}")
+            if run.exists() and not run.is_dir():
+                continue
+            if _fresh(run):
+                return run
+        raise RunDirError(f"{out}: no free sibling folder {out.name}-2 ... {out.name}-9999; choose another 'out'")
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     for k in range(1, 1000):
         run = out / (stamp if k == 1 else f"{stamp}-{k}")
@@ -153,6 +201,11 @@ def load_model(run_dir, device=None, robot=None):
 
     device: where to put it (default CPU); robot: a loaded Robot to use instead
     of the one named in the spec (e.g. when the run moved to another machine).
+
+    Example:
+        >>> model = load_model("data/fanuc/runs")                      # doctest: +SKIP
+        >>> model.points(q, tool).shape                                # doctest: +SKIP
+        torch.Size([100, 3])
     """
     from ..model import RobotModel
 
@@ -190,7 +243,7 @@ def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
     """Send the ``torchcal`` logger's INFO records to ``<run_dir>/run.log`` for the duration of the block.
 
     A failure inside the block is logged with its traceback before it propagates,
-    so the log shows how far a run got.
+    so the log shows how far a run got; an interrupt (Ctrl-C) is logged as one line.
     """
     logger = logging.getLogger(name)
     handler = logging.FileHandler(Path(run_dir) / filename, encoding="utf-8")
@@ -201,6 +254,9 @@ def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
         logger.setLevel(logging.INFO)
     try:
         yield logger
+    except KeyboardInterrupt:
+        logger.error("interrupted (Ctrl-C); this run directory is incomplete")
+        raise
     except BaseException:
         logger.exception("run failed")
         raise
@@ -213,8 +269,10 @@ def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
 __all__ = [
     "MODEL_FILE",
     "RunDirError",
+    "RUN_MARKERS",
     "collect_versions",
     "git_commit",
+    "is_run_dir",
     "load_model",
     "load_run_config",
     "make_run_dir",

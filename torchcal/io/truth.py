@@ -1,11 +1,17 @@
 """``truth.json``: the simulated robot behind a data set, readable by people and reloadable exactly.
 
 Written by ``torchcal simulate``. It holds how the truth was made (kind,
-robot, tools in mm, seed, noise in mm / deg²), its error magnitudes in file
-units (:meth:`TruthRobot.describe`), and every buffer of the
+robot, tools in mm, seed, noise in mm / deg², the error variable each joint's
+errors follow), its error magnitudes in file units
+(:meth:`TruthRobot.describe`), and every buffer of the
 :class:`torchcal.sim.TruthRobot` (SI) so that :func:`load_truth` rebuilds the
 very same robot without re-running the random draws (independent of later
 changes to the simulator's constructors).
+
+``error_variable`` (one word per joint, 'command' or 'joint') is recorded since
+the truth's gear errors follow the controller command (Paper II (24)); a file
+without it was written when they followed the URDF joint variable and loads
+as 'joint'.
 """
 
 from __future__ import annotations
@@ -16,12 +22,13 @@ from pathlib import Path
 import torch
 
 from .. import units
+from ..exceptions import TorchcalError
 from .rundir import read_json, write_json
 
 TRUTH_FORMAT = "torchcal.TruthRobot"
 
 
-class TruthError(ValueError):
+class TruthError(TorchcalError, ValueError):
     """A truth.json that cannot be used; the message names the file."""
 
 
@@ -31,6 +38,7 @@ def save_truth(path, truth, kind: str, seed: int, noise=None, robot_spec: str | 
         "kind": kind,
         "robot": robot_spec or truth.robot.source or truth.robot.name,
         "seed": int(seed),
+        "error_variable": list(truth.error_variable),
         "tools_mm": units.m_to_mm(truth.tools_nominal.cpu()).tolist(),
     }
     if noise is not None:
@@ -65,7 +73,11 @@ def load_truth(path, robot=None):
         raise TruthError(f"{path}: not a truth file written by 'torchcal simulate'")
     robot = robot or load_robot(blob["robot"])
     tools = units.mm_to_m(torch.tensor(blob["tools_mm"], dtype=torch.float64))
-    truth = TruthRobot(robot, tools)
+    # files from before the key existed evaluated every error on the URDF joint variable
+    try:
+        truth = TruthRobot(robot, tools, error_variable=blob.get("error_variable", "joint"))
+    except ValueError as exc:
+        raise TruthError(f"{path}: {exc}") from None
     state = truth.state_dict()
     for k, v in blob["state_si"].items():
         if k not in state:

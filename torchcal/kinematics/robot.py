@@ -15,20 +15,47 @@ from .urdf import URDFError, load_urdf
 
 
 @dataclass
+class Repeatability:
+    """A robot's joint positioning repeatability, the Σ_v of Paper II (32), SI.
+
+    var_fwd / var_bwd: (n,) joint variances (rad², m² for prismatic joints) for
+    forward / backward approach (Paper II, Table 5); source: where they come
+    from (logged with every fit that uses them).
+    """
+
+    var_fwd: torch.Tensor
+    var_bwd: torch.Tensor
+    source: str = ""
+
+    def to(self, device=None) -> "Repeatability":
+        return Repeatability(self.var_fwd.to(device), self.var_bwd.to(device), self.source)
+
+
+@dataclass
 class Robot:
-    """A nominal machine: URDF chain + controller joint map (+ where it came from)."""
+    """A nominal machine: URDF chain + controller joint map (+ where it came from).
+
+    repeatability: the joint variances of its YAML (``repeatability:``), or None.
+    """
 
     name: str
     chain: Chain
     joint_map: JointMap
     source: str = ""
+    repeatability: Repeatability | None = None
 
     @property
     def n(self) -> int:
         return self.chain.n
 
     def to(self, device=None) -> "Robot":
-        return Robot(self.name, self.chain.to(device), self.joint_map.to(device), self.source)
+        rep = None if self.repeatability is None else self.repeatability.to(device)
+        return Robot(self.name, self.chain.to(device), self.joint_map.to(device), self.source, rep)
+
+    def with_error_variable(self, error_variable) -> "Robot":
+        """The same robot with its joint errors on another variable ('command', 'joint', per-joint list)."""
+        return Robot(self.name, self.chain, self.joint_map.with_error_variable(error_variable), self.source,
+                     self.repeatability)
 
 
 def urdf_dir() -> Path:
@@ -71,9 +98,30 @@ def _joint_map_from_yaml(spec: dict, chain: Chain, label: str) -> JointMap:
     coupling = coupling * scale[:, None] / scale[None, :]
     offset = torch.tensor(spec.get("offset", [0.0] * chain.n), dtype=torch.float64) * scale
     try:
-        return JointMap(names, coupling, offset, limits, prismatic_t)
+        return JointMap(names, coupling, offset, limits, prismatic_t, spec.get("error_variable", "command"))
     except ValueError as exc:
         raise URDFError(f"{label}: {exc}") from None
+
+
+def _repeatability_from_yaml(spec: dict, jm: JointMap, label: str) -> Repeatability | None:
+    rep = spec.get("repeatability")
+    if rep is None:
+        return None
+    if not isinstance(rep, dict):
+        raise URDFError(f"{label}: 'repeatability' must be a mapping with joint_var_fwd, joint_var_bwd (deg², mm²) and source")
+    out = []
+    for key in ("joint_var_fwd", "joint_var_bwd"):
+        var = rep.get(key)
+        if not isinstance(var, list) or len(var) != jm.n:
+            raise URDFError(f"{label}: repeatability.{key} must list {jm.n} variances (deg², mm² for prismatic joints)")
+        try:
+            t = torch.tensor([float(x) for x in var], dtype=torch.float64)
+        except (TypeError, ValueError):
+            raise URDFError(f"{label}: repeatability.{key}: {var} is not a list of numbers") from None
+        if (t < 0).any() or not torch.isfinite(t).all():
+            raise URDFError(f"{label}: repeatability.{key}: variances must be finite and non-negative, got {var}")
+        out.append(t * units.joint_scale(jm.prismatic) ** 2)
+    return Repeatability(out[0], out[1], str(rep.get("source", label)))
 
 
 def load_robot(spec: str | Path) -> Robot:
@@ -103,4 +151,6 @@ def load_robot(spec: str | Path) -> Robot:
         raise URDFError(f"{path}: a joint-map YAML needs a 'urdf' key")
     chain = load_urdf(path.parent / spec_d["urdf"], end_link=spec_d.get("end_link"), root_link=spec_d.get("root_link"))
     # a bundled robot is recorded by name so that saved models reload on any install
-    return Robot(path.stem, chain, _joint_map_from_yaml(spec_d, chain, str(path)), spec_s if bundled else str(path.resolve()))
+    jm = _joint_map_from_yaml(spec_d, chain, str(path))
+    return Robot(path.stem, chain, jm, spec_s if bundled else str(path.resolve()),
+                 _repeatability_from_yaml(spec_d, jm, str(path)))

@@ -14,11 +14,12 @@ from pathlib import Path
 
 import torch
 
+from ..exceptions import TorchcalError
 from .chain import Chain
 from .transforms import homogeneous, rpy_to_matrix
 
 
-class URDFError(ValueError):
+class URDFError(TorchcalError, ValueError):
     """A URDF that cannot be used; the message names the file and the joints at fault."""
 
 
@@ -65,6 +66,17 @@ def validate_urdf(xml: str, label: str = "<urdf string>") -> list[str]:
     return problems
 
 
+def _joints_without_axis(xml: str) -> set[str]:
+    """Names of the joints that have no <axis> element (URDF default: x)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(xml.encode() if isinstance(xml, str) else xml)
+    except ET.ParseError:
+        return set()
+    return {j.get("name") for j in root.iter("joint") if j.find("axis") is None}
+
+
 def _origin(joint) -> torch.Tensor:
     xyz = torch.tensor(joint.origin.xyz if joint.origin is not None and joint.origin.xyz is not None else [0.0, 0.0, 0.0], dtype=torch.float64)
     rpy = torch.tensor(joint.origin.rpy if joint.origin is not None and joint.origin.rpy is not None else [0.0, 0.0, 0.0], dtype=torch.float64)
@@ -88,9 +100,14 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
     by_child = {j.child: j for j in robot.joints}
     links = [l.name for l in robot.links]
     roots = [l for l in links if l not in by_child]
+    undefined = [f"joint '{j.name}' names {what} link '{l}', which is not defined in the URDF"
+                 for j in robot.joints for what, l in (("parent", j.parent), ("child", j.child)) if l not in links]
+    if undefined:
+        raise URDFError(f"{label}: " + "; ".join(undefined) + " (check the <parent link=...> / <child link=...> names)")
     if root_link is None:
         if len(roots) != 1:
-            raise URDFError(f"{label}: expected one root link, found {roots}")
+            raise URDFError(f"{label}: expected one root link, found {roots}: the links after the first are the "
+                            "child of no joint (is a joint's <parent> or <child> misspelled, or a joint missing?)")
         root_link = roots[0]
     parents = {j.parent for j in robot.joints}
     if end_link is None:
@@ -101,16 +118,29 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
     if end_link not in links:
         raise URDFError(f"{label}: end link '{end_link}' not in the URDF (links: {links})")
     path = []
-    link = end_link
+    link, prev_link = end_link, None
     while link != root_link:
         if link not in by_child:
-            raise URDFError(f"{label}: link '{end_link}' is not below root link '{root_link}'")
+            if link == end_link:
+                raise URDFError(f"{label}: end link '{end_link}' is not below root link '{root_link}' (no joint has it as child)")
+            below = by_child[prev_link] if prev_link is not None else None
+            what = "is not defined in the URDF" if link not in links else \
+                f"is a root of its own: no joint connects it to root link '{root_link}'"
+            raise URDFError(f"{label}: joint '{below.name}' names parent link '{link}', which {what} "
+                            f"(chain from '{end_link}' up to '{root_link}'); check the joint's <parent link=...>")
+        prev_link = link
         joint = by_child[link]
         path.append(joint)
         link = joint.parent
         if len(path) > len(robot.joints):
             raise URDFError(f"{label}: kinematic loop through joint '{joint.name}'")
     path.reverse()
+    no_axis = _joints_without_axis(xml)
+    for joint in path:
+        if joint.name in no_axis and joint.type != "fixed":
+            # legal URDF, but often a mistake: the pipeline warns again if the nominal residual is implausible
+            logging.getLogger("torchcal").warning(
+                "%s: joint '%s' has no <axis>; it turns about x (1 0 0), the URDF default", label, joint.name)
 
     names, origins, axes, prismatic, limits = [], [], [], [], []
     pending = torch.eye(4, dtype=torch.float64)  # fixed joints fold into the next origin

@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from torchcal.basis import chebyshev
-from torchcal.errors.joint import JointErrors
-from torchcal.errors.frame import FrameError, ToolSet
+from torchcal.error_models.joint import JointErrors
+from torchcal.error_models.frame import FrameError, ToolSet
 
 
 def make(orders=3, backlash=True, n=3):

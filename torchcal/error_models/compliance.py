@@ -374,6 +374,18 @@ class GravityCompliance(nn.Module):
         out = torch.zeros(theta.shape[0], self.n, self.n, dtype=d.dtype, device=d.device)
         return out.index_add(1, self.joints, d)
 
+    def param_groups(self, prefix: str = "compliance") -> list:
+        """Declared kind and prior scale of ``coef`` (see :class:`torchcal.params.ParamGroup`).
+
+        A coefficient is a joint deflection (rad) per unit configuration
+        function: per unit sin/cos in 'functions' mode, per N·m in 'gravity' mode.
+        """
+        from ..params import ANGLE, ParamGroup
+
+        k = self.coef.numel()
+        return [ParamGroup(f"{prefix}.coef", "compliance", self.parameter_names(), [ANGLE] * k,
+                           torch.full((k,), 1e-2, dtype=torch.float64), self.mask.expand_as(self.coef).clone())]
+
     def parameter_names(self) -> list[str]:
         """Names of every entry of ``coef`` (row-major), e.g. 'compliance.joint2.sin_phi1', 'compliance.joint3.tau'."""
         return [f"compliance.{self.joint_names[j]}.{f}" for j in self.joints.tolist() for f in self.function_names]

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from torch.func import jacrev
 
 from conftest import assert_point_jacobians_match_autograd, random_commands, randomize
-from torchcal.errors.compliance import GravityCompliance, arm_angle_functions, gravity_torques, read_inertials
+from torchcal.error_models.compliance import GravityCompliance, arm_angle_functions, gravity_torques, read_inertials
 from torchcal.identify import NoiseModel, ParameterLayout, Prior, fit
 from torchcal.kinematics import load_robot
 from torchcal.kinematics.fk import chain_frames
@@ -167,15 +167,16 @@ def test_compliance_off_is_unchanged(fanuc, tools_m):
     assert off.compliance is None
     assert set(dict(off.named_parameters())) == {"joint_errors.coef", "joint_errors.backlash", "base.twist", "tools.delta"}
     assert not any("compliance" in k for k in off.state_dict())
-    assert set(off.spec()) == {"robot", "tools", "orders", "backlash", "base_nominal"}
+    assert set(off.spec()) == {"robot", "tools", "orders", "backlash", "base_nominal", "error_variable"}
     B = 12
     q = random_commands(fanuc, B, 12)
     tool = torch.arange(B) % 3
     s = torch.sign(torch.randn(B, 6, generator=torch.Generator().manual_seed(13)))
     v = 1e-3 * torch.randn(B, 6, generator=torch.Generator().manual_seed(14))
-    # the measurement model (25) written out as before compliance existed
+    # the measurement model (25) written out as before compliance existed: E_i on the commands (24), joints on θ
     theta = off.joint_variables(q + v)
-    F = chain_frames(off.origins, off.axes, off.prismatic, theta, off.joint_errors(theta, s), off.tip, off.base())[2]
+    E = off.joint_errors(off.error_variables(q + v), s)
+    F = chain_frames(off.origins, off.axes, off.prismatic, theta, E, off.tip, off.base())[2]
     assert torch.equal(off.points(q, tool, s, v), off.tool_points(F, tool))
     # switched on with zero coefficients: bit-identical outputs and Jacobians
     on = RobotModel(fanuc, tools_m, orders=3, backlash=True, compliance=True)

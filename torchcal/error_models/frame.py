@@ -6,6 +6,7 @@ import torch
 from torch import nn
 
 from ..kinematics.transforms import twist_to_transform
+from ..params import LENGTH, ParamGroup, term_kinds
 
 
 class FrameError(nn.Module):
@@ -34,6 +35,11 @@ class FrameError(nn.Module):
         """E(b) alone (4, 4): the base correction seen from the robot's nominal base frame."""
         return twist_to_transform(self.twist)
 
+    def param_groups(self, prefix: str = "base") -> list[ParamGroup]:
+        """``twist``: 3 angles (prior 0.1 rad) then 3 lengths (prior 10 mm)."""
+        return [ParamGroup(f"{prefix}.twist", "frame", [f"{prefix}.{t}" for t in self.NAMES], term_kinds(self.NAMES),
+                           torch.tensor([0.1] * 3 + [1e-2] * 3, dtype=torch.float64), torch.ones(6, dtype=torch.bool))]
+
 
 class ToolSet(nn.Module):
     """Tool vectors p_T,t = l_t + delta_t for any number of tool configurations, (27), (29).
@@ -56,3 +62,9 @@ class ToolSet(nn.Module):
     def forward(self) -> torch.Tensor:
         """Corrected tool vectors (T, 3)."""
         return self.nominal + self.delta
+
+    def param_groups(self, prefix: str = "tools") -> list[ParamGroup]:
+        """``delta``: lengths, prior 10 mm, named 'tool{t}.d{x,y,z}'."""
+        k = self.delta.numel()
+        return [ParamGroup(f"{prefix}.delta", "tool", [f"tool{t}.d{a}" for t in range(self.count) for a in "xyz"],
+                           [LENGTH] * k, torch.full((k,), 1e-2, dtype=torch.float64), torch.ones_like(self.delta, dtype=torch.bool))]

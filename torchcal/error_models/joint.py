@@ -1,8 +1,13 @@
 """Paper II's joint-dependent 6-DOF error transforms E_i(q_i, s_i), eqs. (19)-(24).
 
 Each of the six small error terms of E_i (20) is an order-m Chebyshev series
-(23) of the normalized joint variable (24); backlash (13)-(14) adds
-``s_i * b_i(q_i)`` to eps_z, the rotation about the joint's own axis. Joint i's
+(23) of the joint's normalized error variable (24): the controller command q_i
+by default, as the paper has it, or the URDF joint variable θ_i (the model
+chooses, see :class:`torchcal.kinematics.JointMap`). Backlash (13)-(14) adds
+``s_i * b_i(q_i)`` to eps_z, the rotation about the joint's own axis, with its
+own (low, by default) order: quasi-random poses measured in sequence make a
+joint's approach direction nearly a function of its position, and a backlash
+series as rich as eps_z's then fits position errors as direction errors. Joint i's
 E_i sits in the joint frame before the joint moves, so its constant terms are
 the assembly errors of link i-1 (18) and there is none after the last joint
 (19): that one belongs to the tool.
@@ -17,11 +22,14 @@ from torch import nn
 
 from ..basis import chebyshev, normalize
 from ..kinematics.transforms import twist_to_transform
+from ..params import ANGLE, ParamGroup, term_kinds
 
 TERMS = ("eps_x", "eps_y", "eps_z", "delta_x", "delta_y", "delta_z")
 """The six error terms of (20), in twist order: rotations (rad) then translations (m)."""
 
 MAX_ORDER = 10
+DEFAULT_BACKLASH_ORDER = 1
+"""Order of the backlash series when backlash is switched on without one (``backlash=True``)."""
 
 
 def joint_error_twists(
@@ -64,9 +72,15 @@ def _order_table(orders, n: int) -> torch.Tensor:
 class JointErrors(nn.Module):
     """Learnable E_i(q_i, s_i) for every joint of a chain.
 
-    ranges: (n, 2) range of each joint variable used for normalization (24);
+    ranges: (n, 2) range of each joint's error variable, for the normalization (24);
     orders: int, per-joint list, or (n, 6) table (-1 switches a term off);
-    backlash: None/False (off), True (same order as eps_z) or an int / per-joint list.
+    backlash: None/False (off), True (order :data:`DEFAULT_BACKLASH_ORDER`) or an
+    int / per-joint list of orders (-1 switches a joint's backlash off).
+
+    Example:
+        >>> je = JointErrors(torch.tensor([[-1.0, 1.0], [0.0, 2.0]]), orders=2, backlash=True)
+        >>> je(torch.zeros(5, 2), torch.ones(5, 2)).shape
+        torch.Size([5, 2, 4, 4])
     """
 
     def __init__(self, ranges: torch.Tensor, orders=6, backlash=None, joint_names: Sequence[str] | None = None):
@@ -83,9 +97,11 @@ class JointErrors(nn.Module):
         if backlash is None or backlash is False:
             b_orders = torch.full((n,), -1, dtype=torch.long)
         elif backlash is True:
-            b_orders = table[:, 2].clone()
+            b_orders = torch.full((n,), DEFAULT_BACKLASH_ORDER, dtype=torch.long)
         else:
             b_orders = torch.as_tensor(backlash, dtype=torch.long).expand(n).clone()
+            if (b_orders < -1).any() or (b_orders > MAX_ORDER).any():
+                raise ValueError(f"backlash order must be in 0..{MAX_ORDER} (or -1 to switch a joint's off), got {b_orders.tolist()}")
         Kb = int(b_orders.max().clamp(min=-1)) + 1
         self.register_buffer("backlash_orders", b_orders)
         self.register_buffer("backlash_mask", torch.arange(Kb)[None, :] <= b_orders[:, None])
@@ -100,11 +116,11 @@ class JointErrors(nn.Module):
         return bool(self.backlash_mask.any())
 
     def normalized(self, theta: torch.Tensor) -> torch.Tensor:
-        """Joint variables (B, n) -> lam (B, n) in [-1, 1] over the model's ranges."""
+        """Error variables (B, n) -> lam (B, n) in [-1, 1] over the model's ranges (24)."""
         return normalize(theta, self.ranges[:, 0], self.ranges[:, 1])
 
     def twists(self, theta: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
-        """(B, n) joint variables (+ (B, n) directions) -> (B, n, 6) error terms."""
+        """(B, n) error variables (+ (B, n) directions) -> (B, n, 6) error terms."""
         lam = self.normalized(theta)
         basis = chebyshev(lam, self.coef.shape[-1] - 1)
         coef = self.coef * self.mask
@@ -116,6 +132,24 @@ class JointErrors(nn.Module):
     def forward(self, theta: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
         """Error transforms E_i: (B, n) -> (B, n, 4, 4)."""
         return twist_to_transform(self.twists(theta, direction))
+
+    def param_groups(self, prefix: str = "joint_errors") -> list[ParamGroup]:
+        """Declared kinds and prior scales of ``coef`` and ``backlash``.
+
+        coef: the six terms in twist order, angles (prior 0.01 rad) then lengths
+        (prior 1 mm), about 20x the paper's largest constant errors; backlash:
+        angles (prior 0.01 rad). Only existing orders are in the masks.
+        """
+        n, _, K = self.coef.shape
+        coef_names, bl_names = self.parameter_names()
+        kinds = [k for _ in range(n) for k in term_kinds(TERMS) for _ in range(K)]
+        sigma = torch.tensor([1e-2 if k == ANGLE else 1e-3 for k in kinds], dtype=torch.float64)
+        nb = self.backlash.numel()
+        return [
+            ParamGroup(f"{prefix}.coef", "joint", coef_names, kinds, sigma, self.mask.expand_as(self.coef).clone()),
+            ParamGroup(f"{prefix}.backlash", "backlash", bl_names, [ANGLE] * nb,
+                       torch.full((nb,), 1e-2, dtype=torch.float64), self.backlash_mask.clone()),
+        ]
 
     def parameter_names(self) -> tuple[list[str], list[str]]:
         """Names of every entry of ``coef`` and ``backlash`` (row-major), e.g. 'joint3.eps_z.c2'."""

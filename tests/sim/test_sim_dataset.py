@@ -1,0 +1,46 @@
+"""torchcal.sim.simulate_dataset: what `torchcal simulate` writes, as a library function."""
+
+import json
+
+import pytest
+import torch
+
+from conftest import PAPER2_TOOLS_MM
+from torchcal.io.config import ConfigError
+from torchcal.io.csv import read_measurements
+from torchcal.io.truth import load_truth, truth_noise
+from torchcal.sim import TruthRobot, default_joint_variances, simulate_dataset
+from torchcal.sim.dataset import PAPER2_TOOLS_MM as DATASET_TOOLS_MM
+
+
+def test_writes_the_data_set_and_records_the_error_variable(fanuc, tmp_path):
+    paths = simulate_dataset(tmp_path / "sim", identification=12, validation=6, seed=3)
+    assert set(paths) == {"identification", "validation", "truth", "config"}
+    assert all(p.is_file() for p in paths.values())
+    assert len(read_measurements(paths["identification"], fanuc, 3)) == 36  # each pose with the 3 tools
+    assert len(read_measurements(paths["validation"], fanuc, 3)) == 6
+    blob = json.loads(paths["truth"].read_text())
+    assert blob["kind"] == "fanuc_paper2" and blob["error_variable"] == ["command"] * 6
+    truth = load_truth(paths["truth"])
+    fresh = TruthRobot.fanuc_paper2(fanuc, torch.tensor(PAPER2_TOOLS_MM) * 1e-3, 3)
+    q = torch.zeros(4, 6)
+    tool = torch.arange(4) % 3
+    assert truth.error_variable == ["command"] * 6
+    assert torch.allclose(truth.points(q, tool), fresh.points(q, tool), atol=1e-15)
+    assert truth_noise(paths["truth"]) is not None
+    assert DATASET_TOOLS_MM == PAPER2_TOOLS_MM
+    assert "errors follow: command" in paths["config"].read_text()
+
+
+def test_joint_truth_and_bad_options(fanuc, tmp_path):
+    paths = simulate_dataset(tmp_path / "j", identification=5, validation=0, seed=1, error_variable="joint")
+    assert "validation" not in paths
+    assert load_truth(paths["truth"]).error_variable == ["joint"] * 6
+    with pytest.raises(ConfigError, match="already holds"):
+        simulate_dataset(tmp_path / "j", identification=5, validation=0)
+    with pytest.raises(ConfigError, match="error-variable"):
+        simulate_dataset(tmp_path / "x", identification=5, error_variable="urdf")
+    with pytest.raises(ConfigError, match="validation-tool"):
+        simulate_dataset(tmp_path / "y", identification=5, validation_tool=3)
+    fwd, bwd = default_joint_variances(6)
+    assert len(fwd) == len(bwd) == 6 and default_joint_variances(3)[0] == [sorted(fwd)[3]] * 3

@@ -1,0 +1,119 @@
+"""The top-level facade: ``import torchcal`` exposes the main API, stays light, and one error root covers bad input."""
+
+import doctest
+import importlib
+import subprocess
+import sys
+from importlib import metadata
+
+import pytest
+import torch
+
+import torchcal
+
+F64 = torch.float64
+
+MAIN_API = ["load_robot", "RobotModel", "read_measurements", "fit", "compensate", "NoiseModel", "Prior",
+            "Measurements", "TorchcalError", "__version__", "simulate", "run_fit", "load_config", "load_model"]
+
+
+def test_main_api_is_at_the_top_level():
+    for name in MAIN_API:
+        assert hasattr(torchcal, name), name
+    for name in torchcal.__all__:
+        getattr(torchcal, name)  # every advertised name resolves
+    assert set(MAIN_API) <= set(torchcal.__all__) and set(MAIN_API) <= set(dir(torchcal))
+    from torchcal.identify import NoiseModel, Prior, fit
+    from torchcal.io.csv import read_measurements
+    from torchcal.kinematics import load_robot
+    from torchcal.measurements import Measurements
+    from torchcal.model import RobotModel
+
+    assert torchcal.load_robot is load_robot and torchcal.RobotModel is RobotModel and torchcal.fit is fit
+    assert torchcal.NoiseModel is NoiseModel and torchcal.Prior is Prior and torchcal.Measurements is Measurements
+    assert torchcal.read_measurements is read_measurements
+    with pytest.raises(AttributeError, match="no attribute 'no_such_thing'"):
+        torchcal.no_such_thing
+
+
+def test_compensate_is_callable_as_the_function_and_still_the_subpackage(monkeypatch):
+    import inspect
+
+    import torchcal.compensate as sub
+    from torchcal.compensate import compensate, fused  # noqa: F401  the subpackage's names still import
+
+    assert torchcal.compensate is sub is sys.modules["torchcal.compensate"]
+    assert inspect.signature(torchcal.compensate) == inspect.signature(compensate)
+    calls = []
+    monkeypatch.setattr(sub, "compensate", lambda *a, **k: calls.append((a, k)) or "result")
+    assert torchcal.compensate("model", "q", tol=1e-9) == "result"
+    assert calls == [(("model", "q"), {"tol": 1e-9})]
+
+
+def test_version_comes_from_the_package_metadata():
+    try:
+        expected = metadata.version("torchcal")
+    except metadata.PackageNotFoundError:
+        expected = "0+unknown"
+    assert torchcal.__version__ == expected
+
+
+def test_plan_poses_when_the_planner_exists():
+    try:
+        planning = importlib.import_module("torchcal.planning")
+    except ImportError:
+        pytest.skip("torchcal.planning not available")
+    assert torchcal.plan_poses is planning.plan_poses
+
+
+def test_import_is_light():
+    """`import torchcal` (what the console script does first) loads neither torch nor the submodules."""
+    code = "import sys, torchcal; print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torchcal')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
+    assert eval(out) == ["torchcal", "torchcal.exceptions"]
+
+
+@pytest.mark.parametrize("module, cls", [("torchcal.kinematics.urdf", "URDFError"), ("torchcal.io.config", "ConfigError"),
+                                         ("torchcal.io.rundir", "RunDirError"), ("torchcal.io.csv", "DataError")])
+def test_every_error_is_a_torchcal_error_and_a_value_error(module, cls):
+    err = getattr(importlib.import_module(module), cls)
+    assert issubclass(err, torchcal.TorchcalError) and issubclass(err, ValueError)
+    assert getattr(torchcal, cls) is err
+
+
+def test_one_except_catches_bad_input_of_every_kind(tmp_path):
+    bad_csv = tmp_path / "bad.csv"
+    bad_csv.write_text("pose;tool\n0;0\n")
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    attempts = [
+        lambda: torchcal.load_robot("no_such_robot"),
+        lambda: torchcal.read_measurements(bad_csv, robot, n_tools=1),
+        lambda: torchcal.load_config(tmp_path / "missing.yaml"),
+        lambda: torchcal.load_model(tmp_path),
+    ]
+    for attempt in attempts:
+        with pytest.raises(torchcal.TorchcalError):
+            attempt()
+
+
+def test_facade_calibrates_a_simulated_robot(fanuc, tools_m, one_thread):
+    """The README's Python example through the facade alone: simulate, fit (compensation: see tests/compensate)."""
+    from torchcal.sim import quasi_random_commands
+
+    truth = torchcal.TruthRobot.fanuc_paper2(fanuc, tools_m, 0)
+    noise = torchcal.NoiseModel.paper2()
+    data = torchcal.simulate(truth, quasi_random_commands(fanuc.joint_map.limits, 40, 0), [0, 1, 2], noise, 0)
+    assert isinstance(data, torchcal.Measurements)
+    model = torchcal.RobotModel(fanuc, tools_m, orders=0, backlash=None)
+    result = torchcal.fit(model, data, noise)
+    assert isinstance(result, torchcal.FitResult) and result.success
+    nominal = torch.linalg.norm(model.nominal_points(data.q, data.tool) - data.xyz, dim=-1).mean()
+    modeled = torch.linalg.norm(model.points(data.q, data.tool) - data.xyz, dim=-1).mean()
+    assert modeled < 0.5 * nominal
+
+
+@pytest.mark.parametrize("module", ["torchcal.exceptions", "torchcal.io.csv", "torchcal.io.config", "torchcal.io.rundir",
+                                    "torchcal.pipeline", "torchcal.analysis.cpa"])
+def test_docstring_examples_run(module):
+    result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
+    assert result.failed == 0

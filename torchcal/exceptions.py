@@ -1,0 +1,22 @@
+"""One root for every error torchcal raises on purpose.
+
+``except torchcal.TorchcalError`` catches bad input files, configs, robots and
+run directories alike; each concrete class also derives from the builtin it
+refines (``ValueError``, ``FileNotFoundError``) so older ``except ValueError``
+code keeps working.
+"""
+
+from __future__ import annotations
+
+
+class TorchcalError(Exception):
+    """Base class of every torchcal exception (bad input, config, robot, run directory).
+
+    Example:
+        >>> import torchcal
+        >>> try:
+        ...     torchcal.load_robot("no_such_robot")
+        ... except torchcal.TorchcalError as exc:
+        ...     print(type(exc).__name__)
+        URDFError
+    """

@@ -1,0 +1,86 @@
+"""Measurement models: what an instrument reports for what the kinematic model predicts.
+
+In the manner of theseus' CostFunction / CostWeight / AutoDiffCostFunction: an
+:class:`Instrument` holds the observations of R rows, maps the kinematic
+model's prediction of each row to what the instrument reports (a residual of
+any dimension d per row) and whitens it with a per-row square-root information
+matrix (:mod:`.weights`). Jacobians come in closed form where the instrument
+and model provide them (:meth:`Instrument.predict_jacobians`), otherwise by
+autograd (:func:`row_jacobians`, torch.func, vmapped over rows).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch.func import jacrev, vmap
+
+
+class Instrument:
+    """Observations y (R, d) of one instrument, its measurement model and its noise.
+
+    Subclasses set ``dim`` and ``observed`` (R, d) and implement :meth:`predict`;
+    ``weight`` whitens (see :mod:`torchcal.measure.weights`).
+    """
+
+    dim: int = 0
+    observed: torch.Tensor
+    weight = None
+
+    def __len__(self) -> int:
+        return self.observed.shape[0]
+
+    def predict(self, model, q, tool, direction=None, v=None) -> torch.Tensor:
+        """What the instrument would report: (B, n) commands, (B,) tools, (B, n) directions, (B, n) joint errors -> (B, d)."""
+        raise NotImplementedError
+
+    def predict_jacobians(self, model, q, tool, direction=None, v=None):
+        """Closed form: prediction (B, d) and {parameter name: (B, d, *shape), 'v': (B, d, n)}, or None (use autograd)."""
+        return None
+
+    def residual(self, pred: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
+        """Raw residual (B, d) = prediction - observation (subclasses wrap angles here).
+
+        Its derivative with respect to ``pred`` must be the identity (true for
+        differences and for wrapped angle differences), so that closed-form
+        prediction Jacobians are residual Jacobians.
+        """
+        return pred - observed
+
+    def whiten(self, t: torch.Tensor) -> torch.Tensor:
+        """(R, d, ...) raw residuals or Jacobians -> whitened (S_r t_r)."""
+        return self.weight.whiten(t)
+
+    def unwhiten(self, t: torch.Tensor) -> torch.Tensor:
+        """(R, d, ...) whitened -> raw (S_r^-1 t_r)."""
+        return self.weight.unwhiten(t)
+
+    def sqrt_info(self) -> torch.Tensor:
+        """(R, d, d) per-row whitening S_r, S_r^T S_r = Sigma_r^-1."""
+        return self.weight.sqrt_info(len(self), self.dim, self.observed)
+
+    def subset(self, index) -> "Instrument":
+        """The same instrument on the rows ``index`` (bool mask or indices)."""
+        raise NotImplementedError
+
+    def to(self, device) -> "Instrument":
+        """On another device (observations; the weight follows the tensors it is applied to)."""
+        raise NotImplementedError
+
+
+def row_jacobians(fn: Callable, params: dict[str, torch.Tensor], v: torch.Tensor, *rows):
+    """Per-row Jacobians by autograd: fn(params, v_r (1, n), *row_r (1, ...)) -> residual (1, d).
+
+    params: {name: tensor} shared by all rows; v: (R, n); rows: per-row tensors
+    (R, ...) or None. Uses torch.func.jacrev, vmapped over rows (one reverse
+    pass per residual component, batched over the rows).
+    -> residual (R, d), {name: (R, d, *shape)}, d residual / d v (R, d, n).
+    """
+    def one(p, vr, *rr):
+        r = fn(p, vr[None], *(None if x is None else x[None] for x in rr))[0]
+        return r, r
+
+    in_dims = (None, 0) + tuple(None if x is None else 0 for x in rows)
+    (Jp, Jv), r = vmap(jacrev(one, argnums=(0, 1), has_aux=True), in_dims=in_dims)(params, v, *rows)
+    return r, Jp, Jv

@@ -117,3 +117,24 @@ def test_facade_calibrates_a_simulated_robot(fanuc, tools_m, one_thread):
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
     assert result.failed == 0
+
+
+def test_every_torchcal_exception_derives_from_torchcalerror():
+    """Scan every module: an exception class defined in torchcal must be catchable as TorchcalError."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import torchcal
+
+    found = []
+    for info in pkgutil.walk_packages(torchcal.__path__, "torchcal."):
+        if info.name.endswith("fused"):  # compiles numba kernels on import of their users only; no exceptions there
+            continue
+        mod = importlib.import_module(info.name)
+        for _, obj in inspect.getmembers(mod, inspect.isclass):
+            if obj.__module__ == mod.__name__ and issubclass(obj, BaseException):
+                found.append(obj)
+    assert len(found) >= 6  # URDFError, ConfigError, DataError, RunDirError, TruthError, AlignmentError, PlanningError
+    bad = [c.__qualname__ for c in found if not issubclass(c, torchcal.TorchcalError)]
+    assert bad == []

@@ -535,3 +535,22 @@ def test_european_export_fits_with_a_note_in_the_log(e2e, tmp_path):
     plain = json.loads((e2e["run"] / "metrics.json").read_text())["sets"]["identification"]["nominal"]["mean"]
     eu_nominal = json.loads((out / "metrics.json").read_text())["sets"]["identification"]["nominal"]["mean"]
     assert eu_nominal == pytest.approx(plain, rel=1e-9)  # the same numbers were read
+
+
+def test_confounded_directions_are_reported(tmp_path):
+    """Poses in the quasi-random sequence's own order: the fit names the joints whose direction follows position."""
+    sim = tmp_path / "seq"
+    r = invoke("simulate", sim, "--identification", "60", "--validation", "20", "--pose-order", "sequence", "--order", "1")
+    assert r.exit_code == 0, r.output
+    r = invoke("fit", sim / "fit.yaml", "plots=false", "data.truth=null", f"out={tmp_path / 'run'}", "--quiet")
+    assert r.exit_code == 0, r.output
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    joints = metrics["data_checks"]["confounding"]["joints"]
+    assert max(j["r2"] for j in joints) > 0.5
+    assert any("confounded" in w for w in metrics["warnings"])
+    # the same poses shuffled: no such warning
+    shuf = tmp_path / "shuf"
+    assert invoke("simulate", shuf, "--identification", "60", "--validation", "20", "--order", "1").exit_code == 0
+    r = invoke("fit", shuf / "fit.yaml", "plots=false", "data.truth=null", f"out={tmp_path / 'run2'}", "--quiet")
+    metrics = json.loads((tmp_path / "run2" / "metrics.json").read_text())
+    assert not any("backlash and position are confounded" in w for w in metrics["warnings"])

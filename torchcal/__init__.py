@@ -31,6 +31,7 @@ _LAZY = {
     # robots and models
     "load_robot": ("torchcal.kinematics", "load_robot"),
     "Robot": ("torchcal.kinematics", "Robot"),
+    "Repeatability": ("torchcal.kinematics", "Repeatability"),
     "RobotModel": ("torchcal.model", "RobotModel"),
     # data
     "Measurements": ("torchcal.measurements", "Measurements"),
@@ -42,6 +43,11 @@ _LAZY = {
     "Prior": ("torchcal.identify", "Prior"),
     "FitResult": ("torchcal.identify", "FitResult"),
     "identifiability": ("torchcal.analysis.identifiability", "identifiability"),
+    "PointTargets": ("torchcal.measure", "PointTargets"),
+    "ParamGroup": ("torchcal.params", "ParamGroup"),
+    # backlash: what the data cover, how far direction and position are confounded
+    "DirectionCoverage": ("torchcal.analysis.coverage", "DirectionCoverage"),
+    "backlash_confounding": ("torchcal.analysis.confounding", "backlash_confounding"),
     # compensation, simulation, planning
     "compensate": ("torchcal.compensate", None),  # the subpackage, callable as its compensate()
     "CompensationResult": ("torchcal.compensate", "CompensationResult"),

@@ -318,12 +318,15 @@ def simulate_cmd(
     seed: Annotated[int, typer.Option(help="Seed of the truth robot, the commands and the noise.")] = 0,
     order: Annotated[int, typer.Option(help="model.order written into fit.yaml.")] = 6,
     force: Annotated[bool, typer.Option("--force", help="Overwrite files already in OUT_DIR.")] = False,
+    error_variable: Annotated[str, typer.Option(help="What the simulated gear errors follow: command (Paper II (24)) or joint.")] = "command",
+    pose_order: Annotated[str, typer.Option(help="Visit the quasi-random poses shuffled or in the sequence's own order (the paper's).")] = "shuffled",
 ):
     """Simulated measurements of a robot with known errors (Paper II's protocol) and a ready-to-run fit.yaml."""
     with _user_errors():
         from .sim.dataset import simulate_dataset
 
-        paths = simulate_dataset(out_dir, robot, identification, validation, validation_tool, seed, order, force)
+        paths = simulate_dataset(out_dir, robot, identification, validation, validation_tool, seed, order, force,
+                                 error_variable=error_variable, pose_order=pose_order)
     for name, p in paths.items():
         typer.echo(f"{name}: {p}")
     typer.echo(f"next: torchcal fit {paths['config']}")

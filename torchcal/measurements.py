@@ -20,6 +20,12 @@ class Measurements:
     (NaN where only predicting); direction: (R, n) in {-1, 0, +1};
     pose: (R,) long; rows: (R,) row numbers in the source file (1-based data
     rows, for messages); source: file name or description.
+
+    Example:
+        >>> import torch
+        >>> m = Measurements.from_tensors(torch.zeros(4, 6), tool=0, direction=torch.ones(4, 6))
+        >>> len(m), m.n_joints, m.has_direction, bool(m.xyz.isnan().all())
+        (4, 6, True, True)
     """
 
     q: torch.Tensor

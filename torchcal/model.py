@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from .error_models.compliance import build_compliance
-from .error_models.frame import FrameError, ToolSet
+from .error_models.frame import FrameCorrection, ToolSet
 from .error_models.joint import JointErrors
 from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
 from .kinematics.fk import chain_frames
@@ -78,7 +78,7 @@ class RobotModel(nn.Module):
         # a joint whose errors follow θ_i also sees the gravity deflection of θ_i; one on the command does not
         self.register_buffer("error_follows_joint", jm.follows_joint().to(torch.float64), persistent=False)
         self.joint_errors = JointErrors(jm.error_ranges(), orders, backlash, chain.joint_names)
-        self.base = FrameError(base_nominal)
+        self.base = FrameCorrection(base_nominal)
         self.tools = ToolSet(tools)
         self.compliance = build_compliance(robot, compliance)
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}

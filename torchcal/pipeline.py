@@ -182,8 +182,10 @@ def config_prior(cfg) -> Prior | None:
     p = cfg.prior
     if not p.enabled:
         return None
+    backlash = p.get("backlash_deg")
     return Prior(rotation=units.deg_to_rad(p.rotation_deg), translation=units.mm_to_m(p.translation_mm),
-                 frame_rotation=units.deg_to_rad(p.frame_rotation_deg), frame_translation=units.mm_to_m(p.frame_translation_mm))
+                 frame_rotation=units.deg_to_rad(p.frame_rotation_deg), frame_translation=units.mm_to_m(p.frame_translation_mm),
+                 backlash=None if backlash is None else units.deg_to_rad(backlash))
 
 
 def config_backlash(cfg):
@@ -208,21 +210,30 @@ def config_error_variable(cfg):
     return None if ev is None else (str(ev) if isinstance(ev, str) else [str(e) for e in ev])
 
 
-def model_factory(robot, tools_m: torch.Tensor, backlash, device, base_nominal: torch.Tensor | None = None,
-                  compliance=False, error_variable=None):
-    """make_model(orders) -> a fresh all-zero RobotModel on ``device`` (what :func:`select_orders` needs).
+class ModelFactory:
+    """make(orders[, backlash]) -> a fresh all-zero RobotModel on ``device`` (what :func:`select_orders` needs).
 
-    error_variable: None keeps the robot's (its YAML's ``error_variable:``), else 'command' / 'joint' / per joint.
+    ``backlash`` (attribute): the backlash orders used when none are passed; the
+    order search sets it when it chooses them. error_variable: None keeps the
+    robot's (its YAML's ``error_variable:``), else 'command' / 'joint' / per joint.
     """
-    base_nominal = None if base_nominal is None else base_nominal.detach().cpu()
-    tools_m = tools_m.detach().cpu()
-    extra = {} if error_variable is None else {"error_variable": error_variable}
 
-    def make(orders):
-        return RobotModel(robot, tools_m, orders=list(orders) if not isinstance(orders, int) else orders,
-                          backlash=backlash, base_nominal=base_nominal, compliance=compliance, **extra).to(device)
+    def __init__(self, robot, tools_m, backlash, device, base_nominal=None, compliance=False, error_variable=None):
+        self.robot, self.backlash, self.device, self.compliance = robot, backlash, device, compliance
+        self.tools_m = tools_m.detach().cpu()
+        self.base_nominal = None if base_nominal is None else base_nominal.detach().cpu()
+        self.extra = {} if error_variable is None else {"error_variable": error_variable}
 
-    return make
+    def __call__(self, orders, backlash="default"):
+        return RobotModel(self.robot, self.tools_m, orders=list(orders) if not isinstance(orders, int) else orders,
+                          backlash=self.backlash if backlash == "default" else backlash, base_nominal=self.base_nominal,
+                          compliance=self.compliance, **self.extra).to(self.device)
+
+
+def model_factory(robot, tools_m: torch.Tensor, backlash, device, base_nominal: torch.Tensor | None = None,
+                  compliance=False, error_variable=None) -> ModelFactory:
+    """A :class:`ModelFactory`: make_model(orders) -> a fresh all-zero RobotModel on ``device``."""
+    return ModelFactory(robot, tools_m, backlash, device, base_nominal, compliance, error_variable)
 
 
 # ------------------------------------------------------------------ evaluation
@@ -472,9 +483,20 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress,
                                   joint_window=2,  # per-joint refinement near the uniform optimum: 3x fewer fits
                                   **inp.opts)
     orders = [int(o) for o in selection.orders]
-    files["orders"] = write_json(run_dir / "orders.json", {
-        "orders": orders, "criterion": selection.criterion, "score_mm": units.m_to_mm(selection.score),
-        "table": [{**r, "score_mm": units.m_to_mm(r["score"])} for r in selection.table]})
+    record = {"orders": orders, "criterion": selection.criterion, "score_mm": units.m_to_mm(selection.score),
+              "table": [{**r, "score_mm": units.m_to_mm(r["score"])} for r in selection.table]}
+    if make.backlash is True and inp.ident.has_direction:
+        # backlash switched on without an order: its own order is chosen too, after the joints' (never tied to eps_z's)
+        from .identify.backlash import select_backlash_orders
+
+        with progress.step("choosing the backlash orders") as p:
+            bsel = select_backlash_orders(make, orders, inp.ident, inp.val, inp.noise, inp.prior, folds=folds,
+                                          margin=float(cfg.model.margin), seed=int(cfg.seed), progress=p.update, **inp.opts)
+        make.backlash = [int(b) for b in bsel.orders]
+        record["backlash_orders"] = make.backlash
+        record["backlash_table"] = [{**r, "score_mm": units.m_to_mm(r["score"])} for r in bsel.table]
+        progress.info(f"backlash orders {make.backlash} ({bsel.criterion}; -1: off)")
+    files["orders"] = write_json(run_dir / "orders.json", record)
     progress.info(f"orders {orders} ({selection.criterion})")
     return orders, selection
 
@@ -535,8 +557,10 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
     - parameters the fit had to pin beyond the model's own redundancy (:func:`structural_pins`):
       the data cannot determine them (e.g. every pose the same), they stay at their start values.
     - free parameter combinations the data barely determine (:func:`torchcal.analysis.identifiability`).
+    - backlash on: how far direction and position are confounded, per joint and per backlash coefficient by
+      name (:func:`torchcal.analysis.confounding.backlash_confounding`), warned when high.
     -> {'unobserved_tools', 'parameters', 'equations', 'undetermined': [names], 'one_sided_backlash': [joints],
-    'barely_determined': [combinations]}.
+    'barely_determined': [combinations], 'confounding': {...} (with backlash)}.
     """
     ident, src = inp.ident, inp.ident.source or "data.identification"
     names = list(inp.robot.joint_map.names)
@@ -577,6 +601,24 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
                           f"approach{'' if many else 'es'} from one side only: {'their' if many else 'its'} backlash "
                           f"cannot be identified; measure both approach directions, or turn it off there "
                           f"(model.backlash={fix})")
+    if on and ident.has_direction:
+        # backlash vs position in these data: how far the directions follow the positions (quasi-random poses
+        # measured in sequence order), and how well each backlash coefficient is told from the position terms
+        try:
+            from .analysis.confounding import backlash_confounding
+
+            rep = backlash_confounding(ident, model=model, noise=inp.noise)
+            out["confounding"] = rep.to_dict()
+            found = rep.warnings()
+            if found:
+                progress.warn(f"{src}: backlash and position are confounded in these data ({len(found)} finding"
+                              f"{'s' if len(found) > 1 else ''}; metrics.json 'data_checks.confounding'); compensated "
+                              f"commands approached in other directions may be off by more than the validation "
+                              f"residual says. {found[0]}")
+                for w in found[1:]:
+                    log.warning("%s: %s", src, w)
+        except Exception as exc:  # a diagnostic must not cost the run
+            log.warning("confounding check skipped: %s: %s", type(exc).__name__, exc)
     if result.pinned:
         try:
             structural = set(structural_pins(make, orders, inp, seed=int(cfg.seed)))

@@ -240,6 +240,12 @@ def plan_poses(
     :class:`PlanningError` (a ValueError) on bad arguments or when too few
     candidates pass the filters. ``stats['sequence']`` has the same per-joint
     numbers for the poses in their Sobol order, for comparison.
+
+    Example:
+        >>> import torchcal
+        >>> plan = plan_poses(torchcal.load_robot("abb_irb120"), 60, seed=1)
+        >>> plan.q.shape, plan.directions.shape
+        (torch.Size([60, 6]), torch.Size([60, 6]))
     """
     if order not in ORDERS:
         raise PlanningError(f"plan_poses: order must be one of {ORDERS}, got {order!r}")

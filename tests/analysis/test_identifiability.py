@@ -37,7 +37,7 @@ def simulate(truth, q, seed, noise, tools=(0, 1, 2)):
 
 @pytest.fixture(scope="module")
 def small(fanuc, tools_m):
-    model = randomize(RobotModel(fanuc, tools_m, orders=1, backlash=True), 4)
+    model = randomize(RobotModel(fanuc, tools_m, orders=1, backlash=1), 4)
     data = simulate(model, random_commands(fanuc, 14, 5), 6, NoiseModel.paper2())
     return model, data
 

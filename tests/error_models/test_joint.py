@@ -4,7 +4,7 @@ import torch
 
 from torchcal.basis import chebyshev
 from torchcal.error_models.joint import JointErrors
-from torchcal.error_models.frame import FrameError, ToolSet
+from torchcal.error_models.frame import FrameCorrection, ToolSet
 
 
 def make(orders=3, backlash=True, n=3):
@@ -49,7 +49,7 @@ def test_order_tables_and_validation():
 
 
 def test_frame_error_and_tools():
-    fe = FrameError(torch.eye(4))
+    fe = FrameCorrection(torch.eye(4))
     with torch.no_grad():
         fe.twist.copy_(torch.tensor([0.0, 0.0, 0.1, 0.01, 0.0, 0.0]))
     T = fe()

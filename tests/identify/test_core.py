@@ -173,7 +173,14 @@ def test_declared_kinds_not_names_choose_the_prior(fanuc, tools_m):
     assert sigma["tool_roll.eps_x.c0"] == pytest.approx(2e-2)
     assert sigma["tool_roll.delta_z.c1"] == pytest.approx(3e-3)
     assert sigma["base_yaw.eps_z.c0"] == pytest.approx(2e-2)
-    assert sigma["tool_roll.backlash.c0"] == pytest.approx(2e-2)
+    # backlash keeps its declaration (wide c0, tight variation terms) unless Prior.backlash is given
+    from torchcal.error_models.joint import BACKLASH_SIGMA, BACKLASH_VARIATION_SIGMA
+
+    assert sigma["tool_roll.backlash.c0"] == pytest.approx(BACKLASH_SIGMA)
+    assert sigma["tool_roll.backlash.c1"] == pytest.approx(BACKLASH_VARIATION_SIGMA)
+    prob_b = CalibrationProblem(model, simulate(model, robot, 5, 1, None), NoiseModel.paper2(), Prior(backlash=4e-3))
+    sigma_b = dict(zip(prob_b.layout.names(), (1.0 / prob_b.prior_precision.sqrt()).tolist()))
+    assert sigma_b["tool_roll.backlash.c1"] == pytest.approx(4e-3) and sigma_b["joint2.eps_x.c0"] == pytest.approx(1e-2)
     assert sigma["base.eps_x"] == pytest.approx(0.5) and sigma["base.delta_y"] == pytest.approx(0.25)
     assert sigma["tool2.dz"] == pytest.approx(0.25)
     rot = dict(zip(layout.names(), layout.is_rotation().tolist()))

@@ -90,7 +90,7 @@ def test_lm_recovers_known_truth_from_noise_free_data(fanuc, tools_m):
                 truth.base.twist[i] = 0.0
     data = simulate(truth, fanuc, 80, 7, None)
     model = RobotModel(fanuc, tools_m, orders=2, backlash=True)
-    res = fit(model, data, NoiseModel.paper2(), Prior(1.0, 1.0, 1.0, 1.0), ftol=1e-14)
+    res = fit(model, data, NoiseModel.paper2(), Prior(1.0, 1.0, 1.0, 1.0, backlash=1.0), ftol=1e-14)
     assert res.success
     test = simulate(truth, fanuc, 50, 8, None)
     err = (model.points(test.q, test.tool, test.direction) - test.xyz).norm(dim=1).max()

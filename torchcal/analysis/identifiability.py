@@ -265,6 +265,17 @@ def identifiability(
     rtol: relative singular value below which a combination is undetermined;
     corr_threshold: |correlation| reported as a pair; top: components listed
     per undetermined combination. The model's values are left unchanged.
+    
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> tools = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]], dtype=torch.float64)
+        >>> truth = torchcal.TruthRobot.fanuc_paper2(robot, tools, 0)
+        >>> data = torchcal.simulate(truth, torchcal.sim.quasi_random_commands(robot.joint_map.limits, 30, 0), [0, 1, 2], None, 0)
+        >>> model = torchcal.RobotModel(robot, tools, orders=0)
+        >>> ia = identifiability(model, data)  # the robot's repeatability; gauge pinned as fit() does
+        >>> ia.rank == len(ia.names)
+        True
     """
     from ..identify.fit import resolve_noise
 

@@ -9,7 +9,7 @@ from ..kinematics.transforms import twist_to_transform
 from ..params import LENGTH, ParamGroup, term_kinds
 
 
-class FrameError(nn.Module):
+class FrameCorrection(nn.Module):
     """A fixed frame with a small 6-DOF correction: ``T = nominal @ E(b)``, Paper II (26), (28).
 
     nominal: (4, 4) first guess (identity when the measurement frame is the

@@ -1,5 +1,6 @@
 """Identification (Paper II (28)-(33)): the MLE objective, gauge fixing, solvers and results."""
 
+from .backlash import select_backlash_orders
 from .blocks import GaussianPrior, ParamBlock
 from .fit import SOLVERS, fit, resolve_noise
 from .gauge import dependent_columns, fix_gauge
@@ -36,5 +37,6 @@ __all__ = [
     "resolve_noise",
     "row_errors",
     "score_orders",
+    "select_backlash_orders",
     "select_orders",
 ]

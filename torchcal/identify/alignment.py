@@ -39,10 +39,11 @@ import torch
 from .. import units
 from ..kinematics.fk import chain_fk
 from ..kinematics.transforms import homogeneous, matrix_to_rpy, skew, twist_to_transform
+from ..exceptions import TorchcalError
 from ..measurements import Measurements
 
 
-class AlignmentError(ValueError):
+class AlignmentError(TorchcalError, ValueError):
     """The data cannot determine the frame and tool vectors (missing tool, too few or degenerate poses)."""
 
 
@@ -196,7 +197,7 @@ def _alternate(Rb, b, tools, Rf, pf, xyz, tool, T, free_frame, free_tools, steps
 
 
 def _refine(Rb, b, tools, Rf, pf, xyz, tool, T, free_frame, free_tools, max_iter, tol):
-    """Levenberg-Marquardt on the frame twist (robot side, as in FrameError) and the tool vectors."""
+    """Levenberg-Marquardt on the frame twist (robot side, as in FrameCorrection) and the tool vectors."""
     R = xyz.shape[0]
     dev, dt = xyz.device, xyz.dtype
     nf = 6 if free_frame else 0

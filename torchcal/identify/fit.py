@@ -60,6 +60,18 @@ def fit(
     are held at ``v0`` (R, n) (online identification, Paper III).
     When the data carry approach directions, ``model.coverage`` records them
     (:class:`torchcal.analysis.coverage.DirectionCoverage`).
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> tools = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]], dtype=torch.float64)
+        >>> truth = torchcal.TruthRobot.fanuc_paper2(robot, tools, 0)
+        >>> q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 40, 0)
+        >>> data = torchcal.simulate(truth, q, [0, 1, 2], torchcal.NoiseModel.from_robot(robot), 0)
+        >>> model = torchcal.RobotModel(robot, tools, orders=1, backlash=True)
+        >>> result = torchcal.fit(model, data)  # noise: the robot's own repeatability (Table 5 for the FANUC)
+        >>> result.success, result.x.numel() > 50
+        (True, True)
     """
     if method not in SOLVERS:
         raise ValueError(f"unknown solver '{method}', choose from {sorted(SOLVERS)}")

@@ -44,6 +44,12 @@ class NoiseModel:
     sigma_m: tracker standard deviation per axis (m); joint_var_fwd / _bwd:
     (n,) joint variances (rad^2 / m^2) for forward / backward approach;
     source: where the joint variances come from (logged by :func:`fit`).
+
+    Example:
+        >>> import torchcal
+        >>> noise = NoiseModel.from_robot(torchcal.load_robot("abb_irb120"))  # its YAML's repeatability
+        >>> round(noise.sigma_m * 1e3, 3), tuple(noise.joint_var_fwd.shape)
+        (0.005, (6,))
     """
 
     sigma_m: float
@@ -95,8 +101,10 @@ class Prior:
 
     Each entry's sigma is its module's declared prior (:class:`torchcal.params.ParamGroup`),
     overridden by role and kind where a field here is set (None keeps the
-    declaration): roles 'joint' / 'backlash' take rotation (angles, rad) /
-    translation (lengths, m); 'frame' / 'tool' take frame_rotation /
+    declaration): role 'joint' takes rotation (angles, rad) / translation
+    (lengths, m); 'backlash' takes backlash (rad, every coefficient; None keeps
+    the declared wide c0 and tight c1.., see
+    :data:`torchcal.error_models.joint.BACKLASH_VARIATION_SIGMA`); 'frame' / 'tool' take frame_rotation /
     frame_translation; 'compliance' takes compliance (``compliance.coef``, rad
     per unit configuration function: per unit sin/cos in 'functions' mode,
     rad/(N·m) in 'gravity' mode). Nothing is read from parameter names.
@@ -107,6 +115,12 @@ class Prior:
     defaults are ~1e-5 of the data's information on well-determined
     combinations and about 20x the paper's largest constant errors.
     mean: (P,) in the order of the full layout (before gauge fixing), SI.
+
+    Example:
+        >>> Prior(rotation=None).rotation is None  # None: every joint angle term keeps its module's declared sigma
+        True
+        >>> Prior(backlash=1e-3).backlash  # one sigma (rad) for every backlash coefficient
+        0.001
     """
 
     rotation: float | None = 1e-2
@@ -115,13 +129,16 @@ class Prior:
     frame_translation: float | None = 1e-2
     mean: torch.Tensor | None = field(default=None, repr=False)
     compliance: float | None = 1e-2
+    backlash: float | None = None
 
     def sigma(self, layout: ParameterLayout) -> torch.Tensor:
         """(P,) prior standard deviations in layout order (declared, then overridden by role + kind)."""
         sigma = layout.prior_sigma().tolist()
         for i, (role, kind) in enumerate(zip(layout.roles(), layout.kinds())):
-            if role in ("joint", "backlash"):
+            if role == "joint":
                 o = {"angle": self.rotation, "length": self.translation}.get(kind)
+            elif role == "backlash":
+                o = self.backlash
             elif role in ("frame", "tool"):
                 o = {"angle": self.frame_rotation, "length": self.frame_translation}.get(kind)
             elif role == "compliance":

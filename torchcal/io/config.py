@@ -52,7 +52,8 @@ class ModelConfig:
     order: Any = 6
     """Chebyshev order: an int (all joints), a per-joint list, or "auto" (chosen by validation / cross-validation)."""
     backlash: Any = True
-    """Backlash term on eps_z: true (same order as eps_z), false, or its order (int or per-joint list)."""
+    """Backlash term on eps_z: true (its own default order, 2; with order: auto chosen per joint after the
+    joint orders), false, or its order (int or per-joint list, -1 switches a joint's off)."""
     candidates: list[int] = field(default_factory=lambda: list(range(0, MAX_ORDER + 1)))
     """Orders tried by order: auto."""
     folds: int = 0
@@ -93,6 +94,8 @@ class PriorConfig:
     """Prior sigma of the base-frame and tool rotation corrections, deg."""
     frame_translation_mm: float = units.m_to_mm(_PRIOR.frame_translation)
     """Prior sigma of the base-frame and tool translation corrections, mm."""
+    backlash_deg: Optional[float] = None
+    """Prior sigma of every backlash coefficient, deg; null keeps the declared ones (c0 wide, c1.. 0.0017 deg)."""
 
 
 @dataclass
@@ -430,6 +433,8 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
         for key in ("rotation_deg", "translation_mm", "frame_rotation_deg", "frame_translation_mm"):
             if not cfg.prior[key] > 0:
                 fail(f"prior.{key}", f"{cfg.prior[key]}: a prior sigma must be positive (or set prior.enabled=false)")
+        if cfg.prior.backlash_deg is not None and not cfg.prior.backlash_deg > 0:
+            fail("prior.backlash_deg", f"{cfg.prior.backlash_deg}: a prior sigma must be positive (or null for the declared ones)")
 
     if cfg.solver.method not in SOLVERS:
         fail("solver.method", f"'{cfg.solver.method}' is not a solver; choose from {sorted(SOLVERS)}")

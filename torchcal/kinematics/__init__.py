@@ -12,6 +12,7 @@ from .urdf import URDFError, load_urdf, validate_urdf
 __all__ = [
     "Chain",
     "JointMap",
+    "Repeatability",
     "Robot",
     "URDFError",
     "bundled_robots",

@@ -130,6 +130,11 @@ def load_robot(spec: str | Path) -> Robot:
     - ``"fanuc_lrmate200i"``: bundled ``urdf/<name>.yaml`` (+ its URDF);
     - ``path/to/robot.yaml``: a joint map naming its URDF (relative to the YAML);
     - ``path/to/robot.urdf``: identity joint map, limits from the URDF.
+
+    Example:
+        >>> robot = load_robot("fanuc_lrmate200i")
+        >>> robot.n, robot.joint_map.names[2], robot.joint_map.error_variable[2], robot.repeatability is not None
+        (6, 'J3', 'command', True)
     """
     spec_s = str(spec)
     path = Path(spec_s)

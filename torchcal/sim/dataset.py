@@ -29,7 +29,7 @@ def default_joint_variances(n: int) -> tuple[list[float], list[float]]:
 
 def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: int = 250, validation: int = 300,
                      validation_tool: int = 2, seed: int = 0, order: int = 6, force: bool = False,
-                     error_variable="command") -> dict[str, Path]:
+                     error_variable="command", pose_order: str = "shuffled") -> dict[str, Path]:
     """Write simulated measurements in the CSV contract plus truth.json and a ready-to-run fit.yaml.
 
     Paper II's protocol (5.2, 5.5): quasi-random commands over the controller
@@ -40,7 +40,11 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     :meth:`TruthRobot.random`, with its gear errors following
     ``error_variable`` ('command', Paper II (24), or 'joint'; one word or one
     per joint), recorded in truth.json. The fit.yaml leaves the model's error
-    variable to the robot file. -> name -> path of the files written.
+    variable to the robot file. pose_order: 'shuffled' (a seeded random visiting
+    order) or 'sequence' (the quasi-random sequence's own order, as the paper
+    measured: each joint's approach direction then nearly follows its position,
+    see :func:`torchcal.sim.sampling.quasi_random_commands`).
+    -> name -> path of the files written.
 
     Bad options raise :class:`torchcal.io.config.ConfigError`.
     """
@@ -63,6 +67,8 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     existing = [n for n in names.values() if (out_dir / n).exists()]
     if existing and not force:
         raise ConfigError(f"{out_dir}: already holds {existing}; choose another folder or pass --force to overwrite")
+    if pose_order not in ("shuffled", "sequence"):
+        raise ConfigError(f"--pose-order {pose_order!r}: choose 'shuffled' or 'sequence'")
     if identification < 1 or validation < 0:
         raise ConfigError(f"--identification must be >= 1 and --validation >= 0 (got {identification}, {validation})")
     tools_mm = PAPER2_TOOLS_MM
@@ -85,12 +91,13 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     noise = NoiseModel.from_file_units(sigma_mm, var_f, var_b, rob.joint_map.prismatic)
     limits = rob.joint_map.limits
     # one scrambled sequence: validation continues where identification stopped, so the sets are disjoint
-    q_id = quasi_random_commands(limits, identification, seed)
+    shuffle = pose_order == "shuffled"
+    q_id = quasi_random_commands(limits, identification, seed, shuffle=shuffle)
     ident = simulate(truth, q_id, list(range(len(tools_mm))), noise, seed)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"identification": write_measurements(out_dir / names["identification"], ident, rob)}
     if validation:
-        q_val = quasi_random_commands(limits, validation, seed, skip=identification)
+        q_val = quasi_random_commands(limits, validation, seed, skip=identification, shuffle=shuffle)
         val = simulate(truth, q_val, [validation_tool], noise, seed + 1)
         paths["validation"] = write_measurements(out_dir / names["validation"], val, rob)
     paths["truth"] = save_truth(out_dir / names["truth"], truth, kind, seed, noise, robot_spec=robot_spec)
@@ -106,7 +113,7 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     }
     ev = error_variable[0] if len(set(error_variable)) == 1 else ", ".join(error_variable)
     header = (f"# Simulated '{rob.name}' data written by `torchcal simulate` (truth: {kind}, seed {seed}, "
-              f"errors follow: {ev}).\n"
+              f"errors follow: {ev}, poses in {pose_order} order).\n"
               f"# Run:  torchcal fit {out_dir / names['config']}  [key=value ...]\n"
               "# Units: mm, deg, deg^2. Relative paths resolve against this file's folder.\n"
               "# 'data.truth' enables the compensation check on the simulated robot (Paper II Table 7, Fig. 16).\n")

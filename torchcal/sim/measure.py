@@ -40,6 +40,15 @@ def simulate(
 
     Draws are made on the CPU in float64 and then moved to the truth's
     device, so a seed gives the same data on every device.
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> truth = torchcal.TruthRobot.fanuc_paper2(robot, torch.tensor([[0.0, 0.0, 0.1]], dtype=torch.float64), 0)
+        >>> q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 10, 0)
+        >>> data = simulate(truth, q, [0], torchcal.NoiseModel.from_robot(robot), seed=0)
+        >>> len(data), data.has_direction
+        (10, True)
     """
     q = torch.as_tensor(commands)
     if q.ndim != 2 or q.shape[1] != truth.n:

@@ -182,6 +182,13 @@ class TruthRobot(nn.Module):
       ``cross_joint[i]`` (unmodelled)
     - ``base_twist`` (6,): E_base as (eps, delta), applied after base_nominal
     - ``tools_delta`` (T, 3): true tool vector minus nominal
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> truth = TruthRobot.fanuc_paper2(robot, torch.tensor([[0.0, 0.0, 0.1]], dtype=torch.float64), seed=0)
+        >>> truth.error_variable[2], truth.points(torch.zeros(2, 6, dtype=torch.float64), torch.zeros(2, dtype=torch.long)).shape
+        ('command', torch.Size([2, 3]))
     """
 
     def __init__(self, robot: Robot, tools, base_nominal: torch.Tensor | None = None, error_variable="command"):

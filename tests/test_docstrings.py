@@ -1,0 +1,34 @@
+"""The examples in the public docstrings run and print what they say (kornia-style sectioned docstrings)."""
+
+import doctest
+import importlib
+
+import pytest
+
+MODULES = [
+    "torchcal.exceptions",
+    "torchcal.params",
+    "torchcal.kinematics.robot",
+    "torchcal.model",
+    "torchcal.error_models.joint",
+    "torchcal.measurements",
+    "torchcal.identify.fit",
+    "torchcal.identify.problem",
+    "torchcal.compensate.newton",
+    "torchcal.sim.measure",
+    "torchcal.sim.truth",
+    "torchcal.planning",
+    "torchcal.analysis.identifiability",
+    "torchcal.analysis.cpa",
+    "torchcal.io.csv",
+    "torchcal.io.config",
+    "torchcal.io.rundir",
+]
+
+
+@pytest.mark.parametrize("name", MODULES)
+def test_docstring_examples(name):
+    mod = importlib.import_module(name)
+    res = doctest.testmod(mod, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE, verbose=False)
+    assert res.failed == 0
+    assert res.attempted > 0  # each listed module has at least one example

@@ -130,6 +130,20 @@ def _build():
                 o[2, 0] * x + o[2, 1] * y + o[2, 2] * z)
 
     @njit(**inline)
+    def add_column(outJ, b, n, R, v, w, c_row):
+        """Add one joint's world velocity (v, w) per unit motion, taken into the flange frame (R^T), to the
+        body-Jacobian columns of the controller commands through the chain rule row c_row (n,)."""
+        vx, vy, vz = v
+        wx, wy, wz = w
+        col = (R[0] * vx + R[3] * vy + R[6] * vz, R[1] * vx + R[4] * vy + R[7] * vz, R[2] * vx + R[5] * vy + R[8] * vz,
+               R[0] * wx + R[3] * wy + R[6] * wz, R[1] * wx + R[4] * wy + R[7] * wz, R[2] * wx + R[5] * wy + R[8] * wz)
+        for j in range(n):
+            cij = c_row[j]
+            if cij != 0.0:
+                for r in range(6):
+                    outJ[r, j, b] += col[r] * cij
+
+    @njit(**inline)
     def rotate(m, th, z_axes, K, K2):
         """M @ joint rotation(θ): column rotation for +z axes, Rodrigues otherwise."""
         cs, sn = np.cos(th), np.sin(th)
@@ -234,29 +248,13 @@ def _build():
                         vx, vy, vz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
                         if prismatic[i]:
                             vx, vy, vz = vx + zs[i, 0], vy + zs[i, 1], vz + zs[i, 2]
-                        # into the flange frame (R^T), then to controller commands (chain rule through the coupling)
-                        col = (R[0] * vx + R[3] * vy + R[6] * vz, R[1] * vx + R[4] * vy + R[7] * vz,
-                               R[2] * vx + R[5] * vy + R[8] * vz,
-                               R[0] * wx + R[3] * wy + R[6] * wz, R[1] * wx + R[4] * wy + R[7] * wz,
-                               R[2] * wx + R[5] * wy + R[8] * wz)
-                        for j in range(n):
-                            cij = coupling[i, j]
-                            if cij != 0.0:
-                                for r in range(6):
-                                    outJ[r, j, b] += col[r] * cij
+                        # through the joint variable: θ = A q + offset
+                        add_column(outJ, b, n, R, (vx, vy, vz), (wx, wy, wz), coupling[i])
                         if errors:
                             # the error series' slopes move with u = A_u q + b_u, not with the joint variable
                             sx, sy, sz = ws[i, 0], ws[i, 1], ws[i, 2]
                             tx, ty, tz = sy * rz - sz * ry + ds[i, 0], sz * rx - sx * rz + ds[i, 1], sx * ry - sy * rx + ds[i, 2]
-                            col = (R[0] * tx + R[3] * ty + R[6] * tz, R[1] * tx + R[4] * ty + R[7] * tz,
-                                   R[2] * tx + R[5] * ty + R[8] * tz,
-                                   R[0] * sx + R[3] * sy + R[6] * sz, R[1] * sx + R[4] * sy + R[7] * sz,
-                                   R[2] * sx + R[5] * sy + R[8] * sz)
-                            for j in range(n):
-                                cij = ecoupling[i, j]
-                                if cij != 0.0:
-                                    for r in range(6):
-                                        outJ[r, j, b] += col[r] * cij
+                            add_column(outJ, b, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling[i])
 
     return flange_soa
 

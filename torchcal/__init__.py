@@ -25,7 +25,7 @@ import sys
 import types
 from importlib import import_module
 
-from .exceptions import TorchcalError
+from .exceptions import TorchcalError as TorchcalError  # re-exported
 
 _LAZY = {
     # robots and models

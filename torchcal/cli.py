@@ -228,8 +228,9 @@ def compensate_cmd(
     tol_deg: Annotated[Optional[float], typer.Option(help="Newton tolerance on |dq| (deg); default: the run's compensation.tol_deg.")] = None,
     max_iter: Annotated[Optional[int], typer.Option(help="Newton iteration limit; default: the run's compensation.max_iter.")] = None,
     max_correction_deg: Annotated[Optional[float], typer.Option(
-        help="Largest correction |q_new - q_nom| of any joint (deg, mm for prismatic joints; also the step bound); "
-             "rows that need more are flagged, not converged. Default 5.")] = None,
+        help="Largest correction |q_new - q_nom| of any joint (deg; also the step bound); rows that need more are "
+             "flagged, not converged. Default 5. One number for all joints: a prismatic joint reads it like the "
+             "tolerance (converted as degrees).")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).
@@ -242,69 +243,22 @@ def compensate_cmd(
     identification data's coverage and the file has dir1..dirN) marks rows
     whose approach directions the identification never saw.
     """
-    from .io.csv import joint_columns, joints_to_file, read_table, write_table
-    from .io.rundir import load_model
-
     with _user_errors():
-        model = load_model(run_dir, device=_device(device))
-        robot = model.robot
-        data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
-        data = data.to(model.device)
-        options = _compensation_options(run_dir, tol_deg, max_iter)
-        if max_correction_deg is not None:
-            from .units import deg_to_rad
+        from .pipeline import compensate_file
 
-            bound = deg_to_rad(float(max_correction_deg))
-            options.update(max_correction=bound, max_step=bound)
-        res = _compensate(model, data, options)
-        within = res.within_limits
-        q_file = joints_to_file(res.q, robot)
-        out = df.copy()
-        for i, c in enumerate(joint_columns(robot.joint_map.n)):
-            out[c] = q_file[:, i]  # every row kept, in input order; failures are marked below
-        out["converged"] = res.converged.cpu().numpy()
-        out["iterations"] = res.iterations.cpu().numpy()
-        out["within_limits"] = within.cpu().numpy()
-        # largest correction in file units (deg / mm): a flagged or large one is visible per row
-        import numpy as np
-
-        out["max_dq"] = np.abs(q_file - joints_to_file(data.q, robot)).max(axis=1) if robot.joint_map.n else 0.0
-        if res.direction_outside is not None:
-            out["direction_outside"] = res.direction_outside.cpu().numpy()
-        write_table(output, out)
-    flagged = ~res.converged | ~within
-    n_flag = int(flagged.sum())
-    typer.echo(f"compensated {len(df)} commands -> {output}")
-    if n_flag:
+        out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg)
+    typer.echo(f"compensated {out.rows} commands -> {output}")
+    if out.flagged:
         _console(stderr=True).print(
-            f"warning: {n_flag} of {len(df)} commands flagged ({int((~res.converged).sum())} did not converge, "
-            f"{int((~within).sum())} outside the controller range); they are kept, marked in 'converged' / 'within_limits'",
+            f"warning: {out.flagged} of {out.rows} commands flagged ({out.not_converged} did not converge, "
+            f"{out.outside_limits} outside the controller range); they are kept, marked in 'converged' / 'within_limits'",
             markup=False)
     else:
         typer.echo("0 commands flagged")
-    if res.direction_outside is not None and bool(res.direction_outside.any()):
+    if out.direction_outside:
         _console(stderr=True).print(
-            f"warning: {int(res.direction_outside.sum())} of {len(df)} commands approach a joint from a direction the "
+            f"warning: {out.direction_outside} of {out.rows} commands approach a joint from a direction the "
             f"identification data did not cover there (column 'direction_outside')", markup=False)
-
-
-def _compensation_options(run_dir: Path, tol_deg: float | None, max_iter: int | None) -> dict:
-    """Tolerance and iteration limit: the command line, else the run's config, else compensate()'s defaults."""
-    from .io.rundir import load_run_config
-    from .pipeline import compensation_kwargs
-
-    try:
-        comp = load_run_config(run_dir).get("compensation", None) or {}
-    except Exception:  # a run folder without (or with an older) config.yaml still compensates
-        comp = {}
-    return compensation_kwargs(tol_deg if tol_deg is not None else comp.get("tol_deg"),
-                               max_iter if max_iter is not None else comp.get("max_iter"))
-
-
-def _compensate(model, data, options):
-    from .compensate import compensate
-
-    return compensate(model, data.q, data.direction if data.has_direction else None, **options)
 
 
 # -------------------------------------------------------------------- simulate

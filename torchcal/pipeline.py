@@ -39,6 +39,7 @@ import time
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 from omegaconf import DictConfig
@@ -801,6 +802,71 @@ def predict_file(run_dir, input, output, device=None) -> int:
         out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
     write_table(output, out)
     return len(df)
+
+
+@dataclass
+class CompensationFile:
+    """What :func:`compensate_file` wrote: row count and how many rows are flagged, and why."""
+
+    rows: int
+    not_converged: int
+    outside_limits: int
+    flagged: int
+    direction_outside: int
+    result: Any = field(default=None, repr=False)
+
+
+def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
+                             max_correction_deg: float | None = None) -> dict:
+    """Keyword arguments for compensate(): the given values, else the run's config, else compensate()'s defaults."""
+    from .io.rundir import load_run_config
+
+    try:
+        comp = load_run_config(run_dir).get("compensation", None) or {}
+    except Exception:  # a run folder without (or with an older) config.yaml still compensates
+        comp = {}
+    out = compensation_kwargs(tol_deg if tol_deg is not None else comp.get("tol_deg"),
+                              max_iter if max_iter is not None else comp.get("max_iter"))
+    if max_correction_deg is not None:
+        bound = units.deg_to_rad(float(max_correction_deg))
+        out.update(max_correction=bound, max_step=bound)
+    return out
+
+
+def compensate_file(run_dir, input, output, device=None, tol_deg: float | None = None, max_iter: int | None = None,
+                    max_correction_deg: float | None = None) -> CompensationFile:
+    """``torchcal compensate``: compensated commands for every row of a CSV (q1..qN [, dir1..dirN], deg / mm).
+
+    Writes q1..qN compensated plus converged, iterations, within_limits,
+    max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside]; every
+    input row is kept, in order, other columns too. Raises RunDirError /
+    DataError naming the folder or file.
+    """
+    from .compensate import compensate
+    from .io.csv import joint_columns, joints_to_file, read_table, write_table
+    from .io.rundir import load_model
+
+    model = load_model(run_dir, device=device)
+    robot = model.robot
+    data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
+    data = data.to(model.device)
+    res = compensate(model, data.q, data.direction if data.has_direction else None,
+                     **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg))
+    q_file = joints_to_file(res.q, robot)
+    out = df.copy()
+    for i, c in enumerate(joint_columns(robot.joint_map.n)):
+        out[c] = q_file[:, i]  # every row kept, in input order; failures are marked below
+    out["converged"] = res.converged.cpu().numpy()
+    out["iterations"] = res.iterations.cpu().numpy()
+    out["within_limits"] = res.within_limits.cpu().numpy()
+    # largest correction in file units (deg / mm): a flagged or large one is visible per row
+    out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
+    if res.direction_outside is not None:
+        out["direction_outside"] = res.direction_outside.cpu().numpy()
+    write_table(output, out)
+    nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
+    return CompensationFile(len(df), nc, ol, int((~res.converged | ~res.within_limits).sum()),
+                            0 if res.direction_outside is None else int(res.direction_outside.sum()), res)
 
 
 def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:

@@ -7,7 +7,7 @@ import logging
 import pytest
 import torch
 
-from conftest import random_commands, randomize
+from conftest import randomize
 from test_fit import simulate
 from torchcal.identify import CalibrationProblem, GaussianPrior, NoiseModel, Prior, fit, fix_gauge, parameter_groups
 from torchcal.identify.gauge import gauge_priority

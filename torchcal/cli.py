@@ -228,9 +228,8 @@ def compensate_cmd(
     tol_deg: Annotated[Optional[float], typer.Option(help="Newton tolerance on |dq| (deg); default: the run's compensation.tol_deg.")] = None,
     max_iter: Annotated[Optional[int], typer.Option(help="Newton iteration limit; default: the run's compensation.max_iter.")] = None,
     max_correction_deg: Annotated[Optional[float], typer.Option(
-        help="Largest correction |q_new - q_nom| of any joint (deg; also the step bound); rows that need more are "
-             "flagged, not converged. Default 5. One number for all joints: a prismatic joint reads it like the "
-             "tolerance (converted as degrees).")] = None,
+        help="Largest correction |q_new - q_nom| of any joint (deg, mm for prismatic joints; also the step bound); "
+             "rows that need more are flagged, not converged. Default 5.")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).

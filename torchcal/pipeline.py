@@ -817,8 +817,12 @@ class CompensationFile:
 
 
 def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
-                             max_correction_deg: float | None = None) -> dict:
-    """Keyword arguments for compensate(): the given values, else the run's config, else compensate()'s defaults."""
+                             max_correction_deg: float | None = None, prismatic=None) -> dict:
+    """Keyword arguments for compensate(): the given values, else the run's config, else compensate()'s defaults.
+
+    max_correction_deg: the correction (and step) bound, deg for revolute joints and the same number in mm for
+    prismatic ones (``prismatic``: (n,) bool), as an (n,) SI tensor.
+    """
     from .io.rundir import load_run_config
 
     try:
@@ -828,7 +832,10 @@ def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: in
     out = compensation_kwargs(tol_deg if tol_deg is not None else comp.get("tol_deg"),
                               max_iter if max_iter is not None else comp.get("max_iter"))
     if max_correction_deg is not None:
-        bound = units.deg_to_rad(float(max_correction_deg))
+        if prismatic is None:
+            bound = units.deg_to_rad(float(max_correction_deg))
+        else:
+            bound = units.joint_scale(torch.as_tensor(prismatic).cpu()) * float(max_correction_deg)
         out.update(max_correction=bound, max_step=bound)
     return out
 
@@ -851,7 +858,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
     data = data.to(model.device)
     res = compensate(model, data.q, data.direction if data.has_direction else None,
-                     **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg))
+                     **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic))
     q_file = joints_to_file(res.q, robot)
     out = df.copy()
     for i, c in enumerate(joint_columns(robot.joint_map.n)):

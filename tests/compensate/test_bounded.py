@@ -196,3 +196,29 @@ def test_cli_writes_the_correction_and_coverage_columns(fanuc, tools_m, tmp_path
     assert r.exit_code == 0, r.output
     out2 = pd.read_csv(tmp_path / "out2.csv")
     assert out2.converged.all() and (out2.max_dq[3:] > 10.0).all()
+
+
+def test_per_joint_bounds(model, fanuc):
+    """A bound per joint (deg for revolute, mm for prismatic by default): each joint stays inside its own."""
+    from torchcal.compensate import per_joint_bound
+
+    b = per_joint_bound("default", 3, torch.float64, "cpu", prismatic=[False, True, False])
+    assert torch.allclose(b, torch.tensor([math.radians(5.0), 5e-3, math.radians(5.0)], dtype=torch.float64))
+    assert torch.equal(per_joint_bound(0.1, 2, torch.float64, "cpu"), torch.tensor([0.1, 0.1], dtype=torch.float64))
+    with pytest.raises(ValueError, match="one value per joint"):
+        per_joint_bound(torch.ones(3), 2, torch.float64, "cpu")
+    with pytest.raises(ValueError, match="positive"):
+        per_joint_bound(0.0, 2, torch.float64, "cpu")
+    q = random_commands(fanuc, 200, 70)
+    s = directions(200, 71)
+    scalar = compensate(model, q, s)
+    same = compensate(model, q, s, max_step=torch.full((6,), BOUND), max_correction=torch.full((6,), BOUND))
+    assert torch.equal(scalar.q, same.q) and torch.equal(scalar.converged, same.converged)
+    tight = torch.full((6,), BOUND, dtype=torch.float64)
+    tight[3] = math.radians(0.5)  # J4 may move half a degree, the others 5
+    res = compensate(model, q, s, max_step=tight, max_correction=tight)
+    d = (res.q - q).abs()
+    assert (d <= tight * (1 + 1e-12)).all()  # flagged or not
+    assert (d[:, [0, 1, 2, 4, 5]] > math.radians(0.5)).any()  # the other joints still use their wider bound
+    need = (scalar.q - q).abs()[:, 3] > math.radians(0.5)
+    assert not (res.converged & scalar.converged & need).any()  # rows whose J4 needs more are not converged

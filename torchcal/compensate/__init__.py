@@ -12,15 +12,17 @@ model records its identification data's direction coverage).
 
 from .damped import DampedResult, damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
-from .newton import CompensationResult, compensate, fixed_jacobian_iterations, nominal_sigma_min
+from .newton import DEFAULT_BOUND, CompensationResult, compensate, fixed_jacobian_iterations, nominal_sigma_min, per_joint_bound
 
 __all__ = [
     "CompensationResult",
+    "DEFAULT_BOUND",
     "DampedResult",
     "FlangeKernel",
     "compensate",
     "damped_least_squares",
     "fixed_jacobian_iterations",
     "nominal_sigma_min",
+    "per_joint_bound",
     "pose_error_soa",
 ]

@@ -144,8 +144,9 @@ def damped_least_squares(
     ½|r(q)|² + ½ lam² |q - q_ref|², Tikhonov damping toward q_ref (lam in m
     per rad), so directions whose singular values are well below lam (the
     wrist's q4/q6 combination at q5 = 0) stay at q_ref instead of drifting;
-    each step is scaled to max|dq| <= max_step (rad / m) and every iterate is
-    kept inside the box |q - q_ref| <= max_correction. lam > 0 biases the
+    each step is scaled to max|dq| <= max_step (rad / m; a number, or an (n,)
+    tensor per joint) and every iterate is kept inside the box
+    |q - q_ref| <= max_correction (likewise). lam > 0 biases the
     solution (residual ~ lam² |q - q_ref| / sigma), so a converged command
     needs a final pass with lam = 0 (what :func:`.compensate` does).
     stop_at_bound: a row whose step runs into the box stops there, flagged
@@ -199,9 +200,9 @@ def damped_least_squares(
             g = g + lam2 * (q - ref)
         dq, info = torch.linalg.solve_ex(A + mu[:, None, None] * eye, -g)
         dq = torch.where((info == 0)[:, None] & torch.isfinite(dq), dq, torch.zeros_like(dq))
-        if max_step is not None:  # trust bound: scale the step, keep its direction
-            big = dq.abs().amax(-1, keepdim=True)
-            dq = dq * torch.clamp(max_step / big.clamp_min(1e-300), max=1.0)
+        if max_step is not None:  # trust bound (a number or one per joint): scale the step, keep its direction
+            big = (dq.abs() / max_step).amax(-1, keepdim=True)
+            dq = dq * torch.clamp(1.0 / big.clamp_min(1e-300), max=1.0)
         qt = q + dq
         blocked = None
         if max_correction is not None:  # stay in the box around q_ref

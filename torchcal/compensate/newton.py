@@ -187,8 +187,9 @@ def fixed_jacobian_iterations(
     step (see below) instead of keeping it fixed as in (49);
     qref: (n, B) reference commands (q_nom) for the bounds, default qT;
     max_step: unused here (the contraction test bounds the steps);
-    max_correction: a row that reaches (51) further than this from qref
-    (any joint, rad / m) is not ok: it is handed on with its best iterate.
+    max_correction: (n,) per-joint bound (rad / m; see :func:`per_joint_bound`): a row
+    that reaches (51) further than this from qref on any joint is not ok: it is
+    handed on with its best iterate.
     -> dict of q (n, B) (q^r for converged rows; the lowest-error iterate
        for failed ones), de (6, B) the error at q for converged rows,
        step (B,) ||dq^r||, iterations (B,) updates made, ok (B,) bool, far (B,)
@@ -258,7 +259,7 @@ def fixed_jacobian_iterations(
                 # a singularity, not a calibration-sized correction: the row goes on to the bounded path.
                 # (The iterates in between need no check: each step is at most `contraction` times the
                 # one before, so they stay within |dq^0| / (1 - contraction) of the start.)
-                far = d & ((q[:, f] - st["ref"][:, f]).abs().amax(0) > max_correction)
+                far = d & ((q[:, f] - st["ref"][:, f]).abs() / max_correction[:, None]).amax(0).gt(1.0)
                 d = d & ~far
                 far_out[rows] = far
             q_out[:, rows] = torch.where(d, q[:, f], st["best_q"][:, f])
@@ -323,6 +324,35 @@ def nominal_sigma_min(model, q: torch.Tensor, length: float = 1.0) -> torch.Tens
     return torch.linalg.svdvals(J)[:, -1]
 
 
+DEFAULT_BOUND = "default"
+"""compensate()'s default step and correction bound: 5 deg for revolute joints, 5 mm for prismatic ones."""
+
+
+def per_joint_bound(bound, n: int, dtype, device, name: str = "bound", prismatic=None) -> torch.Tensor | None:
+    """A step or correction bound as an (n,) tensor: None stays None, a number applies to every joint.
+
+    :data:`DEFAULT_BOUND` is 5 deg per revolute and 5 mm per prismatic joint
+    (``prismatic``: (n,) bool, the controller joints; all revolute if None).
+    For other per-joint bounds pass an (n,) tensor (rad / m), e.g.
+    ``units.joint_scale(prismatic) * 2.0`` for 2 deg / 2 mm. Raises
+    ValueError for a wrong length or a bound that is not positive.
+    """
+    if bound is None:
+        return None
+    if isinstance(bound, str):
+        if bound != DEFAULT_BOUND:
+            raise ValueError(f"compensate: {name} must be a number, one per joint, None or '{DEFAULT_BOUND}', got {bound!r}")
+        pr = torch.zeros(n, dtype=torch.bool) if prismatic is None else torch.as_tensor(prismatic, dtype=torch.bool).cpu()
+        bound = torch.where(pr, torch.tensor(5e-3, dtype=torch.float64), torch.tensor(math.radians(5.0), dtype=torch.float64))
+    t = torch.as_tensor(bound, dtype=dtype, device=device)
+    t = t.expand(n).clone() if t.ndim == 0 else t
+    if t.shape != (n,):
+        raise ValueError(f"compensate: {name} must be a number or one value per joint ({n}), got shape {tuple(t.shape)}")
+    if not bool((t > 0).all()):
+        raise ValueError(f"compensate: {name} must be positive, got {t.tolist()}")
+    return t
+
+
 @torch.no_grad()
 def compensate(
     model,
@@ -341,8 +371,8 @@ def compensate(
     broyden: bool = True,
     refresh: int = 2,
     refresh_model: bool = True,
-    max_step: float | None = math.radians(5.0),
-    max_correction: float | None = math.radians(5.0),
+    max_step: float | torch.Tensor | str | None = DEFAULT_BOUND,
+    max_correction: float | torch.Tensor | str | None = DEFAULT_BOUND,
     null_damping: float = 1e-3,
 ) -> CompensationResult:
     """Compensated joint commands for many poses, Paper II (46)-(52).
@@ -374,9 +404,11 @@ def compensate(
         at its best iterate (nominal chain, fast kernel) before it goes to the
         damped path; 0 is the paper's single Jacobian at q_nom.
     max_step: trust bound, the largest change of any joint in one update
-        (rad / m; default 5 deg); None: unbounded.
+        (rad / m); default 5 deg per revolute and 5 mm per prismatic joint;
+        a number for every joint or an (n,) tensor per joint
+        (:func:`per_joint_bound`); None: unbounded.
     max_correction: bound on |q_new - q_nom| for every joint and every row,
-        flagged or not (rad / m; default 5 deg). The correction is a
+        flagged or not (rad / m, like max_step: default 5 deg / 5 mm). The correction is a
         calibration-sized one (typically < 1 deg); a row whose exact solution
         lies further away (next to a singularity a small orientation error
         would swing q4 and q6 by tens of degrees) is not converged: it comes
@@ -410,6 +442,9 @@ def compensate(
     dtype, device = model.dtype, model.device
     q_nom = q_nom.to(dtype)
     B, n = q_nom.shape
+    prismatic = model.robot.joint_map.prismatic if hasattr(model, "robot") else None
+    max_step = per_joint_bound(max_step, n, dtype, device, "max_step", prismatic)
+    max_correction = per_joint_bound(max_correction, n, dtype, device, "max_correction", prismatic)
     if direction is not None:
         direction = direction.to(dtype)
     kernel = FlangeKernel(model)
@@ -474,7 +509,7 @@ def compensate(
             if max_correction is not None:
                 # start from the fast path's best iterate only when it is a bounded correction (rows
                 # whose best lies on another branch restart at q_nom)
-                away = (q_out[kk] - q_nom[kk]).abs().amax(-1) > max_correction
+                away = ((q_out[kk] - q_nom[kk]).abs() / max_correction).amax(-1) > 1.0
                 q_out[kk] = torch.where(away[:, None], q_nom[kk], q_out[kk])
             opts = dict(tol=tol, max_iter=max_damped_iter, damping=damping, length=length, residual_tol=residual_tol,
                         kernel=kernel, q_ref=q_nom[kk], max_step=max_step, max_correction=max_correction,

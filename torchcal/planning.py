@@ -32,18 +32,16 @@ blocking the beam is not modelled.
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy.stats import qmc
 
 from .exceptions import TorchcalError
 from .analysis.confounding import direction_position_dependence
 from .analysis.coverage import DirectionCoverage
 from .basis import chebyshev, normalize
-from .sim.sampling import approach_directions
+from .sim.sampling import approach_directions, quasi_random_commands
 
 class PlanningError(TorchcalError, ValueError):
     """Bad planning inputs (order, tracker, count) or too few reachable, visible poses."""
@@ -184,16 +182,6 @@ def decorrelating_order(q: torch.Tensor, limits: torch.Tensor, seed: int = 0, st
 
 
 # ------------------------------------------------------------------ sampling
-def _sobol(limits: torch.Tensor, count: int, seed: int, skip: int) -> torch.Tensor:
-    sampler = qmc.Sobol(d=limits.shape[0], scramble=True, seed=np.random.default_rng(seed))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)  # balance is best at powers of two; any count is fine here
-        if skip:
-            sampler.fast_forward(skip)
-        u = torch.from_numpy(sampler.random(count))
-    return limits[:, 0] + u * (limits[:, 1] - limits[:, 0])
-
-
 def _parse_tracker(tracker) -> torch.Tensor | None:
     if tracker is None:
         return None
@@ -269,7 +257,7 @@ def plan_poses(
     device = chain.origins.device if hasattr(chain, "origins") else torch.device("cpu")
     while kept < count and drawn < max_draws:
         m = min(batch, max_draws - drawn)
-        qc = _sobol(box, m, seed, drawn)
+        qc = quasi_random_commands(box, m, seed, skip=drawn, shuffle=False)  # a prefix of one Sobol sequence
         with torch.no_grad():
             F = chain.fk(robot.joint_map.to_joint(qc.to(device, dtype))).to("cpu", torch.float64)
         p, z_axis = F[:, :3, 3], F[:, :3, 2]

@@ -171,8 +171,7 @@ def fixed_jacobian_iterations(
     residual_tol: float,
     broyden: bool = True,
     qref: torch.Tensor | None = None,
-    max_step: float | None = None,
-    max_correction: float | None = None,
+    max_correction: torch.Tensor | None = None,
 ):
     """Paper II's iteration (47)-(51) with a fixed (pseudo-)inverse Jacobian, all poses at once.
 
@@ -185,8 +184,8 @@ def fixed_jacobian_iterations(
     weighted pose error evaluated at q^r is below this (m);
     broyden: refine the stored inverse by Broyden's rank-1 update after each
     step (see below) instead of keeping it fixed as in (49);
-    qref: (n, B) reference commands (q_nom) for the bounds, default qT;
-    max_step: unused here (the contraction test bounds the steps);
+    qref: (n, B) reference commands (q_nom) for the bounds, default qT (no step
+    bound here: the contraction test bounds the steps);
     max_correction: (n,) per-joint bound (rad / m; see :func:`per_joint_bound`): a row
     that reaches (51) further than this from qref on any joint is not ok: it is
     handed on with its best iterate.
@@ -474,7 +473,7 @@ def compensate(
         P, invertible = nominal_jacobian_inverse(J, 0.1 * null_damping, length)
         out = fixed_jacobian_iterations(
             kernel, qT, sT, Rn, pn, P, invertible, tol, max_iter, contraction, length, residual_tol, broyden,
-            qT, max_step, max_correction,
+            qT, max_correction,
         )
         qc, de, st, it, okc, far = out["q"], out["de"], out["step"], out["iterations"], out["ok"], out["far"]
         # Rows that did not contract moved far from q_nom (near a singularity a
@@ -491,7 +490,7 @@ def compensate(
             Pf, okf = nominal_jacobian_inverse(Jf, null_damping, length)
             o = fixed_jacobian_iterations(
                 kernel, qc[:, f], sf, Rn[..., f], pn[:, f], Pf, okf, tol, max_iter, contraction, length, residual_tol, broyden,
-                qT[:, f], max_step, max_correction,
+                qT[:, f], max_correction,
             )
             qc[:, f], de[:, f], st[f], okc[f], far[f] = o["q"], o["de"], o["step"], o["ok"], o["far"]
             it[f] += o["iterations"]

@@ -106,6 +106,23 @@ class RobotModel(nn.Module):
         """Controller commands (B, n) -> the variable u (B, n) each joint's error series is evaluated on."""
         return q @ self.error_coupling.T + self.error_offset
 
+    def _variables(self, q: torch.Tensor, v: torch.Tensor | None):
+        """θ (joint motion) and u (error series) at q + v, both with the gravity deflection where it applies.
+
+        -> theta (B, n), u (B, n), and the compliance functions (B, m, K) at the commanded q (None without
+        compliance): the deflection is a function of the commanded configuration, v does not enter it.
+        """
+        qv = q if v is None else q + v
+        theta = self.joint_variables(qv)
+        u = self.error_variables(qv)
+        comp = None
+        if self.compliance is not None:
+            comp = self.compliance.functions(self.joint_variables(q))  # (B, m, K)
+            dtheta = self.compliance.deflection_from(comp)
+            theta = theta + dtheta
+            u = u + dtheta * self.error_follows_joint
+        return theta, u, comp
+
     def frames(self, q: torch.Tensor, direction: torch.Tensor | None = None, v: torch.Tensor | None = None, base: bool = True):
         """Joint frames and flange pose with all errors, see :func:`chain_frames`.
 
@@ -113,13 +130,7 @@ class RobotModel(nn.Module):
         v: (B, n) joint positioning errors (controller space) or None;
         base: include T_0^m (measurement frame) or work in the robot's nominal base frame.
         """
-        qv = q if v is None else q + v
-        theta = self.joint_variables(qv)
-        u = self.error_variables(qv)
-        if self.compliance is not None:
-            dtheta = self.compliance(self.joint_variables(q))
-            theta = theta + dtheta
-            u = u + dtheta * self.error_follows_joint
+        theta, u, _ = self._variables(q, v)
         E = self.joint_errors(u, direction)
         T0 = self.base() if base else self.base.correction()
         return chain_frames(self.origins, self.axes, self.prismatic, theta, E, self.tip, T0)
@@ -155,15 +166,7 @@ class RobotModel(nn.Module):
     def _parts(self, q, direction, v, base: bool = True):
         """Forward pass keeping what the closed-form Jacobians need."""
         je = self.joint_errors
-        qv = q if v is None else q + v
-        theta = self.joint_variables(qv)
-        u = self.error_variables(qv)
-        comp = None
-        if self.compliance is not None:
-            comp = self.compliance.functions(self.joint_variables(q))  # (B, m, K)
-            dtheta = self.compliance.deflection_from(comp)
-            theta = theta + dtheta
-            u = u + dtheta * self.error_follows_joint
+        theta, u, comp = self._variables(q, v)
         lam = je.normalized(u)
         K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
         scale = 2.0 / (je.ranges[:, 1] - je.ranges[:, 0])

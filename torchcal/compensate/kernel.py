@@ -159,10 +159,9 @@ class FlangeKernel:
         """
         n, B = u.shape
         Km = self.Km
-        theta = u
         lam = 2.0 * (u - self.lo) / self.width - 1.0
         lam2 = 2.0 * lam
-        basis = torch.empty(n, Km, B, dtype=theta.dtype, device=theta.device)
+        basis = torch.empty(n, Km, B, dtype=u.dtype, device=u.device)
         basis[:, 0] = 1.0
         if Km > 1:
             basis[:, 1] = lam

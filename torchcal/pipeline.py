@@ -167,15 +167,13 @@ def config_noise(cfg, robot, label: str | None = None) -> NoiseModel:
     if cfg.noise.joint_var_fwd is not None and cfg.noise.joint_var_bwd is not None:
         return NoiseModel.from_file_units(sigma, list(cfg.noise.joint_var_fwd), list(cfg.noise.joint_var_bwd),
                                           robot.joint_map.prismatic.cpu())
-    rep = robot.repeatability
-    if rep is None:
+    if robot.repeatability is None:
         raise ConfigError(
             f"{label}: keys 'noise.joint_var_fwd' and 'noise.joint_var_bwd' are not set and robot '{robot.name}' "
             f"({robot.source or robot.name}) has no 'repeatability:' (joint variances, deg²): give one variance per "
             f"joint ({robot.joint_map.n}) in the config, e.g. noise.joint_var_fwd=[...] noise.joint_var_bwd=[...], "
             "or a 'repeatability: {joint_var_fwd, joint_var_bwd, source}' in the robot's YAML")
-    return NoiseModel(units.mm_to_m(sigma), rep.var_fwd.detach().cpu().to(torch.float64),
-                      rep.var_bwd.detach().cpu().to(torch.float64))
+    return NoiseModel.from_robot(robot, sigma_m=units.mm_to_m(sigma))
 
 
 def config_prior(cfg) -> Prior | None:

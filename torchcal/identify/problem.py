@@ -77,13 +77,15 @@ class NoiseModel:
     def from_robot(cls, robot, sigma_m: float = 5e-6) -> "NoiseModel":
         """sigma_m (m) and the joint variances of ``robot.repeatability`` (its YAML's ``repeatability:``).
 
-        Raises ValueError naming the robot when it declares none.
+        Raises :class:`~torchcal.kinematics.URDFError` (a ValueError) naming the robot when it declares none.
         """
         rep = getattr(robot, "repeatability", None)
         if rep is None:
+            from ..kinematics.urdf import URDFError
+
             name = getattr(robot, "name", repr(robot))
             src = getattr(robot, "source", "")
-            raise ValueError(f"robot '{name}'{f' ({src})' if src else ''} declares no joint repeatability: add a "
+            raise URDFError(f"robot '{name}'{f' ({src})' if src else ''} declares no joint repeatability: add a "
                              f"'repeatability:' section (joint_var_fwd, joint_var_bwd in deg², source) to its YAML, "
                              f"or pass noise=NoiseModel(...) explicitly")
         return cls(float(sigma_m), rep.var_fwd.clone(), rep.var_bwd.clone(), rep.source or getattr(robot, "name", ""))

@@ -82,19 +82,14 @@ def _console(stderr: bool = False) -> Console:
 
 
 def _user_error_types() -> tuple[type[BaseException], ...]:
-    """TorchcalError (every bad input: data, robot, config, run directory) and a few builtins.
+    """TorchcalError (every bad input: data, robot, config, run directory, truth file) and a few builtins.
 
     Imports nothing: it runs while an exception propagates, possibly out of an
-    import half done. An error class outside TorchcalError counts only once its
-    module is loaded (an exception from a module never imported cannot be raised).
+    import half done.
     """
-    extra = []
-    mod = sys.modules.get("torchcal.io.truth")
-    if mod is not None and hasattr(mod, "TruthError"):
-        extra.append(mod.TruthError)
     # unwritable or misnamed output paths are the user's to fix too; other OSErrors stay tracebacks (bugs)
     # NotImplementedError: a documented limitation, not a crash
-    return (TorchcalError, *extra, PermissionError, IsADirectoryError, NotADirectoryError, NotImplementedError)
+    return (TorchcalError, PermissionError, IsADirectoryError, NotADirectoryError, NotImplementedError)
 
 
 @contextmanager

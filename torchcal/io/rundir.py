@@ -63,7 +63,7 @@ def _fresh(path: Path) -> bool:
         path.mkdir(parents=True)
         return True
     except FileExistsError:
-        return path.is_dir() and not any(path.iterdir()) and not is_run_dir(path)
+        return path.is_dir() and not any(path.iterdir())  # an empty folder holds no run
 
 
 def make_run_dir(out) -> Path:

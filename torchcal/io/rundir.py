@@ -196,6 +196,27 @@ def save_model(run_dir, model, **meta) -> Path:
     return path
 
 
+# spec["kind"] -> "module:Class"; every class has spec() and from_spec(spec, robot=None). A spec without
+# "kind" is a robot model (run directories written before machines and sensor rigs existed).
+MODEL_KINDS = {
+    "robot": "torchcal.model:RobotModel",
+    "machine": "torchcal.machine:MachineModel",
+    "sensor_rig": "torchcal.measure.rig:SensorRig",
+}
+
+
+def model_class(spec: dict, path="model.pt"):
+    """The model class a saved spec names (its ``kind``, default 'robot')."""
+    import importlib
+
+    kind = spec.get("kind", "robot")
+    target = MODEL_KINDS.get(kind)
+    if target is None:
+        raise RunDirError(f"{path}: unknown model kind '{kind}' (known: {', '.join(sorted(MODEL_KINDS))})")
+    module, name = target.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
 def load_model(run_dir, device=None, robot=None):
     """Rebuild the identified :class:`torchcal.model.RobotModel` of a run (a run folder or its model.pt).
 
@@ -207,8 +228,6 @@ def load_model(run_dir, device=None, robot=None):
         >>> model.points(q, tool).shape                                # doctest: +SKIP
         torch.Size([100, 3])
     """
-    from ..model import RobotModel
-
     path = Path(run_dir)
     if path.is_dir():
         path = path / MODEL_FILE
@@ -222,7 +241,7 @@ def load_model(run_dir, device=None, robot=None):
         raise RunDirError(f"{path}: not a torchcal model file")
     if blob.get("format_version", 0) > MODEL_FORMAT_VERSION:
         raise RunDirError(f"{path}: written by a newer torchcal (format {blob['format_version']}); upgrade torchcal")
-    model = RobotModel.from_spec(blob["spec"], robot)
+    model = model_class(blob["spec"], path).from_spec(blob["spec"], robot)
     model.load_state_dict(blob["state_dict"])
     return model.to(device) if device is not None else model
 

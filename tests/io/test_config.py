@@ -202,3 +202,53 @@ def test_config_error_is_a_torchcal_error():
     from torchcal.exceptions import TorchcalError
 
     assert issubclass(ConfigError, TorchcalError) and issubclass(ConfigError, ValueError)
+
+
+SENSOR = """\
+robot: fanuc_lrmate200i
+data:
+  identification: data/ident.csv
+sensor:
+  kind: sts
+"""
+
+
+@pytest.mark.parametrize("override, key", [
+    ("constraint.c=-1", "constraint.c"),
+    ("constraint.c=soon", "constraint.c"),
+    ("constraint.border_axes=[B]", "constraint.border_axes"),
+    ("constraint.sweep=[]", "constraint.sweep"),
+    ("model.kind=paper4", "model.kind"),
+])
+def test_constraint_and_model_kind_values_are_checked(cfg_file, override, key):
+    with pytest.raises(ConfigError, match=f"key '{key}'"):
+        load_config(cfg_file, [override])
+
+
+def test_constraint_c_takes_a_number_auto_or_null(cfg_file):
+    assert load_config(cfg_file, ["constraint.c=0.05"]).constraint.c == 0.05
+    assert load_config(cfg_file, ["constraint.c=auto"]).constraint.c == "auto"
+    assert load_config(cfg_file).constraint.c is None
+
+
+def test_sensor_run_needs_no_tools_and_checks_gravity(tmp_path):
+    p = tmp_path / "fit.yaml"
+    p.write_text(SENSOR)
+    cfg = load_config(p)
+    assert cfg.tools is None and cfg.sensor.mount == "estimate"
+    with pytest.raises(ConfigError, match="sensor.gravity.*norm"):
+        load_config(p, ["sensor.gravity=[0, 0.1, -1]"])
+    assert load_config(p, ["sensor.gravity=[0, 0, -1]"]).sensor.gravity == [0, 0, -1]
+    with pytest.raises(ConfigError, match="key 'tools'"):
+        load_config(p, ["tools=[[0, 0, 100]]"])
+    with pytest.raises(ConfigError, match="sensor.kind"):
+        load_config(p, ["sensor.kind=camera"])
+    # an override replaces the mount wholesale (a word and a mapping never merge)
+    cfg = load_config(p, ["sensor.mount={xyz_mm: [0, 0, 50], rpy_deg: [0, 0, 0]}"])
+    assert cfg.sensor.mount.xyz_mm == [0, 0, 50]
+
+
+def test_point_target_run_still_needs_tools(cfg_file):
+    cfg_file.write_text(MINIMAL.replace("tools:\n  - [33.06, 57.73, 161.22]\n  - [57.26, -33.86, 161.22]\n", ""))
+    with pytest.raises(ConfigError, match="key 'tools'.*required"):
+        load_config(cfg_file)

@@ -47,6 +47,13 @@ class DataConfig:
     """Simulated runs only: ``truth.json`` from ``torchcal simulate``; enables the compensation check (Table 7, Fig. 16)."""
 
 
+MODEL_KINDS = ("joint_dependent", "axis_perturbation")
+"""``model.kind``: Paper II's joint-dependent error model (robots) or Paper I's axis perturbation model (machine tools)."""
+
+SENSOR_KINDS = ("sts", "pose")
+"""``sensor.kind``: Paper III's SmartTrack sensor (position + yaw, roll, level angles) or a generic 6-DOF probe."""
+
+
 @dataclass
 class ModelConfig:
     order: Any = 6
@@ -69,6 +76,9 @@ class ModelConfig:
     """The variable each joint's error series is evaluated on: null (the robot's ``error_variable:``, 'command'
     by default), 'command' (the controller command q_i, Paper II (24)), 'joint' (the URDF joint variable), or a
     per-joint list of those."""
+    kind: str = "joint_dependent"
+    """'joint_dependent' (Paper II: 6-DOF Chebyshev errors per joint, robots) or 'axis_perturbation' (Paper I:
+    δq_i = Σ_j f_ij(q_j), machine tools, any serial chain)."""
 
 
 @dataclass
@@ -99,6 +109,45 @@ class PriorConfig:
 
 
 @dataclass
+class ConstraintConfig:
+    """Paper I's slope constraint (13)-(31): ‖h̄_i‖ ≤ c over the whole axis (joint) space."""
+
+    c: Any = None
+    """null (unconstrained), a number (mm per half axis range), or auto (BORDER + constraint sweep, the knee)."""
+    points: int = 2048
+    """Quasi-random points over the whole command box (plus its corners) where the bound is enforced."""
+    check_points: int = 4096
+    """Fresh points, never seen by the penalty, where the bound is checked and reported."""
+    tol: float = 0.01
+    """Relative tolerance of the bound at the penalty points: max slope ≤ c (1 + tol)."""
+    border_axes: Optional[list[str]] = None
+    """c: auto, the two axes (joint names) of the BORDER space; null: B and Z for the XYZCB machine (Paper I),
+    else the two joints whose data span least of their range."""
+    border_k: int = 30
+    """c: auto, k of the reverse k-nearest-neighbour counts (Paper I 3.4)."""
+    border_n: int = 10
+    """c: auto, number of boundary points held out as the extrapolation check."""
+    sweep: Optional[list[float]] = None
+    """c: auto, the c values tried (mm); null: a geometric grid below the unconstrained model's largest slope."""
+    knee_tol_mm: float = 0.01
+    """c: auto, the knee: the smallest c before the boundary max or the sub-identification mean rises by more than this."""
+
+
+@dataclass
+class SensorConfig:
+    """Paper III: a 6-DOF sensor on the flange instead of point targets (the CSV then carries r11..r33)."""
+
+    kind: Optional[str] = None
+    """null (point targets, the tools), 'sts' (Paper III's tracking sensor) or 'pose' (a generic 6-DOF probe)."""
+    mount: Any = "estimate"
+    """Nominal flange -> sensor frame {xyz_mm: [...], rpy_deg: [...]}, or estimate (from the data, no guess)."""
+    gravity: Optional[list[float]] = None
+    """sts only: the unit gravity vector in the tracker frame (first guess; refined); null: [0, 0, -1]."""
+    position_only: bool = False
+    """Fit the sensor origin only (the orientation is still evaluated)."""
+
+
+@dataclass
 class SolverConfig:
     method: str = "lm"
     """'lm' (Levenberg-Marquardt, joint errors eliminated per row) or 'lbfgs'."""
@@ -123,7 +172,7 @@ class FitConfig:
 
     robot: str = MISSING
     """Bundled robot name (e.g. fanuc_lrmate200i), a joint-map YAML or a URDF."""
-    tools: Any = MISSING
+    tools: Any = None
     """Nominal tool vectors [x, y, z] in the flange frame, mm (a list; the CSV 'tool' column indexes it),
     or ``{count: T}`` when they are not known (e.g. reflectors glued on the flange): the fit then estimates
     them from the data first (:mod:`torchcal.identify.alignment`)."""
@@ -139,6 +188,8 @@ class FitConfig:
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     prior: PriorConfig = field(default_factory=PriorConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
+    constraint: ConstraintConfig = field(default_factory=ConstraintConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
     compensation: CompensationConfig = field(default_factory=CompensationConfig)
     seed: int = 0
     device: str = "cpu"
@@ -156,7 +207,7 @@ class FitConfig:
 FRAME_MODES = ("auto", "base", "estimate")
 """The string values of ``measurement_frame``."""
 
-WHOLE_VALUE_KEYS = ("tools", "measurement_frame")
+WHOLE_VALUE_KEYS = ("tools", "measurement_frame", "sensor.mount", "constraint.c")
 """Keys whose override replaces the whole value (their values change type: list, mapping or word)."""
 
 PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out")
@@ -241,7 +292,7 @@ def apply_overrides(cfg: DictConfig, overrides: Sequence[str], base: Path | None
             new = OmegaConf.from_dotlist([item])
             if key in WHOLE_VALUE_KEYS:
                 # these take a list, a mapping or a word: an override replaces the value, never merges into it
-                cfg[key] = new[key]
+                OmegaConf.update(cfg, key, OmegaConf.select(new, key), merge=False)
             else:
                 cfg = OmegaConf.merge(cfg, new)
         except OmegaConfBaseException as exc:
@@ -321,6 +372,17 @@ def _plain(x):
     return OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x
 
 
+def _check_frame(frame: dict, key: str, fail) -> None:
+    """A {xyz_mm: [x, y, z], rpy_deg: [r, p, y]} frame."""
+    extra = sorted(set(frame) - {"xyz_mm", "rpy_deg"})
+    if extra:
+        fail(f"{key}.{extra[0]}", "unknown key; valid keys: xyz_mm, rpy_deg")
+    for sub, what in (("xyz_mm", "[x, y, z] in mm"), ("rpy_deg", "[roll, pitch, yaw] in deg")):
+        v = frame.get(sub)
+        if not isinstance(v, list) or len(v) != 3 or not all(_is_number(x) for x in v):
+            fail(f"{key}.{sub}", f"{v!r}: give {what}")
+
+
 def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = None) -> None:
     """Values that the types alone do not pin down; ``n_joints`` (once the robot is loaded) checks per-joint lists.
 
@@ -329,7 +391,7 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
     def fail(key, msg):
         raise ConfigError(f"{label}: key '{key}': {msg}")
 
-    for key in ("robot", "tools", "data.identification"):
+    for key in ("robot", "data.identification"):
         try:
             OmegaConf.select(cfg, key, throw_on_missing=True)
         except MissingMandatoryValue:
@@ -342,7 +404,33 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
         raise _explain(exc, label) from None
 
     tools = _plain(cfg.tools)
-    if isinstance(tools, dict):
+    sensor = _plain(cfg.sensor)
+    if sensor["kind"] is not None and sensor["kind"] not in SENSOR_KINDS:
+        fail("sensor.kind", f"{sensor['kind']!r}: give null (point targets), {' or '.join(SENSOR_KINDS)}")
+    if sensor["kind"] is not None:
+        if tools is not None:
+            fail("tools", "a sensor run measures the sensor frame, not tools: leave tools unset (null)")
+        mount = sensor["mount"]
+        if isinstance(mount, dict):
+            _check_frame(mount, "sensor.mount", fail)
+        elif mount != "estimate":
+            fail("sensor.mount", f"{mount!r}: give estimate or {{xyz_mm: [x, y, z], rpy_deg: [r, p, y]}}")
+        g = sensor["gravity"]
+        if g is not None:
+            if sensor["kind"] != "sts":
+                fail("sensor.gravity", "only the sts sensor measures against gravity")
+            if not isinstance(g, list) or len(g) != 3 or not all(_is_number(v) for v in g):
+                fail("sensor.gravity", f"{g!r}: give a unit vector [gx, gy, gz] in the tracker frame")
+            norm = sum(v * v for v in g) ** 0.5
+            if abs(norm - 1.0) > 1e-6:
+                fail("sensor.gravity", f"{g!r} has norm {norm:.6g}: give a unit vector (normalize it)")
+    elif tools is None:
+        fail("tools", "is required but not set (tool vectors [[x, y, z], ...] in mm, or {count: T})")
+    elif sensor["position_only"]:
+        fail("sensor.position_only", "applies to sensor runs only (set sensor.kind)")
+    if sensor["kind"] is not None:
+        pass  # the tool checks below are for point-target runs
+    elif isinstance(tools, dict):
         extra = sorted(set(tools) - {"count"})
         if extra:
             fail(f"tools.{extra[0]}", "unknown key; unknown tool vectors are given as {count: T} (valid keys: count)")
@@ -361,15 +449,26 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
 
     frame = _plain(cfg.measurement_frame)
     if isinstance(frame, dict):
-        extra = sorted(set(frame) - {"xyz_mm", "rpy_deg"})
-        if extra:
-            fail(f"measurement_frame.{extra[0]}", "unknown key; valid keys: xyz_mm, rpy_deg")
-        for key, what in (("xyz_mm", "[x, y, z] in mm"), ("rpy_deg", "[roll, pitch, yaw] in deg")):
-            v = frame.get(key)
-            if not isinstance(v, list) or len(v) != 3 or not all(_is_number(x) for x in v):
-                fail(f"measurement_frame.{key}", f"{v!r}: give {what}")
+        _check_frame(frame, "measurement_frame", fail)
     elif frame not in FRAME_MODES:
         fail("measurement_frame", f"{frame!r}: give one of {', '.join(FRAME_MODES)} or {{xyz_mm: [x, y, z], rpy_deg: [r, p, y]}}")
+
+    if cfg.model.kind not in MODEL_KINDS:
+        fail("model.kind", f"{cfg.model.kind!r}: give one of {', '.join(MODEL_KINDS)}")
+    c = _plain(cfg.constraint.c)
+    if not (c is None or c == "auto" or (_is_number(c) and c > 0)):
+        fail("constraint.c", f"{c!r}: give null (unconstrained), a positive number (mm per half axis range) or auto")
+    for key in ("points", "check_points", "border_k", "border_n"):
+        if not _is_int(cfg.constraint[key]) or cfg.constraint[key] < 1:
+            fail(f"constraint.{key}", f"{cfg.constraint[key]!r}: give a positive integer")
+    if not cfg.constraint.tol > 0 or not cfg.constraint.knee_tol_mm > 0:
+        fail("constraint.tol" if not cfg.constraint.tol > 0 else "constraint.knee_tol_mm", "must be positive")
+    axes = _plain(cfg.constraint.border_axes)
+    if axes is not None and (not isinstance(axes, list) or len(axes) != 2 or len(set(axes)) != 2):
+        fail("constraint.border_axes", f"{axes!r}: give two different axis (joint) names")
+    sweep = _plain(cfg.constraint.sweep)
+    if sweep is not None and (not sweep or not all(_is_number(v) and v > 0 for v in sweep)):
+        fail("constraint.sweep", f"{sweep!r}: give a list of positive c values (mm)")
 
     order = _plain(cfg.model.order)
     if isinstance(order, str):

@@ -1,6 +1,8 @@
 """Analysis of models and robots: residual statistics (Gamma 99 %, Fig. 13), Circle Point
-Analysis (6.1, Tables 8-12), ISO 9283 repeatability (5.3) and joint variances (5.4, (53)-(54))."""
+Analysis (6.1, Tables 8-12), ISO 9283 repeatability (5.3), joint variances (5.4, (53)-(54))
+and Paper III's orientation repeatability ((41)-(45))."""
 
+from .border import BorderError, border_points, reverse_knn_counts
 from .confounding import BacklashTerm, ConfoundingReport, backlash_confounding
 from .coverage import DirectionCoverage
 from .cpa import (
@@ -29,6 +31,14 @@ from .identifiability import (
     plot_position_std,
     position_std_sweeps,
 )
+from .orientation import (
+    OrientationRepeatability,
+    RepeatabilityError,
+    axis_repeatability,
+    expected_orientation_repeatability,
+    mean_rotation,
+    orientation_repeatability,
+)
 from .repeatability import (
     JointVariancePlan,
     JointVarianceTable,
@@ -53,6 +63,7 @@ __all__ = [
     "PAPER2_TABLE8",
     "AxisFit",
     "BacklashTerm",
+    "BorderError",
     "CPAModel",
     "CircleFit",
     "Combination",
@@ -63,14 +74,19 @@ __all__ = [
     "DirectionCoverage",
     "JointVariancePlan",
     "JointVarianceTable",
+    "OrientationRepeatability",
+    "RepeatabilityError",
     "ResidualStats",
     "SweepRange",
+    "axis_repeatability",
     "backlash_confounding",
+    "border_points",
     "cpa_sweep_commands",
     "cpa_validation_commands",
     "dh_from_axes",
     "dh_parameters",
     "dh_table",
+    "expected_orientation_repeatability",
     "fit_circle",
     "fit_cpa",
     "fit_joint_axis",
@@ -81,13 +97,16 @@ __all__ = [
     "joint_variance_from_pairs",
     "joint_variance_plan",
     "joint_variances",
+    "mean_rotation",
     "nominal_axes",
+    "orientation_repeatability",
     "pair_angular_errors",
     "percent_decrease",
     "plot_position_std",
     "position_std_sweeps",
     "point_residuals",
     "residual_stats",
+    "reverse_knn_counts",
     "rotation_plane_coordinates",
     "single_joint_commands",
     "stats_table",

@@ -69,6 +69,24 @@ class Instrument:
         raise NotImplementedError
 
 
+def concat(instruments) -> Instrument:
+    """One instrument holding the rows of ``instruments`` in order: ``type(first).cat(instruments)``.
+
+    Every instrument class that can be concatenated provides a classmethod
+    ``cat(list)``; mixing classes is an error (their rows mean different things).
+    """
+    instruments = list(instruments)
+    if not instruments:
+        raise ValueError("concat: no instruments")
+    cls = type(instruments[0])
+    if any(type(i) is not cls for i in instruments):
+        raise ValueError(f"concat: instruments of different kinds {sorted({type(i).__name__ for i in instruments})}")
+    cat = getattr(cls, "cat", None)
+    if cat is None:
+        raise ValueError(f"concat: {cls.__name__} has no classmethod cat(instruments)")
+    return cat(instruments)
+
+
 def row_jacobians(fn: Callable, params: dict[str, torch.Tensor], v: torch.Tensor, *rows):
     """Per-row Jacobians by autograd: fn(params, v_r (1, n), *row_r (1, ...)) -> residual (1, d).
 

@@ -64,6 +64,34 @@ class PointTargets(Instrument):
         out.weight = self.weight.subset(index)
         return out
 
+    @classmethod
+    def cat(cls, instruments: list) -> "PointTargets":
+        """The rows of several PointTargets, in order, as one (their observations and per-row weights).
+
+        Isotropic weights with one sigma stay isotropic; any other mix becomes
+        a per-row (R, 3, 3) covariance, so no row changes its weight.
+
+        Example:
+            >>> import torch
+            >>> a = PointTargets(torch.zeros(2, 3, dtype=torch.float64), sigma=5e-6)
+            >>> b = PointTargets(torch.ones(1, 3, dtype=torch.float64), sigma=1e-5)
+            >>> c = PointTargets.cat([a, b])
+            >>> len(c), [round(w, 9) for w in c.whiten(torch.full((3, 3), 1e-5, dtype=torch.float64))[:, 0].tolist()]
+            (3, [2.0, 2.0, 1.0])
+        """
+        instruments = list(instruments)
+        if not instruments or not all(isinstance(i, PointTargets) for i in instruments):
+            raise ValueError(f"PointTargets.cat: expected a non-empty list of PointTargets, got "
+                             f"{[type(i).__name__ for i in instruments]}")
+        xyz = torch.cat([i.observed for i in instruments])
+        sigmas = {getattr(i.weight, "sigma", None) for i in instruments}
+        if len(sigmas) == 1 and None not in sigmas:
+            return cls(xyz, sigma=sigmas.pop())
+        covs = [i.weight.cov.to(xyz) if isinstance(i.weight, CovarianceWeight) else
+                (i.weight.sigma ** 2) * torch.eye(3, dtype=xyz.dtype, device=xyz.device).expand(len(i), 3, 3)
+                for i in instruments]
+        return cls(xyz, cov=torch.cat(covs))
+
     def to(self, device) -> "PointTargets":
         out = PointTargets.__new__(PointTargets)
         out.observed = self.observed.to(device)

@@ -7,6 +7,7 @@ on this side is in mm and degrees (see :mod:`torchcal.io.csv`).
     torchcal fit data/fanuc/fit.yaml model.order=4
     torchcal predict RUN_DIR commands.csv predicted.csv
     torchcal compensate RUN_DIR targets.csv compensated.csv
+    torchcal update RUN_DIR new.csv --out NEW_RUN_DIR    # add measurements (Paper III (33))
 
 Bad inputs (data, robot, config, run directory) print one message naming the
 file, row / key and column, and exit with status 2. Ctrl-C prints one line
@@ -151,7 +152,7 @@ def _mm(x) -> str:
 
 def results_table(rows: list[dict], title: str) -> Table:
     """A rich table in Paper II's Table 6 / 7 layout: value (mm) and percent decrease per statistic."""
-    t = Table(title=title, caption="values in mm; % = percent decrease against the nominal residual")
+    t = Table(title=title, caption="values in mm (angles in deg); % = percent decrease against the nominal residual")
     t.add_column("Set", no_wrap=True)
     t.add_column("Residual", no_wrap=True)
     for name in ("Mean", "Maximum", "Gamma 99 %"):
@@ -211,6 +212,31 @@ def predict_cmd(
 
         rows = predict_file(run_dir, input, output, _device(device))
     typer.echo(f"predicted {rows} rows -> {output}")
+
+
+# ---------------------------------------------------------------------- update
+@app.command("update")
+def update_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`.")],
+    new_data: Annotated[Path, typer.Argument(help="CSV of new measurements in the run's contract (mm, deg).")],
+    out: Annotated[Path, typer.Option("--out", help="New run directory (the parent is never modified).")],
+    strategy: Annotated[Optional[str], typer.Option(
+        help="information (default: earlier rows' joint errors marginalized) or literal (Paper III (33) as printed); "
+             "only for a parent written by `torchcal fit`, an updated run keeps its own.")] = None,
+    device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+):
+    """Online adaptive identification (Paper III (33)): add new measurements to a run without refitting the old ones."""
+    with _user_errors():
+        from .update import run_update
+
+        res = run_update(run_dir, new_data, out, _device(device), strategy, console=None if quiet else _console(stderr=True))
+    if res.table:
+        _console().print(results_table(res.table, "Residuals after the update (Paper II, Table 6 layout)"))
+    for w in res.warnings:
+        _console().print(f"warning: {w}", markup=False)
+    typer.echo(f"{res.step.rows} rows in {res.step.batch + 1} batches ({res.step.strategy}); parent {res.parent}")
+    typer.echo(f"run directory: {res.run_dir}")
 
 
 # ------------------------------------------------------------------ compensate
@@ -311,6 +337,26 @@ def import_tracker_cmd(
     for line in res.report:
         out.print(line, markup=False)
     typer.echo(f"wrote {len(res.table)} rows -> {output}")
+
+
+# ------------------------------------------------------------------ import-tmac
+@app.command("import-tmac")
+def import_tmac_cmd(
+    source: Annotated[Path, typer.Argument(help="T-Mac export (';'-separated, decimal commas: joints in rad, measurement_x/y/z mm, measurement_rx/ry/rz deg).")],
+    output: Annotated[Path, typer.Argument(help="Sensor CSV to write (pose, q1..q6, x, y, z, r11..r33, sx..srz; mm, deg).")],
+    robot: Annotated[str, typer.Option(help="Bundled robot name, joint-map YAML or URDF (joint count and limits are checked).")] = "ur10",
+    convention: Annotated[str, typer.Option(help="Euler convention of measurement_rx/ry/rz (scipy naming; XYZ = intrinsic).")] = "XYZ",
+    exclude: Annotated[Optional[list[int]], typer.Option("--exclude", help="1-based data row to leave out (repeat).")] = None,
+):
+    """Convert a UR10 + Leica T-Mac export (ipa-robot-accuracy format) into the sensor CSV contract."""
+    from .io.tmac import convert_tmac
+    from .kinematics import load_robot
+
+    with _user_errors():
+        path = convert_tmac(source, output, load_robot(robot), convention, exclude or ())
+    if exclude:
+        typer.echo(f"left out data rows {sorted(set(exclude))}")
+    typer.echo(f"wrote {path}")
 
 
 # ------------------------------------------------------------------ plan-poses

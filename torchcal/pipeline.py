@@ -229,9 +229,35 @@ class ModelFactory:
                           compliance=self.compliance, **self.extra).to(self.device)
 
 
+class MachineFactory:
+    """make(orders) -> a fresh all-zero :class:`torchcal.machine.MachineModel` (Paper I) on ``device``.
+
+    orders: an int (every table) or one order per INPUT axis j (the order of every f_ij(q_j)).
+    """
+
+    backlash = None  # the axis perturbation model has no direction term
+
+    def __init__(self, robot, tools_m, device, base_nominal=None):
+        self.robot, self.device = robot, device
+        self.tools_m = tools_m.detach().cpu()
+        self.base_nominal = None if base_nominal is None else base_nominal.detach().cpu()
+
+    def __call__(self, orders, backlash="default"):
+        from .machine import MachineModel
+
+        if not isinstance(orders, int):
+            orders = [int(o) for o in orders]
+            n = len(orders)
+            orders = orders[0] if len(set(orders)) == 1 else torch.tensor(orders, dtype=torch.long).expand(n, n).clone()
+        return MachineModel(self.robot, self.tools_m, orders=orders, base_nominal=self.base_nominal).to(self.device)
+
+
 def model_factory(robot, tools_m: torch.Tensor, backlash, device, base_nominal: torch.Tensor | None = None,
-                  compliance=False, error_variable=None) -> ModelFactory:
-    """A :class:`ModelFactory`: make_model(orders) -> a fresh all-zero RobotModel on ``device``."""
+                  compliance=False, error_variable=None, kind: str = "joint_dependent"):
+    """make_model(orders) -> a fresh all-zero model on ``device``: a :class:`ModelFactory` (RobotModel, Paper II)
+    or, for ``kind='axis_perturbation'``, a :class:`MachineFactory` (MachineModel, Paper I)."""
+    if kind == "axis_perturbation":
+        return MachineFactory(robot, tools_m, device, base_nominal)
     return ModelFactory(robot, tools_m, backlash, device, base_nominal, compliance, error_variable)
 
 
@@ -415,6 +441,15 @@ def load_inputs(cfg) -> FitInputs:
     with _collect_warnings(notes):
         ident = read_measurements(cfg.data.identification, robot, T).to(device)
         val = read_measurements(cfg.data.validation, robot, T).to(device) if cfg.data.validation else None
+    if cfg.model.kind == "axis_perturbation":
+        for key, bad, why in (("model.order", isinstance(cfg.model.order, str), "give an int or one order per axis "
+                               "(the automatic order search is for model.kind=joint_dependent)"),
+                              ("data.truth", bool(cfg.data.truth), "the compensation check simulates robots; run "
+                               "experiments/paper1_machine_tool for machine tools"),
+                              ("model.compliance", cfg.model.compliance not in (False, None),
+                               "gravity compliance belongs to model.kind=joint_dependent")):
+            if bad:
+                raise ConfigError(f"{label}: key '{key}': not with model.kind=axis_perturbation: {why}")
     truth = None
     if cfg.data.truth:
         from .io.truth import load_truth
@@ -434,11 +469,16 @@ def align_inputs(cfg, inp: FitInputs):
     return config_alignment(cfg, inp.robot, inp.ident, inp.label)
 
 
-def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: _Progress, files: dict) -> None:
-    """Stage 3, start the run directory: config.yaml, versions.json, what was read (and how), alignment.json."""
+def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
+    """config.yaml (the resolved config) and versions.json: what every run directory starts with."""
     files["config"] = run_dir / "config.yaml"
     files["config"].write_text(to_yaml(cfg), encoding="utf-8")
-    files["versions"] = write_json(run_dir / "versions.json", collect_versions(inp.device))
+    files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
+
+
+def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: _Progress, files: dict) -> None:
+    """Stage 3, start the run directory: config.yaml, versions.json, what was read (and how), alignment.json."""
+    write_preamble_files(run_dir, cfg, inp.device, files)
     progress.info(f"run directory {run_dir}")
     ident, val = inp.ident, inp.val
     progress.info(f"robot '{inp.robot.name}' ({inp.robot.joint_map.n} joints), {inp.T} tools; identification "
@@ -578,7 +618,8 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
         progress.warn(f"{src}: too few poses for the model: {len(ident)} rows give {E} equations for {P} parameters; "
                       f"measure at least {-(-P // per_pose)} poses with {len(seen)} tool{'s' if len(seen) != 1 else ''}, "
                       "or lower model.order")
-    bl = model.joint_errors.backlash_orders.cpu().tolist()
+    je = getattr(model, "joint_errors", None)  # machines (axis perturbation model) have no backlash terms
+    bl = [] if je is None else je.backlash_orders.cpu().tolist()
     on = [j for j, b in enumerate(bl) if b >= 0]
     if on and not ident.has_direction:
         out["one_sided_backlash"] = [names[j] for j in on]
@@ -745,7 +786,12 @@ def run_fit(cfg, console=None) -> RunResult:
 
 def _run_fit(cfg, console=None) -> RunResult:
     """The stages in order: load, align, (run directory), build / select orders, fit, check data, evaluate,
-    compensate-check, plots; each writes its files as soon as it has them."""
+    compensate-check, plots; each writes its files as soon as it has them. Sensor configs (Paper III) take
+    :func:`torchcal.pipeline_sensor.run_sensor_fit`."""
+    if cfg.sensor.kind is not None:
+        from .pipeline_sensor import run_sensor_fit
+
+        return run_sensor_fit(cfg, console)
     inp = load_inputs(cfg)
     tools_m, base_nominal, alignment = align_inputs(cfg, inp)
     run_dir = make_run_dir(cfg.out)
@@ -755,14 +801,21 @@ def _run_fit(cfg, console=None) -> RunResult:
         with run_log(run_dir):
             write_preamble(run_dir, cfg, inp, alignment, progress, files)
             make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal,
-                                 cfg.model.compliance, config_error_variable(cfg))
+                                 cfg.model.compliance, config_error_variable(cfg), cfg.model.kind)
             orders, selection = choose_orders(cfg, inp, make, run_dir, progress, files)
-            model = make(orders)
-            result = identify_model(cfg, inp, model, orders, run_dir, progress, files)
+            constraint = None
+            if cfg.constraint.c is None:
+                model = make(orders)
+                result = identify_model(cfg, inp, model, orders, run_dir, progress, files)
+            else:
+                from .pipeline_constraint import identify_constrained
+
+                model, result, constraint = identify_constrained(cfg, inp, make, orders, run_dir, progress, files)
             diagnostics = check_data(cfg, inp, model, make, orders, result, progress)
             sets, evaluations, table = evaluate_sets(inp, model, progress)
             metrics = fit_metrics(orders, selection, result, alignment, sets, evaluations, table)
             metrics["data_checks"] = diagnostics
+            metrics["constraint"] = constraint
             metrics["warnings"] = progress.warnings
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
             files["residuals"] = _write_residuals(run_dir / "residuals.csv", sets, evaluations)
@@ -790,6 +843,10 @@ def predict_file(run_dir, input, output, device=None) -> int:
     from .io.rundir import load_model
 
     model = load_model(run_dir, device=device)
+    if hasattr(model, "sensor_pose"):  # a sensor run (Paper III): modeled x, y, z, r11..r33
+        from .pipeline_sensor import predict_pose_file
+
+        return predict_pose_file(run_dir, input, output, model)
     data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
     data = data.to(model.device)
     with torch.no_grad():
@@ -905,7 +962,9 @@ def _write_residuals(path: Path, sets: dict, evaluations: dict) -> Path:
 def _plots(folder: Path, model, evaluations: dict, comp: dict | None) -> dict[str, Path]:
     from .io import plots
 
-    out = {"plot_joint_errors": plots.plot_joint_errors(model, folder / "joint_errors.png")}
+    out = {}
+    if isinstance(model, RobotModel):
+        out["plot_joint_errors"] = plots.plot_joint_errors(model, folder / "joint_errors.png")
     fig = {"Identification": 14, "Validation": 15}
     for name, ev in evaluations.items():
         out[f"plot_residuals_{name.lower()}"] = plots.plot_residuals(

@@ -1,0 +1,271 @@
+"""The fit pipeline for 6-DOF measurements (Paper III): a config with ``sensor: {kind: sts | pose}``.
+
+Stages, as for point targets (:mod:`torchcal.pipeline`), with the sensor's own:
+
+1. load: robot, sensor CSVs (:func:`torchcal.io.sensor_csv.read_pose_measurements`:
+   position + rotation per row, optional per-row standard deviations), noise;
+2. frames: the tracker -> robot base frame and the flange -> sensor mount, each
+   given in the config or estimated from the data (:func:`torchcal.identify.hand_eye.hand_eye`
+   on the nominal robot: no guess needed);
+3. instrument: the STS (position + yaw, roll, level; rows outside the sensor's
+   ranges reported and left out, never silently used), a generic 6-DOF probe
+   (position + rotation vector), or position only;
+4. fit (:func:`torchcal.fit` on a :class:`~torchcal.measure.rig.SensorRig`),
+   model.pt at once;
+5. evaluate: position (mm) and orientation (deg) residuals of every set, nominal
+   (hand-eye frames, nominal robot) and modeled, joint errors zero.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from . import units
+from .analysis.stats import ResidualStats, percent_decrease, residual_stats
+from .identify import fit
+from .identify.hand_eye import hand_eye
+from .io.config import ConfigError
+from .io.rundir import make_run_dir, run_log, save_model, write_json
+from .kinematics import load_robot
+from .kinematics.transforms import homogeneous, rpy_to_matrix
+from .measure.pose import rotation_error
+from .measurements import Measurements
+
+log = logging.getLogger("torchcal")
+
+
+@dataclass
+class SensorInputs:
+    """Everything read before anything is computed: robot, sets, noise, prior, solver options, notes."""
+
+    robot: object
+    ident: Measurements
+    val: Measurements | None
+    noise: object
+    noise_source: str
+    prior: object
+    opts: dict
+    device: torch.device
+    label: str
+    notes: list[str] = field(default_factory=list)
+
+
+def config_pose_frame(value) -> torch.Tensor | None:
+    """{xyz_mm, rpy_deg} -> (4, 4) SI; 'estimate' / 'auto' -> None (from the data)."""
+    if isinstance(value, (dict, DictConfig)):
+        rpy = units.deg_to_rad(torch.tensor([float(v) for v in value["rpy_deg"]], dtype=torch.float64))
+        xyz = units.mm_to_m(torch.tensor([float(v) for v in value["xyz_mm"]], dtype=torch.float64))
+        return homogeneous(rpy_to_matrix(rpy), xyz)
+    if value == "base":
+        return torch.eye(4, dtype=torch.float64)
+    return None
+
+
+def up_vector(cfg) -> torch.Tensor:
+    """The level's 'up' direction in the tracker frame: minus ``sensor.gravity`` (default gravity [0, 0, -1])."""
+    g = cfg.sensor.gravity
+    return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if g is None else -torch.tensor(
+        [float(v) for v in g], dtype=torch.float64)
+
+
+def read_sensor_set(path, robot, device) -> Measurements:
+    from .io.sensor_csv import read_pose_measurements
+
+    return read_pose_measurements(path, robot).to(device)
+
+
+def load_sensor_inputs(cfg) -> SensorInputs:
+    """Stage 1: robot, config checks against it, noise, prior, solver options, the sensor CSVs."""
+    from .io.config import check_config
+    from .pipeline import _collect_warnings, config_noise, config_prior, joint_variance_source, solver_options
+
+    label = cfg.config_file or "config"
+    notes: list[str] = []
+    with _collect_warnings(notes):
+        robot = load_robot(cfg.robot)
+    check_config(cfg, label, robot.joint_map.n)
+    if isinstance(cfg.model.order, str):
+        raise ConfigError(f"{label}: key 'model.order': give an int or a per-joint list for sensor runs "
+                          "(the automatic order search works on point targets)")
+    if cfg.constraint.c is not None:
+        raise ConfigError(f"{label}: key 'constraint.c': the slope bound is not available for sensor runs yet")
+    if cfg.data.truth:
+        raise ConfigError(f"{label}: key 'data.truth': the compensation check is for point-target runs")
+    device = torch.device(cfg.device)
+    torch.manual_seed(int(cfg.seed))
+    noise = config_noise(cfg, robot, label)
+    with _collect_warnings(notes):
+        ident = read_sensor_set(cfg.data.identification, robot, device)
+        val = read_sensor_set(cfg.data.validation, robot, device) if cfg.data.validation else None
+    return SensorInputs(robot, ident, val, noise, joint_variance_source(cfg, robot), config_prior(cfg),
+                        solver_options(cfg), device, label, notes)
+
+
+def measured_poses(data: Measurements) -> torch.Tensor:
+    """(R, 4, 4) measured sensor poses in the tracker frame."""
+    T = torch.eye(4, dtype=data.xyz.dtype, device=data.xyz.device).repeat(len(data), 1, 1)
+    T[:, :3, :3], T[:, :3, 3] = data.extra["rotation"].to(data.xyz), data.xyz
+    return T
+
+
+def initial_frames(cfg, robot, data: Measurements, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """(X tracker <- base, M flange -> sensor, summary): each from the config, else from the data (hand-eye)."""
+    from .model import RobotModel
+
+    X = config_pose_frame(cfg.measurement_frame)
+    M = config_pose_frame(cfg.sensor.mount)
+    nominal = RobotModel(robot, torch.zeros(1, 3, dtype=torch.float64), orders=0).to(data.q.device)
+    with torch.no_grad():
+        F = nominal.nominal_flange(data.q)
+    T = measured_poses(data)
+    X, M = hand_eye(F, T, seed=seed, X=None if X is None else X.to(T), M=None if M is None else M.to(T))
+    with torch.no_grad():
+        P = X @ F @ M
+    pos = (P[:, :3, 3] - T[:, :3, 3]).norm(dim=-1)
+    summary = {"measurement_frame": "config" if config_pose_frame(cfg.measurement_frame) is not None else "estimated",
+               "mount": "config" if config_pose_frame(cfg.sensor.mount) is not None else "estimated",
+               "frame_xyz_mm": units.m_to_mm(X[:3, 3]).tolist(), "mount_xyz_mm": units.m_to_mm(M[:3, 3]).tolist(),
+               "nominal_position_mean_mm": float(units.m_to_mm(pos.mean()))}
+    return X, M, summary
+
+
+def sensor_instrument(cfg, data: Measurements, noise, progress=None):
+    """The instrument for ``data`` and the rows it uses -> (instrument, data, excluded file rows)."""
+    from .measure import PointTargets
+    from .measure.pose import PoseInstrument
+    from .measure.sts import STSInstrument
+    from .measure.tracker import TrackerNoise
+
+    kind = cfg.sensor.kind
+    if cfg.sensor.position_only:
+        return PointTargets(data.xyz, cov=TrackerNoise.paper3().covariance(data.xyz)), data, []
+    if kind == "pose":
+        return PoseInstrument.from_measurements(data), data, []
+    sel = STSInstrument.from_measurements(data, TrackerNoise.paper3(), gravity=up_vector(cfg).to(data.xyz),
+                                          invalid="exclude")
+    if sel.excluded and progress is not None:
+        progress.warn(f"{data.source}: {len(sel.excluded)} rows outside the sensor's ranges are left out: "
+                      f"{sel.message[:400]}")
+    return sel.instrument, sel.data, list(sel.excluded)
+
+
+class SensorRigFactory:
+    """make(orders) -> a fresh all-zero :class:`~torchcal.measure.rig.SensorRig` with the initial frames."""
+
+    def __init__(self, robot, backlash, device, X, M, up, compliance=False, error_variable=None, sts=True):
+        self.robot, self.backlash, self.device = robot, backlash, device
+        self.X, self.M, self.up = X.detach().cpu(), M.detach().cpu(), up
+        self.compliance, self.error_variable, self.sts = compliance, error_variable, sts
+
+    def __call__(self, orders, backlash="default"):
+        from .measure.rig import SensorRig
+
+        rig = SensorRig.for_robot(self.robot, list(orders) if not isinstance(orders, int) else orders,
+                                  self.backlash if backlash == "default" else backlash, base_nominal=self.X,
+                                  mount=self.M, gravity=self.up if self.sts else None, compliance=self.compliance,
+                                  error_variable=self.error_variable)
+        return rig.to(self.device)
+
+
+@torch.no_grad()
+def pose_residuals(rig, data: Measurements, nominal: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """(R,) position (m) and orientation (rad) errors of the rig's prediction, joint errors zero."""
+    T = rig.nominal_sensor_pose(data.q) if nominal else rig.sensor_pose(
+        data.q, None, data.direction if data.has_direction else None)
+    M = measured_poses(data)
+    return (T[:, :3, 3] - M[:, :3, 3]).norm(dim=-1), rotation_error(T[:, :3, :3], M[:, :3, :3]).norm(dim=-1)
+
+
+def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[dict, list[dict]]:
+    """-> ({set: {position_mm: {nominal, modeled, decrease_percent}, orientation_deg: {...}}}, Table 6 rows)."""
+    from .pipeline import _row
+
+    out, table = {}, []
+    for name, data in sets.items():
+        pn, rn = pose_residuals(rig, data, nominal=True)
+        pm, rm = pose_residuals(rig, data)
+        ps = [residual_stats(units.m_to_mm(x.cpu())) for x in (pn, pm)]
+        rs = [residual_stats(units.rad_to_deg(x.cpu())) for x in (rn, rm)]
+        label = name.capitalize()
+        table += [_row(label, "Nominal position", ps[0], None), _row(label, "Modeled position", ps[1], ps[0]),
+                  _row(label, "Nominal angle (deg)", rs[0], None), _row(label, "Modeled angle (deg)", rs[1], rs[0])]
+        out[name] = {"rows": len(data), "position_mm": {"nominal": vars(ps[0]), "modeled": vars(ps[1]),
+                                                       "decrease_percent": percent_decrease(ps[0].mean, ps[1].mean)},
+                     "orientation_deg": {"nominal": vars(rs[0]), "modeled": vars(rs[1]),
+                                         "decrease_percent": percent_decrease(rs[0].mean, rs[1].mean)}}
+        progress.info(f"{name}: position mean {ps[0].mean:.4f} -> {ps[1].mean:.4f} mm (p99 {ps[1].gamma99:.4f}, max "
+                      f"{ps[1].max:.4f}); orientation mean {rs[0].mean:.4f} -> {rs[1].mean:.5f} deg")
+    return out, table
+
+
+def run_sensor_fit(cfg, console=None):
+    """``torchcal fit`` for a sensor config: the stages of this module, written to a run directory."""
+    from .pipeline import RunResult, _Progress, config_backlash, config_error_variable, write_preamble_files
+
+    inp = load_sensor_inputs(cfg)
+    X, M, frames = initial_frames(cfg, inp.robot, inp.ident, int(cfg.seed))
+    run_dir = make_run_dir(cfg.out)
+    files: dict[str, Path] = {}
+    progress = _Progress(console)
+    try:
+        with run_log(run_dir):
+            write_preamble_files(run_dir, cfg, inp.device, files)
+            progress.info(f"run directory {run_dir}")
+            progress.info(f"robot '{inp.robot.name}' ({inp.robot.joint_map.n} joints), sensor '{cfg.sensor.kind}'"
+                          f"{' (position only)' if cfg.sensor.position_only else ''}; identification {len(inp.ident)} "
+                          f"rows" + (f", validation {len(inp.val)} rows" if inp.val is not None else ""))
+            progress.info(f"joint variances: {inp.noise_source}")
+            for note in inp.notes:
+                progress.warn(note)
+            progress.info(f"frames: measurement frame {frames['measurement_frame']}, mount {frames['mount']}; "
+                          f"nominal position residual {frames['nominal_position_mean_mm']:.3f} mm")
+            files["frames"] = write_json(run_dir / "frames.json", frames)
+            instrument, ident, excluded = sensor_instrument(cfg, inp.ident, inp.noise, progress)
+            backlash = config_backlash(cfg)
+            if backlash is not None and not (ident.has_direction and bool((ident.direction != 0).any())):
+                progress.warn(f"{ident.source}: no approach directions (dir1..dir{inp.robot.joint_map.n}): the backlash "
+                              "terms are left out (model.backlash=false)")
+                backlash = None
+            make = SensorRigFactory(inp.robot, backlash, inp.device, X, M, up_vector(cfg),
+                                    cfg.model.compliance, config_error_variable(cfg), cfg.sensor.kind == "sts")
+            order = cfg.model.order
+            orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
+            rig = make(orders)
+            fixed = () if cfg.sensor.kind == "sts" and not cfg.sensor.position_only else ("gravity",)
+            with progress.step(f"identifying the model (orders {orders}, {inp.opts['method']}, {type(instrument).__name__})"):
+                result = fit(rig, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed, **inp.opts)
+            files["model"] = save_model(run_dir, rig, orders=orders, config_file=cfg.config_file)
+            files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
+                                                              "orders": orders, "history": list(result.history)})
+            progress.info(f"fit: {result.message} after {result.nit} iterations, cost {result.fun:.6g}")
+            sets = {"identification": inp.ident} | ({"validation": inp.val} if inp.val is not None else {})
+            evaluations, table = evaluate_pose_sets(rig, sets, progress)
+            metrics = {"units": "mm, deg, percent", "orders": orders, "sensor": cfg.sensor.kind,
+                       "fit": {"converged": bool(result.success), "iterations": int(result.nit), "cost": float(result.fun)},
+                       "frames": frames, "excluded_rows": excluded, "sets": evaluations, "table6": table, "warnings": progress.warnings}
+            files["metrics"] = write_json(run_dir / "metrics.json", metrics)
+            progress.info(f"done: {run_dir}")
+    except KeyboardInterrupt as exc:
+        exc.run_dir = run_dir
+        raise
+    return RunResult(run_dir, rig, result, metrics, table, None, orders, None, files, progress.warnings)
+
+
+def predict_pose_file(run_dir, input, output, model) -> int:
+    """``torchcal predict`` on a sensor run: the modeled x, y, z, r11..r33 for the commands of a sensor CSV."""
+    from .io.sensor_csv import read_pose_measurements, write_pose_measurements
+
+    data = read_pose_measurements(input, model.robot, require_pose=False).to(model.device)
+    with torch.no_grad():
+        T = model.sensor_pose(data.q, None, data.direction if data.has_direction else None)
+    write_pose_measurements(output, data, model.robot, modeled=T)
+    return len(data)
+
+
+__all__ = ["SensorInputs", "SensorRigFactory", "evaluate_pose_sets", "initial_frames", "load_sensor_inputs",
+           "measured_poses", "pose_residuals", "predict_pose_file", "run_sensor_fit", "sensor_instrument"]

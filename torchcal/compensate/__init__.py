@@ -12,14 +12,39 @@ model records its identification data's direction coverage).
 
 from .damped import DampedResult, damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
-from .newton import DEFAULT_BOUND, CompensationResult, compensate, fixed_jacobian_iterations, nominal_sigma_min, per_joint_bound
+from .newton import (
+    DEFAULT_BOUND,
+    CompensationResult,
+    compensate,
+    fixed_jacobian_iterations,
+    nominal_sigma_min,
+    per_joint_bound,
+)
+from .tables import (
+    CompensationTable,
+    TableAxisError,
+    TableError,
+    TableRangeError,
+    TableSizeError,
+    TableSlopeWarning,
+    apply_tables,
+    compensation_tables,
+)
 
 __all__ = [
-    "CompensationResult",
     "DEFAULT_BOUND",
+    "CompensationResult",
+    "CompensationTable",
     "DampedResult",
     "FlangeKernel",
+    "TableAxisError",
+    "TableError",
+    "TableRangeError",
+    "TableSizeError",
+    "TableSlopeWarning",
+    "apply_tables",
     "compensate",
+    "compensation_tables",
     "damped_least_squares",
     "fixed_jacobian_iterations",
     "nominal_sigma_min",

@@ -7,6 +7,7 @@ from .gauge import dependent_columns, fix_gauge
 from .layout import ParameterLayout, parameter_groups
 from .lbfgs import lbfgs
 from .lm import levenberg_marquardt
+from .online import InformationBlock, OnlineCalibration, OnlineStep, batch_refit, marginal_information
 from .order import OrderSelection, held_out_errors, loo_residuals, paired_improvement, pose_folds, score_orders, select_orders
 from .problem import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, CalibrationProblem, NoiseModel, Prior, raw_residual, row_errors
 from .result import FitResult
@@ -18,11 +19,15 @@ __all__ = [
     "CalibrationProblem",
     "FitResult",
     "GaussianPrior",
+    "InformationBlock",
     "NoiseModel",
+    "OnlineCalibration",
+    "OnlineStep",
     "OrderSelection",
     "ParamBlock",
     "ParameterLayout",
     "Prior",
+    "batch_refit",
     "dependent_columns",
     "fit",
     "fix_gauge",
@@ -30,6 +35,7 @@ __all__ = [
     "lbfgs",
     "levenberg_marquardt",
     "loo_residuals",
+    "marginal_information",
     "paired_improvement",
     "parameter_groups",
     "pose_folds",

@@ -107,17 +107,27 @@ def levenberg_marquardt(
     nfev, message, success = 1, "maximum number of iterations reached", False
     grad = torch.zeros(1)
     it = 0
+    # Near the solution nearly every step is accepted at once: the trial point is then linearized directly
+    # (its Jacobians are the next iteration's), one kinematics pass per iteration instead of a residual and a
+    # linearization. After a rejection, trials are plain residuals again until a step passes at once.
+    trial_linearize = True
     for it in range(1, max_iter + 1):
         dx_prior = x - problem.prior_mean
         accepted = False
-        for _ in range(30):
+        linearized = None
+        for attempt in range(30):
             db, dv, grad = _schur_step(f, A, C, w_v, v, lam_b, dx_prior, mu, H_blk, g_blk, v_free)
             x_new, v_new = x + db, v + dv
             lin = f + (A @ db[:, None])[..., 0] + (C @ dv[..., None])[..., 0]
             # blocks' Gauss-Newton model: |r + J db|^2 = c + 2 g^T db + db^T H db
             lin_blk = None if H_blk is None else c_blk + 2 * (g_blk @ db) + db @ (H_blk @ db)
             predicted = cost - float(problem.cost_from(lin, x_new, v_new, lin_blk))
-            f_new = problem.residual(x_new, v_new)
+            if trial_linearize and attempt == 0:
+                linearized = problem.linearize(x_new, v_new)
+                f_new = linearized[0]
+            else:
+                linearized = None
+                f_new = problem.residual(x_new, v_new)
             nfev += 1
             new_cost = float(problem.cost_from(f_new, x_new, v_new))
             actual = cost - new_cost
@@ -126,6 +136,7 @@ def levenberg_marquardt(
                 mu *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
                 accepted = True
+                trial_linearize = attempt == 0
                 break
             if predicted <= 1e-14 * max(cost, 1.0):
                 break  # the quadratic model sees nothing left to gain
@@ -142,7 +153,7 @@ def levenberg_marquardt(
         history.append(cost)
         if callback is not None:
             callback(it, cost)
-        f, A, C = problem.linearize(x, v)
+        f, A, C = linearized if linearized is not None else problem.linearize(x, v)
         H_blk, g_blk, c_blk = _blocks(problem, x)
         if actual <= ftol * cost and predicted <= ftol * cost * 10:
             success, message = True, "converged: relative cost reduction below ftol"

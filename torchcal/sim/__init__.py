@@ -4,15 +4,21 @@
 - :class:`TruthRobot`: the actual robot, independent of torchcal's Chebyshev model
 - :func:`simulate`, :func:`noise_free_points`: tracker measurements (25) with joint and tracker noise
 - :func:`simulate_dataset`: a whole simulated data set on disk (CSV, truth.json, fit.yaml)
+- :class:`MachineTruth`, :func:`simulate_machine_dataset`: Paper I's five-axis machine tool and its data set
+- :class:`SensorTruth`: Paper III's FANUC + SmartTRACK sensor + laser tracker, and the AT targets
 """
 
 from .dataset import default_joint_variances, simulate_dataset
+from .machine_truth import MachineTruth, simulate_machine_dataset
 from .measure import noise_free_points, simulate
 from .sampling import approach_directions, quasi_random_commands
+from .sensor_truth import SensorTruth
 from .truth import HARMONICS, TruthRobot, harmonic_limit, perpendicular_axes
 
 __all__ = [
     "HARMONICS",
+    "MachineTruth",
+    "SensorTruth",
     "TruthRobot",
     "approach_directions",
     "default_joint_variances",
@@ -22,4 +28,5 @@ __all__ = [
     "quasi_random_commands",
     "simulate",
     "simulate_dataset",
+    "simulate_machine_dataset",
 ]

@@ -23,6 +23,20 @@ MODULES = [
     "torchcal.io.csv",
     "torchcal.io.config",
     "torchcal.io.rundir",
+    "torchcal.measure.tracker",
+    "torchcal.measure.triangle",
+    "torchcal.analysis.orientation",
+    "torchcal.measure.rig",
+    "torchcal.measure.sts",
+    "torchcal.measure.pose",
+    "torchcal.io.sensor_csv",
+    "torchcal.identify.hand_eye",
+    "torchcal.identify.online",
+    "torchcal.sim.sensor_truth",
+    "torchcal.sim.machine_truth",
+    "torchcal.compensate.tables",
+    "torchcal.export.controller",
+    "torchcal.analysis.border",
 ]
 
 

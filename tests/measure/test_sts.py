@@ -380,3 +380,30 @@ def test_rows_without_a_pose_are_invalid_not_out_of_range():
     assert v.valid.tolist() == [True, False, False]
     assert [(r, k) for r, k, _ in v.problems] == [(1, "pose"), (2, "pose")]
     assert bool(v.angles[1:].isnan().all()) and torch.allclose(v.angles[0], torch.tensor([0.1, 0.2, 0.3]))
+
+
+def test_closed_form_jacobians_equal_autograd_for_every_group():
+    """STSInstrument.predict_jacobians (rig pose Jacobians + closed-form angle derivatives) vs torch.func."""
+    import torchcal
+    from torchcal.identify import CalibrationProblem, NoiseModel, Prior
+    from torchcal.measure.rig import SensorRig
+    from torchcal.sim.sensor_truth import SensorTruth
+
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    st = SensorTruth(robot, seed=3)
+    s = st.sample_commands(20, seed=3)
+    m = st.measure_sts(s.q, s.direction, seed=4)
+    rig = SensorRig.for_robot(robot, 2, True, base_nominal=st.base_nominal, mount=st.mount_nominal,
+                              gravity=st.virtual_level, compliance="functions")
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for p in rig.parameters():
+            p.add_(1e-3 * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    inst = STSInstrument.from_measurements(m, gravity=st.virtual_level)
+    P = CalibrationProblem(rig, m, NoiseModel.from_robot(robot), Prior(), instrument=inst)
+    x, v = P.layout.get(), 1e-4 * torch.randn(P.v_zero().shape, generator=g, dtype=torch.float64)
+    fa, Aa, Ca = P.linearize(x, v, "autodiff")
+    fc, Ac, Cc = P.linearize(x, v, "closed")
+    assert torch.allclose(fa, fc, atol=1e-8)
+    assert (Aa - Ac).abs().max() <= 1e-9 * Aa.abs().max()
+    assert (Ca - Cc).abs().max() <= 1e-9 * Ca.abs().max()

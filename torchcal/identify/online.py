@@ -375,7 +375,10 @@ class OnlineCalibration:
             # region, and the carried quadratic is a Taylor expansion at wherever an update stops (its
             # gradient g included), so stopping there costs later updates nothing (validation means agree
             # with 1e-8 to 4 digits; 1-3 fewer iterations per update)
-            options.setdefault("ftol", self.warm_ftol)
+            # relative to the WHOLE objective: the carried quadratic stands for the earlier rows but leaves out
+            # their constant part of V, so the cost the solver sees is only the new rows' share of it
+            share = (self.rows + len(data)) / max(len(data), 1) if self.strategy == "information" else 1.0
+            options.setdefault("ftol", self.warm_ftol * share)
         result = SOLVERS[self.method](problem, **options)
         result.pinned = list(self.pinned or [])
         return result

@@ -156,6 +156,49 @@ class SensorRig(nn.Module):
         """Nominal chain, nominal base and mount, no error terms: (B, 4, 4)."""
         return self.model.base.nominal @ self.model.nominal_flange(q) @ self.mount.nominal
 
+    # -------------------------------------------------------------- Jacobians
+    def pose_jacobians(self, q, direction=None, v=None):
+        """Sensor poses and their closed-form Jacobians (no autograd: the fixed cost of a small batch stays small).
+
+        q: (B, n); direction: (B, n) or None; v: (B, n) or None.
+        -> T (B, 4, 4) sensor frames in the tracker frame, and {name: (B, 6, *shape)} for every
+        parameter group of the rig but 'gravity' (which moves no frame), plus 'v' (B, 6, n): rows 0-2 the
+        velocity of the sensor origin, rows 3-5 the angular velocity (tracker frame), so that
+        dR = S(omega) R. Same chain as :meth:`sensor_pose`, the robot part as in
+        :meth:`RobotModel.point_jacobians <torchcal.model.RobotModel.point_jacobians>`.
+        """
+        from ..jacobian import joint_axis_jacobian, twist_jacobian
+        from ..kinematics.transforms import twist_to_transform
+
+        m = self.model
+        d = m._parts(q, direction, v)
+        F = d["F"]
+        T = F @ self.mount()
+        p = T[:, :3, 3]
+        B, n = q.shape
+        Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :])  # (B, n, 6, 6)
+        Jax = joint_axis_jacobian(d["jR"], d["jp"], m.axes, m.prismatic, p)  # (B, 6, n) per θ_i
+        slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 6, n): through E_i's series
+        J = {"model.joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
+        if d["s"] is not None:
+            J["model.joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None],
+                                                            d["basis"][..., : d["Kb"]])
+        else:
+            J["model.joint_errors.backlash"] = q.new_zeros(B, 6, n, d["Kb"])
+        T0 = m.base.nominal.expand(B, 4, 4) @ twist_to_transform(m.base.twist)
+        J["model.base.twist"] = twist_jacobian(T0[:, :3, :3], T0[:, :3, 3], m.base.twist.expand(B, 6), p)
+        J["model.tools.delta"] = q.new_zeros(B, 6, m.tools.count, 3)  # not used by the rig (empty mask)
+        J["mount.twist"] = twist_jacobian(T[:, :3, :3], p, self.mount.twist.expand(B, 6), p)
+        moves = Jax + slope * m.error_follows_joint
+        if m.compliance is not None:
+            c = m.compliance
+            J["model.compliance.coef"] = torch.einsum("bcm,bmk->bcmk", moves[:, :, c.joints], d["comp"]) * c.mask
+        if getattr(m, "fine", None) is not None:
+            w, _ = m.fine.weights(m.joint_variables(q))
+            J["model.fine.values"] = torch.einsum("bcn,bnk->bcnk", moves, w) * m.fine.mask
+        J["v"] = Jax @ m.coupling + slope @ m.error_coupling
+        return T, J
+
     # ------------------------------------------------------------- parameters
     def parameter_groups(self) -> list[ParamGroup]:
         """Declarations of every parameter, ``named_parameters()`` order (see the class docstring)."""

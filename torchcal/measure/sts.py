@@ -108,6 +108,55 @@ def sts_angles(R: torch.Tensor, p: torch.Tensor, g: torch.Tensor) -> torch.Tenso
     return torch.stack([psi, theta, phi], -1)
 
 
+def angle_jacobians(R: torch.Tensor, p: torch.Tensor, g_xy: torch.Tensor):
+    """Closed-form derivatives of :func:`sts_angles` with the gravity of Paper III (27).
+
+    R: (B, 3, 3), p: (B, 3) sensor poses; g_xy: (2,) (g_x, g_y).
+    -> d(psi, theta, phi) / d p (B, 3, 3), / d omega (B, 3, 3) for a rotation R -> exp(S(omega)) R
+    (omega in the tracker frame), / d (g_x, g_y) (B, 3, 2). With a = -R^T p / |p| (the beam in s0):
+    dpsi = (a1 da2 - a2 da1) / c^2, dtheta = (c da3 - a3 dc) / |a|^2, dphi = ds / |x × g| (s = x . g).
+    """
+    from .rig import gravity_from_xy
+
+    r = p.norm(dim=-1)[:, None, None]  # (B, 1, 1)
+    u = (R.transpose(1, 2) @ p[..., None])  # (B, 3, 1)
+    a = -u[..., 0] / r[..., 0]
+    Rt = R.transpose(1, 2)
+    da_dp = -Rt / r + (u / r**3) @ p[:, None, :]
+    Sp = torch.zeros_like(R)
+    Sp[:, 0, 1], Sp[:, 0, 2], Sp[:, 1, 0] = -p[:, 2], p[:, 1], p[:, 2]
+    Sp[:, 1, 2], Sp[:, 2, 0], Sp[:, 2, 1] = -p[:, 0], -p[:, 1], p[:, 0]
+    da_dw = -(Rt @ Sp) / r  # u' = R^T S(p) omega
+    a1, a2, a3 = a[:, 0:1], a[:, 1:2], a[:, 2:3]
+    c2 = a1 * a1 + a2 * a2
+    c = torch.sqrt(c2)
+    g = gravity_from_xy(g_xy).to(R)
+    cps, sps = a2 / c, -a1 / c  # cos psi, sin psi
+    x_s0 = torch.cat([cps, sps, torch.zeros_like(c)], -1)
+    x = (R @ x_s0[..., None])[..., 0]
+    s = (x * g).sum(-1, keepdim=True)
+    h = torch.linalg.cross(x, g.expand_as(x), dim=-1).norm(dim=-1, keepdim=True)
+    perp = (R @ torch.cat([-sps, cps, torch.zeros_like(c)], -1)[..., None])[..., 0]  # R dx_s0 / dpsi
+
+    def angles_from(da):  # da: (B, 3, k) -> (B, 3, k) psi, theta, phi rows (phi without the omega x x term)
+        dpsi = (a1[..., None] * da[:, 1:2] - a2[..., None] * da[:, 0:1]) / c2[..., None]
+        dc = (a1[..., None] * da[:, 0:1] + a2[..., None] * da[:, 1:2]) / c[..., None]
+        dtheta = (c[..., None] * da[:, 2:3] - a3[..., None] * dc) / (c2 + a3 * a3)[..., None]
+        ds = (perp * g).sum(-1)[:, None, None] * dpsi
+        return dpsi, dtheta, ds
+
+    dpsi, dth, ds = angles_from(da_dp)
+    dA_dp = torch.cat([dpsi, dth, ds / h[..., None]], 1)
+    dpsi, dth, ds = angles_from(da_dw)
+    ds = ds + torch.linalg.cross(x, g.expand_as(x), dim=-1)[:, None, :]  # d(x . g) = (omega × x) . g = omega . (x × g)
+    dA_dw = torch.cat([dpsi, dth, ds / h[..., None]], 1)
+    gz = g[2]
+    dg = torch.stack([torch.stack([g.new_ones(()), g.new_zeros(()), -g[0] / gz]),
+                      torch.stack([g.new_zeros(()), g.new_ones(()), -g[1] / gz])], -1)  # (3, 2)
+    dA_dg = torch.cat([torch.zeros_like(x[:, None, :2]).expand(-1, 2, 2), (x @ dg)[:, None, :] / h[..., None]], 1)
+    return dA_dp, dA_dw, dA_dg
+
+
 def sts_rotation(p: torch.Tensor, angles: torch.Tensor, g: torch.Tensor, branch: torch.Tensor | float = 1.0) -> torch.Tensor:
     """The sensor frame R (..., 3, 3) the tracker software reports for a sensor at p reading ``angles``: inverse of :func:`sts_angles`.
 
@@ -292,6 +341,26 @@ class STSInstrument(Instrument):
         T = model.sensor_pose(q, tool, direction, v)
         p = T[:, :3, 3]
         return torch.cat([p, sts_angles(T[:, :3, :3], p, model.gravity_vector())], -1)
+
+    def predict_jacobians(self, model, q, tool, direction=None, v=None):
+        """Closed form through the rig's pose Jacobians (:meth:`SensorRig.pose_jacobians`) and the
+        derivatives of (17)-(27) w.r.t. the pose and gravity; None for models without them (autograd then)."""
+        pj = getattr(model, "pose_jacobians", None)
+        if pj is None:
+            return None
+        T, J = pj(q, direction, v)
+        R, p = T[:, :3, :3], T[:, :3, 3]
+        dA_dp, dA_dw, dA_dg = angle_jacobians(R, p, model.gravity.detach())
+        out = {}
+        B = q.shape[0]
+        for name, Jn in J.items():
+            shape = Jn.shape[2:]
+            flat = Jn.reshape(B, 6, -1)
+            ang = dA_dp @ flat[:, :3] + dA_dw @ flat[:, 3:]
+            out[name] = torch.cat([flat[:, :3], ang], 1).reshape(B, 6, *shape)
+        out["gravity"] = torch.cat([dA_dg.new_zeros(B, 3, 2), dA_dg], 1)
+        pred = torch.cat([p, sts_angles(R, p, model.gravity_vector())], -1)
+        return pred, out
 
     def residual(self, pred: torch.Tensor, observed: torch.Tensor) -> torch.Tensor:
         d = pred - observed

@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from .error_models.compliance import build_compliance
+from .error_models.fine import build_fine
 from .error_models.frame import FrameCorrection, ToolSet
 from .error_models.joint import JointErrors
 from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
@@ -47,6 +48,10 @@ class RobotModel(nn.Module):
     errors v act, evaluated at the commanded q (v does not enter it).
     error_variable: 'command' (Paper II (24)), 'joint', or one per joint; None
     takes the robot's joint map (``error_variable:`` of its YAML, 'command' by default).
+    fine: optional fine-grained joint-angle error tables
+    (:class:`~torchcal.error_models.fine.FineJointErrors`, parameter
+    ``fine.values``): None (off, the default), a module, or a dict of its
+    keywords; like the compliance, Δθ(θ(q)) adds to the joint variables at the commanded q.
 
     Example:
         >>> import torch, torchcal
@@ -57,7 +62,7 @@ class RobotModel(nn.Module):
     """
 
     def __init__(self, robot: Robot, tools, orders=6, backlash=None, base_nominal: torch.Tensor | None = None,
-                 compliance=False, error_variable=None):
+                 compliance=False, error_variable=None, fine=None):
         super().__init__()
         if error_variable is not None:
             robot = robot.with_error_variable(error_variable)
@@ -81,6 +86,7 @@ class RobotModel(nn.Module):
         self.base = FrameCorrection(base_nominal)
         self.tools = ToolSet(tools)
         self.compliance = build_compliance(robot, compliance)
+        self.fine = build_fine(robot, fine)
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
         self.coverage = None  # DirectionCoverage of the identification data, set by fit()
 
@@ -121,6 +127,10 @@ class RobotModel(nn.Module):
             dtheta = self.compliance.deflection_from(comp)
             theta = theta + dtheta
             u = u + dtheta * self.error_follows_joint
+        if self.fine is not None:
+            dfine = self.fine(self.joint_variables(q))
+            theta = theta + dfine
+            u = u + dfine * self.error_follows_joint
         return theta, u, comp
 
     def frames(self, q: torch.Tensor, direction: torch.Tensor | None = None, v: torch.Tensor | None = None, base: bool = True):
@@ -192,7 +202,7 @@ class RobotModel(nn.Module):
         -> p: (B, 3) and a dict of Jacobians d p / d(.) keyed like named_parameters():
            'joint_errors.coef' (B, 3, n, 6, K), 'joint_errors.backlash' (B, 3, n, Kb),
            'base.twist' (B, 3, 6), 'tools.delta' (B, 3, T, 3), with compliance
-           'compliance.coef' (B, 3, m, K), and 'v' (B, 3, n) (controller space,
+           'compliance.coef' (B, 3, m, K), with fine tables 'fine.values' (B, 3, n, K), and 'v' (B, 3, n) (controller space,
            error-term slopes included).
         """
         d = self._parts(q, direction, v)
@@ -218,6 +228,9 @@ class RobotModel(nn.Module):
             # Δθ_j = Σ_k coef[j, k] F[j, k] moves θ_j (and u_j where the errors follow θ_j): d p / d coef = d p / d Δθ_j · F[j, k]
             Jdef = Jax + slope * self.error_follows_joint
             J["compliance.coef"] = torch.einsum("bcm,bmk->bcmk", Jdef[:, :, c.joints], d["comp"]) * c.mask
+        if self.fine is not None:
+            w, _ = self.fine.weights(self.joint_variables(q))
+            J["fine.values"] = torch.einsum("bcn,bnk->bcnk", Jax + slope * self.error_follows_joint, w) * self.fine.mask
         # v moves θ = A (q + v) + offset and u = A_u (q + v) + b_u
         J["v"] = Jax @ self.coupling + slope @ self.error_coupling
         return p, J
@@ -246,6 +259,11 @@ class RobotModel(nn.Module):
             DA = self.compliance.deflection_jacobian(self.joint_variables(q)) @ self.coupling
             dtheta_dq = self.coupling + DA
             du_dq = self.error_coupling + self.error_follows_joint[:, None] * DA
+        if self.fine is not None:
+            # the table's slope at θ(q) scales each joint's motion: dΔθ_i/dq = slope_i · A_i,:
+            Ds = self.fine.slope(self.joint_variables(q))[:, :, None] * self.coupling
+            dtheta_dq = dtheta_dq + Ds
+            du_dq = du_dq + self.error_follows_joint[:, None] * Ds
         return F, body(Jax) @ dtheta_dq + body(slope) @ du_dq
 
     def parameter_groups(self) -> list:
@@ -253,7 +271,7 @@ class RobotModel(nn.Module):
 
         -> list of :class:`torchcal.params.ParamGroup` in ``named_parameters()``
         order ('joint_errors.coef', 'joint_errors.backlash', 'base.twist',
-        'tools.delta'[, 'compliance.coef']).
+        'tools.delta'[, 'compliance.coef'][, 'fine.values']).
         """
         groups = []
         for prefix, module in self.named_children():
@@ -277,6 +295,8 @@ class RobotModel(nn.Module):
             out["coverage"] = self.coverage.to_dict()
         if self.compliance is not None:  # absent when off: specs of models without it stay as they were
             out["compliance"] = self.compliance.spec()
+        if self.fine is not None:  # likewise absent when off
+            out["fine"] = self.fine.spec()
         return out
 
     @classmethod
@@ -290,7 +310,7 @@ class RobotModel(nn.Module):
         # runs written before the error variable existed evaluated every series on the URDF joint variable
         model = cls(robot, torch.tensor(spec["tools"], dtype=torch.float64), spec["orders"], backlash,
                     torch.tensor(spec["base_nominal"], dtype=torch.float64), compliance=spec.get("compliance") or False,
-                    error_variable=spec.get("error_variable", "joint"))
+                    error_variable=spec.get("error_variable", "joint"), fine=spec.get("fine"))
         if spec.get("coverage") is not None:
             from .analysis.coverage import DirectionCoverage
 

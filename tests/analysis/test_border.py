@@ -5,7 +5,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchcal.analysis.border import BorderError, border_order, border_points, knn, reverse_knn_counts
+from torchcal.analysis.border import (
+    BorderError,
+    border_order,
+    border_points,
+    knn,
+    reverse_knn_counts,
+)
 from torchcal.exceptions import TorchcalError
 
 # Coordinates laid out like Figure 7 (the figure gives no numbers): two pairs around p2, p3,
@@ -91,7 +97,7 @@ def test_order_is_a_permutation_sorted_by_count():
     assert sorted(order.tolist()) == list(range(50))
     assert (counts[order][1:] >= counts[order][:-1]).all()
 
-@pytest.mark.parametrize("bad", [dict(k=0), dict(k=8), dict(n=9)])
+@pytest.mark.parametrize("bad", [{"k": 0}, {"k": 8}, {"n": 9}])
 def test_bad_input(bad):
     with pytest.raises(BorderError) as e:
         border_points(P, **{"k": 2, **bad})

@@ -1,0 +1,145 @@
+"""T-Mac export importer: decimal commas, line endings, Euler convention, std columns, bad cells named."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchcal.io.csv import DataError
+from torchcal.io.tmac import TMAC_JOINTS, read_tmac, read_trafo
+
+HEAD = ["Timestamp", "Goal x"] + list(TMAC_JOINTS) + ["measurement_temperature", "measurement_x", "measurement_std_x",
+        "measurement_y", "measurement_std_y", "measurement_z", "measurement_std_z", "measurement_rx",
+        "measurement_std_rx", "measurement_ry", "measurement_std_ry", "measurement_rz", "measurement_std_rz"]
+
+
+def _rows(n, seed=0):
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-3, 3, (n, 6))
+    xyz = rng.uniform(-3000, 3000, (n, 3))
+    ang = rng.uniform(-80, 80, (n, 3))
+    std = rng.uniform(0.001, 0.05, (n, 6))
+    return q, xyz, ang, std
+
+
+def _write(path, q, xyz, ang, std, newline="\r\n", nul=False):
+    def c(v):
+        return repr(float(v)).replace(".", ",")
+
+    lines = [";".join(HEAD)]
+    for i in range(len(q)):
+        m = []
+        for k in range(3):
+            m += [c(xyz[i, k]), c(std[i, k])]
+        for k in range(3):
+            m += [c(ang[i, k]), c(std[i, 3 + k])]
+        lines.append(";".join(["2,02011E+13", "-0,1"] + [c(v) for v in q[i]] + ["21,68"] + m))
+    end = ("\x00" if nul else "") + newline
+    path.write_bytes(end.join(lines).encode() + end.encode())
+    return path
+
+
+def _rot_xyz_intrinsic(a, b, c):
+    """Rx(a) Ry(b) Rz(c), degrees, with plain numpy."""
+    a, b, c = np.radians([a, b, c])
+    Rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    Ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
+    Rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
+    return Rx @ Ry @ Rz
+
+
+@pytest.mark.parametrize("newline,nul", [("\r\n", False), ("\n", True)])
+def test_reads_values_in_si_with_intrinsic_xyz(tmp_path, newline, nul):
+    q, xyz, ang, std = _rows(7)
+    m = read_tmac(_write(tmp_path / "m.csv", q, xyz, ang, std, newline, nul))
+    assert len(m) == 7 and m.rows.tolist() == list(range(1, 8)) and m.pose.tolist() == list(range(1, 8))
+    assert np.allclose(m.q.numpy(), q, atol=1e-15, rtol=1e-15)
+    assert np.allclose(m.xyz.numpy(), xyz / 1000, rtol=1e-15, atol=0)
+    ref = np.stack([_rot_xyz_intrinsic(*a) for a in ang])
+    assert np.abs(m.extra["rotation"].numpy() - ref).max() < 1e-14
+    ps = m.extra["pose_std"].numpy()
+    assert np.allclose(ps[:, :3], std[:, :3] / 1000) and np.allclose(ps[:, 3:], np.radians(std[:, 3:]))
+    assert torch.allclose(m.extra["temperature"], torch.full((7,), 21.68, dtype=torch.float64))
+    # the subset slices the rotations with the rows
+    assert torch.equal(m.subset(torch.tensor([2, 4])).extra["rotation"], m.extra["rotation"][[2, 4]])
+
+
+def test_bad_cells_named_by_row_and_column(tmp_path):
+    q, xyz, ang, std = _rows(5)
+    p = _write(tmp_path / "bad.csv", q, xyz, ang, std)
+    lines = p.read_bytes().decode().split("\r\n")
+    cells = lines[3].split(";")
+    cells[HEAD.index("elbow_joint")] = "abc"
+    cells[HEAD.index("measurement_ry")] = "1,2,3"
+    lines[3] = ";".join(cells)
+    lines[5] = lines[5] + ";7"
+    p.write_bytes("\r\n".join(lines).encode())
+    with pytest.raises(DataError) as e:
+        read_tmac(p)
+    msg = str(e.value)
+    assert "bad.csv" in msg and "3 problems" in msg
+    assert "row 3 (line 4), column 'elbow_joint': not a number: 'abc'" in msg
+    assert "row 3 (line 4), column 'measurement_ry'" in msg
+    assert "row 5 (line 6): 22 fields, the header has 21" in msg
+
+
+def test_missing_column_and_joint_limits(tmp_path):
+    q, xyz, ang, std = _rows(3)
+    p = _write(tmp_path / "m.csv", q, xyz, ang, std)
+    text = p.read_bytes().decode().replace("measurement_rz", "rz", 1)
+    (tmp_path / "n.csv").write_bytes(text.encode())
+    with pytest.raises(DataError, match="column 'measurement_rz': column missing"):
+        read_tmac(tmp_path / "n.csv")
+    import torchcal
+
+    q[1, 2] = 7.0  # beyond +-360 deg
+    p = _write(tmp_path / "lim.csv", q, xyz, ang, std)
+    with pytest.raises(DataError, match="row 2 .*column 'elbow_joint': 7 rad is outside"):
+        read_tmac(p, torchcal.load_robot("ur10"))
+
+
+def test_trafo_file(tmp_path):
+    p = tmp_path / "Trafo.txt"
+    p.write_text("0. 1. 0. 10.\n-1. 0. 0. 0.\n0. 0. 1. -109.\n0. 0. 0. 1.")
+    T = read_trafo(p)
+    assert torch.allclose(T[:3, 3], torch.tensor([0.01, 0.0, -0.109], dtype=torch.float64))
+    assert torch.allclose(T[:3, :3] @ T[:3, :3].T, torch.eye(3, dtype=torch.float64))
+    p.write_text("1 0 0\n0 1 0")
+    with pytest.raises(DataError, match="expected 16 numbers"):
+        read_trafo(p)
+
+
+def test_convert_to_the_sensor_contract_round_trips(tmp_path):
+    import torchcal
+    from torchcal.io.sensor_csv import read_pose_measurements
+    from torchcal.io.tmac import convert_tmac
+
+    robot = torchcal.load_robot("ur10")
+    q, xyz, ang, std = _rows(6, seed=3)
+    src = _write(tmp_path / "m.csv", q, xyz, ang, std)
+    out = convert_tmac(src, tmp_path / "contract.csv", robot)
+    back = read_pose_measurements(out, robot)
+    m = read_tmac(src, robot)
+    assert back.pose.tolist() == m.pose.tolist()
+    assert torch.allclose(back.q, m.q, atol=1e-12) and torch.allclose(back.xyz, m.xyz, atol=1e-12)
+    assert torch.allclose(back.extra["rotation"], m.extra["rotation"], atol=1e-11)
+    assert torch.allclose(back.extra["pose_std"], m.extra["pose_std"], rtol=1e-9)
+
+
+def test_cli_import_tmac_excludes_named_rows(tmp_path):
+    from typer.testing import CliRunner
+
+    import torchcal
+    from torchcal.cli import app
+    from torchcal.io.sensor_csv import read_pose_measurements
+
+    q, xyz, ang, std = _rows(5, seed=4)
+    src = _write(tmp_path / "m.csv", q, xyz, ang, std)
+    res = CliRunner().invoke(app, ["import-tmac", str(src), str(tmp_path / "c.csv"), "--exclude", "2", "--exclude", "4"])
+    assert res.exit_code == 0, res.output
+    assert "left out data rows [2, 4]" in res.output
+    back = read_pose_measurements(tmp_path / "c.csv", torchcal.load_robot("ur10"))
+    assert back.pose.tolist() == [1, 3, 5]
+    res = CliRunner().invoke(app, ["import-tmac", str(src), str(tmp_path / "d.csv"), "--exclude", "9"])
+    assert res.exit_code == 2 and "rows [9] to exclude are not data rows" in res.output

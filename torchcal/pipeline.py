@@ -42,7 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from . import units
 from .analysis.stats import ResidualStats, percent_decrease, point_residuals, residual_stats
@@ -182,9 +182,11 @@ def config_prior(cfg) -> Prior | None:
     if not p.enabled:
         return None
     backlash = p.get("backlash_deg")
+    compliance = p.get("compliance_deg")
+    extra = {} if compliance is None else {"compliance": units.deg_to_rad(compliance)}
     return Prior(rotation=units.deg_to_rad(p.rotation_deg), translation=units.mm_to_m(p.translation_mm),
                  frame_rotation=units.deg_to_rad(p.frame_rotation_deg), frame_translation=units.mm_to_m(p.frame_translation_mm),
-                 backlash=None if backlash is None else units.deg_to_rad(backlash))
+                 backlash=None if backlash is None else units.deg_to_rad(backlash), **extra)
 
 
 def config_backlash(cfg):
@@ -201,6 +203,12 @@ def solver_options(cfg) -> dict:
     if cfg.solver.max_iter is not None:
         opts["max_iter"] = int(cfg.solver.max_iter)
     return opts
+
+
+def config_compliance(cfg):
+    """model.compliance as RobotModel takes it: False, True, 'auto', 'gravity', 'functions' or a plain dict."""
+    c = cfg.model.compliance
+    return dict(OmegaConf.to_container(c)) if isinstance(c, DictConfig) else c
 
 
 def config_error_variable(cfg):
@@ -801,7 +809,7 @@ def _run_fit(cfg, console=None) -> RunResult:
         with run_log(run_dir):
             write_preamble(run_dir, cfg, inp, alignment, progress, files)
             make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal,
-                                 cfg.model.compliance, config_error_variable(cfg), cfg.model.kind)
+                                 config_compliance(cfg), config_error_variable(cfg), cfg.model.kind)
             orders, selection = choose_orders(cfg, inp, make, run_dir, progress, files)
             constraint = None
             if cfg.constraint.c is None:

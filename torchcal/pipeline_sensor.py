@@ -134,6 +134,15 @@ def initial_frames(cfg, robot, data: Measurements, seed: int = 0) -> tuple[torch
     return X, M, summary
 
 
+def config_pose_std(cfg) -> torch.Tensor | None:
+    """sensor.pose_std (mm, deg) -> (6,) m, rad, or None."""
+    v = cfg.sensor.pose_std
+    if v is None:
+        return None
+    v = [float(x) for x in v]
+    return torch.tensor([units.mm_to_m(x) for x in v[:3]] + [units.deg_to_rad(x) for x in v[3:]], dtype=torch.float64)
+
+
 def sensor_instrument(cfg, data: Measurements, noise, progress=None):
     """The instrument for ``data`` and the rows it uses -> (instrument, data, excluded file rows)."""
     from .measure import PointTargets
@@ -145,7 +154,8 @@ def sensor_instrument(cfg, data: Measurements, noise, progress=None):
     if cfg.sensor.position_only:
         return PointTargets(data.xyz, cov=TrackerNoise.paper3().covariance(data.xyz)), data, []
     if kind == "pose":
-        return PoseInstrument.from_measurements(data), data, []
+        std = config_pose_std(cfg)
+        return PoseInstrument.from_measurements(data, pose_std=None if std is None else std.to(data.xyz)), data, []
     sel = STSInstrument.from_measurements(data, TrackerNoise.paper3(), gravity=up_vector(cfg).to(data.xyz),
                                           invalid="exclude")
     if sel.excluded and progress is not None:
@@ -155,21 +165,52 @@ def sensor_instrument(cfg, data: Measurements, noise, progress=None):
 
 
 class SensorRigFactory:
-    """make(orders) -> a fresh all-zero :class:`~torchcal.measure.rig.SensorRig` with the initial frames."""
+    """make(orders) -> a fresh all-zero :class:`~torchcal.measure.rig.SensorRig` with the initial frames.
 
-    def __init__(self, robot, backlash, device, X, M, up, compliance=False, error_variable=None, sts=True):
+    fine: None, or a :class:`~torchcal.error_models.fine.FineJointErrors` whose copy every rig gets.
+    """
+
+    def __init__(self, robot, backlash, device, X, M, up, compliance=False, error_variable=None, sts=True, fine=None):
         self.robot, self.backlash, self.device = robot, backlash, device
         self.X, self.M, self.up = X.detach().cpu(), M.detach().cpu(), up
-        self.compliance, self.error_variable, self.sts = compliance, error_variable, sts
+        self.compliance, self.error_variable, self.sts, self.fine = compliance, error_variable, sts, fine
 
-    def __call__(self, orders, backlash="default"):
+    def __call__(self, orders, backlash="default", fine: bool = True):
+        import copy
+
         from .measure.rig import SensorRig
+        from .model import RobotModel
 
-        rig = SensorRig.for_robot(self.robot, list(orders) if not isinstance(orders, int) else orders,
-                                  self.backlash if backlash == "default" else backlash, base_nominal=self.X,
-                                  mount=self.M, gravity=self.up if self.sts else None, compliance=self.compliance,
-                                  error_variable=self.error_variable)
-        return rig.to(self.device)
+        model = RobotModel(self.robot, torch.zeros(1, 3, dtype=torch.float64),
+                           list(orders) if not isinstance(orders, int) else orders,
+                           self.backlash if backlash == "default" else backlash, base_nominal=self.X,
+                           compliance=self.compliance, error_variable=self.error_variable,
+                           fine=copy.deepcopy(self.fine) if fine and self.fine is not None else None)
+        return SensorRig(model, self.M, self.up if self.sts else None).to(self.device)
+
+
+def config_fine(cfg, robot, ident: Measurements):
+    """model.fine -> (FineJointErrors over the identification data's joint range or None, smoothness block
+    sigma (n,) rad or None, warm start)."""
+    f = cfg.model.fine
+    if f is None:
+        return None, None, False
+    from .error_models.fine import DEFAULT_PRIOR, DEFAULT_SPACING, FineJointErrors
+
+    spacing = units.deg_to_rad(float(f["spacing_deg"])) if "spacing_deg" in f else DEFAULT_SPACING
+    prior = units.deg_to_rad(float(f["prior_deg"])) if "prior_deg" in f else DEFAULT_PRIOR
+    fe = FineJointErrors.from_data(robot.joint_map.to_joint(ident.q).cpu(), spacing,
+                                   joint_names=robot.chain.joint_names, prior_sigma=prior)
+    sm = f.get("smoothness_deg")
+    sigma = None
+    if sm is not None:
+        n = robot.joint_map.n
+        vals = [float(v) for v in sm] if not isinstance(sm, (int, float)) else [float(sm)] * n
+        if len(vals) != n:
+            raise ConfigError(f"{cfg.config_file or 'config'}: key 'model.fine.smoothness_deg': {len(vals)} values "
+                              f"for {n} joints")
+        sigma = units.deg_to_rad(torch.tensor(vals, dtype=torch.float64))
+    return fe, sigma, bool(f.get("warm_start", True))
 
 
 @torch.no_grad()
@@ -205,7 +246,14 @@ def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[di
 
 def run_sensor_fit(cfg, console=None):
     """``torchcal fit`` for a sensor config: the stages of this module, written to a run directory."""
-    from .pipeline import RunResult, _Progress, config_backlash, config_error_variable, write_preamble_files
+    from .pipeline import (
+        RunResult,
+        _Progress,
+        config_backlash,
+        config_compliance,
+        config_error_variable,
+        write_preamble_files,
+    )
 
     inp = load_sensor_inputs(cfg)
     X, M, frames = initial_frames(cfg, inp.robot, inp.ident, int(cfg.seed))
@@ -231,14 +279,28 @@ def run_sensor_fit(cfg, console=None):
                 progress.warn(f"{ident.source}: no approach directions (dir1..dir{inp.robot.joint_map.n}): the backlash "
                               "terms are left out (model.backlash=false)")
                 backlash = None
-            make = SensorRigFactory(inp.robot, backlash, inp.device, X, M, up_vector(cfg),
-                                    cfg.model.compliance, config_error_variable(cfg), cfg.sensor.kind == "sts")
+            fine, smooth, warm = config_fine(cfg, inp.robot, ident)
+            make = SensorRigFactory(inp.robot, backlash, inp.device, X, M, up_vector(cfg), config_compliance(cfg),
+                                    config_error_variable(cfg), cfg.sensor.kind == "sts", fine)
             order = cfg.model.order
             orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
-            rig = make(orders)
             fixed = () if cfg.sensor.kind == "sts" and not cfg.sensor.position_only else ("gravity",)
-            with progress.step(f"identifying the model (orders {orders}, {inp.opts['method']}, {type(instrument).__name__})"):
-                result = fit(rig, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed, **inp.opts)
+            rig = make(orders)
+            blocks = []
+            if fine is not None:
+                from .error_models.fine import SmoothnessPenalty
+
+                if smooth is not None:
+                    blocks.append(SmoothnessPenalty(rig.model.fine, smooth.to(inp.device)))
+                if warm:  # the tables last: first the model without them, then everything from there
+                    first = make(orders, fine=False)
+                    with progress.step(f"identifying the model without the fine tables (orders {orders})"):
+                        fit(first, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed, **inp.opts)
+                    rig.load_state_dict(first.state_dict(), strict=False)
+            with progress.step(f"identifying the model (orders {orders}{', fine tables' if fine is not None else ''}, "
+                               f"{inp.opts['method']}, {type(instrument).__name__})"):
+                result = fit(rig, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed, blocks=blocks,
+                             **inp.opts)
             files["model"] = save_model(run_dir, rig, orders=orders, config_file=cfg.config_file)
             files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
                                                               "orders": orders, "history": list(result.history)})

@@ -71,7 +71,11 @@ class ModelConfig:
     standard errors of the paired (per-pose) difference."""
     compliance: Any = False
     """Gravity compliance (arm sag): false, true (torques from the URDF inertials when every moving link has
-    one, else arm-angle functions), "gravity" or "functions"."""
+    one, else arm-angle functions), "gravity" or "functions", or {mode: ..., joints: [joint names]}."""
+    fine: Any = None
+    """Fine-grained joint-angle error tables (torchcal.error_models.fine, sensor runs): null (off) or
+    {spacing_deg: knot spacing, smoothness_deg: sigma of a knot's second difference (number or per joint),
+    prior_deg: sigma of each value, warm_start: fit without the tables first}."""
     error_variable: Any = None
     """The variable each joint's error series is evaluated on: null (the robot's ``error_variable:``, 'command'
     by default), 'command' (the controller command q_i, Paper II (24)), 'joint' (the URDF joint variable), or a
@@ -106,6 +110,8 @@ class PriorConfig:
     """Prior sigma of the base-frame and tool translation corrections, mm."""
     backlash_deg: Optional[float] = None
     """Prior sigma of every backlash coefficient, deg; null keeps the declared ones (c0 wide, c1.. 0.0017 deg)."""
+    compliance_deg: Optional[float] = None
+    """Prior sigma of the compliance coefficients, deg per unit configuration function; null: the default."""
 
 
 @dataclass
@@ -145,6 +151,9 @@ class SensorConfig:
     """sts only: the unit gravity vector in the tracker frame (first guess; refined); null: [0, 0, -1]."""
     position_only: bool = False
     """Fit the sensor origin only (the orientation is still evaluated)."""
+    pose_std: Optional[list[float]] = None
+    """pose only: per-axis standard deviations [sx, sy, sz (mm), srx, sry, srz (deg)] weighting every row,
+    instead of the file's sx..srz columns (or the default)."""
 
 
 @dataclass
@@ -486,8 +495,35 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
         fail("model.order", f"{order!r}: give an int 0..{MAX_ORDER}, a per-joint list, or auto")
 
     compliance = _plain(cfg.model.compliance)
-    if not (isinstance(compliance, bool) or compliance in ("auto", "gravity", "functions")):
-        fail("model.compliance", f"{compliance!r}: give true, false, \"gravity\" or \"functions\"")
+    if isinstance(compliance, dict):
+        extra = sorted(set(compliance) - {"mode", "joints"})
+        if extra:
+            fail(f"model.compliance.{extra[0]}", "unknown key; valid keys: mode, joints")
+        if compliance.get("mode", "functions") not in ("gravity", "functions"):
+            fail("model.compliance.mode", f"{compliance.get('mode')!r}: give \"gravity\" or \"functions\"")
+    elif not (isinstance(compliance, bool) or compliance in ("auto", "gravity", "functions")):
+        fail("model.compliance", f"{compliance!r}: give true, false, \"gravity\", \"functions\" or {{mode, joints}}")
+    fine = _plain(cfg.model.fine)
+    if fine is not None:
+        if not isinstance(fine, dict):
+            fail("model.fine", f"{fine!r}: give null or {{spacing_deg, smoothness_deg, prior_deg, warm_start}}")
+        extra = sorted(set(fine) - {"spacing_deg", "smoothness_deg", "prior_deg", "warm_start"})
+        if extra:
+            fail(f"model.fine.{extra[0]}", "unknown key; valid keys: spacing_deg, smoothness_deg, prior_deg, warm_start")
+        for key in ("spacing_deg", "prior_deg"):
+            if key in fine and not (_is_number(fine[key]) and fine[key] > 0):
+                fail(f"model.fine.{key}", f"{fine[key]!r}: give a positive number (deg)")
+        sm = fine.get("smoothness_deg")
+        if sm is not None and not ((_is_number(sm) and sm > 0) or (isinstance(sm, list) and all(_is_number(v) and v > 0 for v in sm))):
+            fail("model.fine.smoothness_deg", f"{sm!r}: give a positive number or one per joint (deg)")
+        if sensor["kind"] is None:
+            fail("model.fine", "fine joint tables are offered for sensor runs (sensor.kind) only")
+    pstd = sensor["pose_std"]
+    if pstd is not None:
+        if sensor["kind"] != "pose":
+            fail("sensor.pose_std", "applies to sensor.kind=pose")
+        if not isinstance(pstd, list) or len(pstd) != 6 or not all(_is_number(v) and v > 0 for v in pstd):
+            fail("sensor.pose_std", f"{pstd!r}: give six positive values [sx, sy, sz (mm), srx, sry, srz (deg)]")
     backlash = _plain(cfg.model.backlash)
     if isinstance(backlash, list):
         if not all(_is_int(b) and -1 <= b <= MAX_ORDER for b in backlash):
@@ -532,6 +568,8 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
         for key in ("rotation_deg", "translation_mm", "frame_rotation_deg", "frame_translation_mm"):
             if not cfg.prior[key] > 0:
                 fail(f"prior.{key}", f"{cfg.prior[key]}: a prior sigma must be positive (or set prior.enabled=false)")
+        if cfg.prior.compliance_deg is not None and not cfg.prior.compliance_deg > 0:
+            fail("prior.compliance_deg", f"{cfg.prior.compliance_deg}: a prior sigma must be positive (or null)")
         if cfg.prior.backlash_deg is not None and not cfg.prior.backlash_deg > 0:
             fail("prior.backlash_deg", f"{cfg.prior.backlash_deg}: a prior sigma must be positive (or null for the declared ones)")
 

@@ -44,6 +44,18 @@ _LAZY = {
     "FitResult": ("torchcal.identify", "FitResult"),
     "identifiability": ("torchcal.analysis.identifiability", "identifiability"),
     "PointTargets": ("torchcal.measure", "PointTargets"),
+    # Paper III: 6-DOF measurement and online identification
+    "SensorRig": ("torchcal.measure", "SensorRig"),
+    "STSInstrument": ("torchcal.measure", "STSInstrument"),
+    "PoseInstrument": ("torchcal.measure", "PoseInstrument"),
+    "TrackerNoise": ("torchcal.measure", "TrackerNoise"),
+    "read_pose_measurements": ("torchcal.io.sensor_csv", "read_pose_measurements"),
+    "OnlineCalibration": ("torchcal.identify.online", "OnlineCalibration"),
+    # Paper I: machine tools, the slope constraint, compensation tables
+    "MachineModel": ("torchcal.machine", "MachineModel"),
+    "fit_constrained": ("torchcal.identify.constrained", "fit_constrained"),
+    "auto_constraint": ("torchcal.identify.constrained", "auto_constraint"),
+    "compensation_tables": ("torchcal.compensate.tables", "compensation_tables"),
     "ParamGroup": ("torchcal.params", "ParamGroup"),
     # backlash: what the data cover, how far direction and position are confounded
     "DirectionCoverage": ("torchcal.analysis.coverage", "DirectionCoverage"),

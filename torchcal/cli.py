@@ -339,6 +339,31 @@ def import_tracker_cmd(
     typer.echo(f"wrote {len(res.table)} rows -> {output}")
 
 
+# ---------------------------------------------------------------- export-tables
+@app.command("export-tables")
+def export_tables_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="Run directory of a machine fit (model.kind: axis_perturbation).")],
+    out: Annotated[Path, typer.Argument(help="File (csv, siemens-cec) or folder (linuxcnc, all) to write.")],
+    format: Annotated[str, typer.Option("--format", help="csv | siemens-cec | linuxcnc | all")] = "csv",
+    points: Annotated[Optional[int], typer.Option(help="Grid points per table (equally spaced over the input axis's range).")] = None,
+    max_points: Annotated[int, typer.Option(help="Siemens MD18342 $MN_MM_CEC_MAX_POINTS of the controller.")] = 2000,
+):
+    """Compensation tables -f_ij of a machine model for a controller (Paper I): q̂_i = q_i + Σ_j T_ij(q_j)."""
+    import warnings
+
+    with _user_errors(), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        from .export.controller import export_run_tables
+
+        written = export_run_tables(run_dir, out, format, points, max_points)
+    seen = set()
+    for w in caught:  # the end-slope warnings, once each (every writer checks them)
+        if str(w.message) not in seen:
+            seen.add(str(w.message))
+            typer.echo(f"warning: {w.message}", err=True)
+    typer.echo(f"wrote {written}")
+
+
 # ------------------------------------------------------------------ import-tmac
 @app.command("import-tmac")
 def import_tmac_cmd(

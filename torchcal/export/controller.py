@@ -394,8 +394,46 @@ def export_tables(folder, tables, siemens_max_points: int = SIEMENS_MAX_POINTS, 
     return out
 
 
+FORMATS = ("csv", "siemens-cec", "linuxcnc", "all")
+
+
+def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None, siemens_max_points: int = SIEMENS_MAX_POINTS,
+                      pairs=None):
+    """``torchcal export-tables``: the compensation tables of a machine run directory in one controller format.
+
+    run_dir: written by ``torchcal fit`` with ``model.kind: axis_perturbation``; out: a file (csv,
+    siemens-cec) or a folder (linuxcnc, all); points: grid points per table (default: the tables'
+    default, at most ``siemens_max_points`` for siemens-cec); pairs: (output, input) axis names or
+    indices (default every table of the model). -> what was written (path, or {axis: path}, or a dict).
+    Raises RunDirError for a run without an axis perturbation model, TableError subclasses as the writers do.
+    """
+    from ..compensate.tables import DEFAULT_POINTS, TableError, compensation_tables
+    from ..io.rundir import RunDirError, load_model
+
+    if fmt not in FORMATS:
+        raise TableError(f"unknown table format {fmt!r}; choose from {', '.join(FORMATS)}")
+    model = load_model(run_dir)
+    if getattr(model, "axis_errors", None) is None:
+        raise RunDirError(f"{run_dir}: its model has no axis perturbation tables (fit it with model.kind: "
+                          "axis_perturbation)")
+    k = int(points) if points is not None else DEFAULT_POINTS
+    if fmt in ("siemens-cec", "all"):
+        k = min(k, int(siemens_max_points))
+    tables = compensation_tables(model, k, pairs)
+    modulo = ()
+    if fmt == "csv":
+        return write_tables_csv(out, tables)
+    if fmt == "siemens-cec":
+        return write_siemens_cec(out, tables, max_points=siemens_max_points, modulo_axes=modulo)
+    if fmt == "linuxcnc":
+        return write_linuxcnc_comp(out, tables)
+    return export_tables(out, tables, siemens_max_points)
+
+
 __all__ = [
     "CSV_COLUMNS",
+    "FORMATS",
+    "export_run_tables",
     "LINUXCNC_MAX_POINTS",
     "SIEMENS_MAX_POINTS",
     "TableAxisError",

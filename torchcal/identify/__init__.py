@@ -2,6 +2,8 @@
 
 from .backlash import select_backlash_orders
 from .blocks import GaussianPrior, ParamBlock
+from .constrained import (AutoConstraintResult, ConstrainedFitResult, ConstraintError, SlopePenalty, SweepResult,
+                          auto_constraint, constraint_sweep, fit_constrained, pick_knee)
 from .fit import SOLVERS, fit, resolve_noise
 from .gauge import dependent_columns, fix_gauge
 from .layout import ParameterLayout, parameter_groups
@@ -11,8 +13,20 @@ from .online import InformationBlock, OnlineCalibration, OnlineStep, batch_refit
 from .order import OrderSelection, held_out_errors, loo_residuals, paired_improvement, pose_folds, score_orders, select_orders
 from .problem import PAPER2_JOINT_VAR_BWD, PAPER2_JOINT_VAR_FWD, CalibrationProblem, NoiseModel, Prior, raw_residual, row_errors
 from .result import FitResult
+from .slope import model_slopes, slope_points
 
 __all__ = [
+    "AutoConstraintResult",
+    "ConstrainedFitResult",
+    "ConstraintError",
+    "SlopePenalty",
+    "SweepResult",
+    "auto_constraint",
+    "constraint_sweep",
+    "fit_constrained",
+    "model_slopes",
+    "pick_knee",
+    "slope_points",
     "PAPER2_JOINT_VAR_BWD",
     "PAPER2_JOINT_VAR_FWD",
     "SOLVERS",

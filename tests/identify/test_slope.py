@@ -1,0 +1,188 @@
+"""The tool-tip modeled-error slope hbar of Paper I (13)-(30): closed form, autograd, the paper's form, FD."""
+
+import numpy as np
+import pytest
+import torch
+
+import torchcal
+import torchcal.sim
+from conftest import random_commands, randomize
+from torchcal.identify.slope import (machine_slope_norm_jacobian, model_slopes, modeled_error, slope_norms,
+                                     slope_points, worst_points)
+from torchcal.machine import MachineModel
+from torchcal.model import RobotModel
+
+TOOLS = torch.tensor([[0.0, 0.0, 0.4029], [0.0, 0.0, 0.5009]])
+
+
+
+@pytest.fixture(autouse=True)
+def _single_thread(one_thread):
+    """Tiny tensors: torch's intra-op threads only contend on the shared 2-core machine."""
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return torchcal.load_robot("five_axis_xyzcb")
+
+
+def machine_model(machine, coef_fn, orders=4):
+    model = MachineModel(machine, TOOLS, orders=orders)
+    with torch.no_grad():
+        model.axis_errors.coef.copy_(coef_fn(model.axis_errors.coef.shape) * model.axis_errors.mask)
+    return model
+
+
+def paper_slopes(model, q, l_t):
+    """hbar by Paper I (25)-(30), (35), (42)-(47), written out with numpy (sign of (23): e = p_nom - p_AP)."""
+    ae = model.axis_errors
+    with torch.no_grad():
+        dq = ae.delta(q).numpy()
+        D = ae.slopes(q).numpy()
+    q = q.numpy()
+    half = 0.5 * (ae.limits[:, 1] - ae.limits[:, 0]).numpy()
+    out = np.zeros((q.shape[0], 5, 3))
+    for b in range(q.shape[0]):
+        C, B = q[b, 3], q[b, 4]
+        ID = np.eye(5) + D[b]
+        Jv_ap, Jv_nom = ID[:3], np.eye(5)[:3]
+        cA = C + dq[b, 3]
+        Jw_ap = np.outer([-np.sin(cA), np.cos(cA), 0.0], ID[4]) + np.outer([0.0, 0.0, 1.0], ID[3])  # (27), (42)-(44)
+        Jw_nom = np.zeros((3, 5))
+        Jw_nom[:, 4] = [-np.sin(C), np.cos(C), 0.0]
+        Jw_nom[2, 3] = 1.0  # (47)
+        Rn = np.array([[np.cos(C), -np.sin(C), 0], [np.sin(C), np.cos(C), 0], [0, 0, 1]]) @ \
+            np.array([[np.cos(B), 0, np.sin(B)], [0, 1, 0], [-np.sin(B), 0, np.cos(B)]])
+        pt = Rn @ np.array([0.0, 0.0, l_t])
+        for i in range(5):
+            dw, dv = Jw_nom[:, i] - Jw_ap[:, i], Jv_nom[:, i] - Jv_ap[:, i]
+            out[b, i] = (np.cross(dw, pt) + dv) * half[i]  # S(a) x = a x x, (29)-(30)
+    return out
+
+
+def test_equals_the_papers_form_where_its_assumption_holds(machine):
+    """(25) assumes R_AP = R_nom: exact when only X, Y, Z carry tables, and where the rotary tables are zero."""
+    g = torch.Generator().manual_seed(0)
+    lin = machine_model(machine, lambda s: torch.cat([torch.randn((3,) + s[1:], generator=g),
+                                                      torch.zeros((2,) + s[1:])]) * 1e-4)
+    q = torchcal.sim.quasi_random_commands(machine.joint_map.limits, 16, 0)
+    ours = model_slopes(lin, q, 1).detach().numpy()
+    assert np.abs(ours).max() > 1e-5
+    assert np.allclose(ours, -paper_slopes(lin, q, 0.5009), atol=1e-14)
+
+    def rot(s):  # f_CX, f_BX odd in qbar_X (c1, c3): zero at mid X, slopes there are not
+        c = torch.zeros(s)
+        c[3, 0, 1], c[3, 0, 3], c[4, 0, 1], c[4, 0, 3] = 2e-5, -1e-5, 3e-5, 1e-5
+        c[0, 4, 2] = 1e-4
+        return c
+
+    model = machine_model(machine, rot)
+    q[:, 0] = machine.joint_map.limits[0].mean()
+    ours = model_slopes(model, q, 1).detach().numpy()
+    assert np.abs(ours[:, 0]).max() > 1e-6
+    assert np.allclose(ours, -paper_slopes(model, q, 0.5009), atol=1e-14)
+
+
+def test_exact_slope_keeps_the_term_the_paper_drops(machine):
+    """A constant C offset rotates the tool: its slope along C is |dq_C| |J_C| half range, (25) gives 0."""
+    def const_c(s):
+        c = torch.zeros(s)
+        c[3, 3, 0] = 1e-4
+        return c
+
+    model = machine_model(machine, const_c)
+    q = torchcal.sim.quasi_random_commands(machine.joint_map.limits, 8, 1)
+    ours = model_slopes(model, q, 1).detach()
+    assert np.abs(paper_slopes(model, q, 0.5009)[:, 3]).max() == 0.0
+    half_c = 0.5 * float(machine.joint_map.limits[3].diff())
+    expected = 1e-4 * 0.5009 * torch.sin(q[:, 4]).abs() * half_c  # |Rz(C + d) - Rz(C)| on a radius l sin B, to O(d^2)
+    assert torch.allclose(ours[:, 3].norm(dim=1), expected, rtol=1e-3)
+
+
+def test_machine_slopes_match_finite_differences_and_autograd(machine):
+    g = torch.Generator().manual_seed(2)
+    model = machine_model(machine, lambda s: torch.randn(s, generator=g) * 1e-4)
+    q = torchcal.sim.quasi_random_commands(machine.joint_map.limits, 6, 2)
+    h = model_slopes(model, q, 0).detach()
+    assert torch.allclose(model_slopes(model, q, 0, method="autograd").detach(), h, atol=1e-15)
+    half = 0.5 * (machine.joint_map.limits[:, 1] - machine.joint_map.limits[:, 0])
+    for i in range(5):
+        d = torch.zeros(5)
+        d[i] = 1e-6
+        with torch.no_grad():
+            fd = (modeled_error(model, q + d, TOOLS[0]) - modeled_error(model, q - d, TOOLS[0])) / 2e-6 * half[i]
+        assert torch.allclose(fd, h[:, i], atol=1e-9), i
+
+
+def test_robot_slopes_match_finite_differences(fanuc, tools_m):
+    model = randomize(RobotModel(fanuc, tools_m, orders=3, backlash=True), 3)
+    q = random_commands(fanuc, 4, 3)
+    h = model_slopes(model, q, 2).detach()
+    assert h.shape == (4, 6, 3)
+    half = 0.5 * (fanuc.joint_map.limits[:, 1] - fanuc.joint_map.limits[:, 0])
+    for i in range(6):
+        d = torch.zeros(6)
+        d[i] = 1e-6
+        with torch.no_grad():
+            fd = (modeled_error(model, q + d, tools_m[2]) - modeled_error(model, q - d, tools_m[2])) / 2e-6 * half[i]
+        assert torch.allclose(fd, h[:, i], atol=1e-9), i
+    # the nominal robot has no modeled error and no slope; the base correction is not a machine error
+    nominal = RobotModel(fanuc, tools_m, orders=3)
+    with torch.no_grad():
+        nominal.base.twist.fill_(1e-2)
+    assert float(model_slopes(nominal, q).detach().abs().max()) == 0.0
+
+
+def test_norm_jacobian_matches_autograd(machine):
+    g = torch.Generator().manual_seed(4)
+    model = machine_model(machine, lambda s: torch.randn(s, generator=g) * 1e-4)
+    q = torchcal.sim.quasi_random_commands(machine.joint_map.limits, 5, 4)
+    axis = torch.tensor([0, 2, 3, 4, 3])
+    nrm, J = machine_slope_norm_jacobian(model, q, TOOLS[1], axis)
+    coef = model.axis_errors.coef.detach()
+    from torch.func import functional_call, jacrev
+
+    def norms(c):
+        params = {k: v.detach() for k, v in model.named_parameters()}
+        params["axis_errors.coef"] = c
+
+        class W(torch.nn.Module):
+            def __init__(self):
+                super().__init__()
+                self.model = model
+
+            def forward(self, qq):
+                return model_slopes(self.model, qq, TOOLS[1][None], method="autograd")
+
+        h = functional_call(W(), {f"model.{k}": v for k, v in params.items()}, (q,))
+        return h[torch.arange(5), axis].norm(dim=-1)
+
+    assert torch.allclose(norms(coef), nrm, atol=1e-16)
+    assert torch.allclose(jacrev(norms)(coef), J, atol=1e-12)
+
+
+def test_slope_points_cover_the_whole_box():
+    lim = torch.tensor([[0.0, 1.0], [-2.0, 2.0], [5.0, 6.0]])
+    pts = slope_points(lim, count=32, seed=0)
+    assert pts.shape == (32 + 6 * 8 + 8, 3)
+    assert bool(((pts >= lim[:, 0]) & (pts <= lim[:, 1])).all())
+    corners = pts[-8:]
+    assert bool(((corners == lim[:, 0]) | (corners == lim[:, 1])).all())
+    on_face = ((pts == lim[:, 0]) | (pts == lim[:, 1])).any(1)
+    assert int(on_face.sum()) == 6 * 8 + 8
+    assert torch.equal(slope_points(lim, 32, 0), pts)
+    other = slope_points(lim, 32, 1)
+    assert float(torch.cdist(other[:32], pts[:32]).min()) > 0
+
+
+def test_worst_points_climb_to_a_larger_slope(machine):
+    g = torch.Generator().manual_seed(5)
+    model = machine_model(machine, lambda s: torch.randn(s, generator=g) * 1e-4)
+    q0 = torchcal.sim.quasi_random_commands(machine.joint_map.limits, 8, 5)
+    q1 = worst_points(model, q0, steps=15)
+    lim = machine.joint_map.limits
+    assert bool(((q1 >= lim[:, 0] - 1e-12) & (q1 <= lim[:, 1] + 1e-12)).all())
+    with torch.no_grad():
+        before = slope_norms(model, q0).amax(dim=(0, 2))
+        after = slope_norms(model, q1).amax(dim=(0, 2))
+    assert bool((after >= before - 1e-12).all()) and float(after.max()) > float(before.max())

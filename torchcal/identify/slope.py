@@ -1,0 +1,329 @@
+"""The tool-tip modeled-error slope of Paper I (13)-(30), for machine tools and robots, by autograd.
+
+The modeled error of the tool tip is the difference between where the
+identified model and the nominal kinematics put it, both in the machine's own
+base frame (no measurement frame) and with the nominal tool vector p_tl:
+
+    e_t(q) = p_t,model(q) - p_t,nom(q)                           (16)-(17), (23)
+
+(the paper writes p_nom - p_AP; the sign does not matter for the bound). Its
+slope along axis i, scaled to half the axis range, is
+
+    hbar_i(q) = d e_t / d q_i * (q_i,max - q_i,min) / 2          (29)-(30)
+
+in metres per half axis motion, and Paper I bounds |hbar_i|_2 <= c (31) over
+the WHOLE axis space (where nothing was measured too). The paper derives
+hbar_i in closed form for XYZCB under R_nom ~ R_AP (24)-(28); here it is the
+exact derivative, by forward-mode autograd (torch.func.jacfwd, vmapped over
+points), so it holds for any model: :class:`torchcal.machine.MachineModel`
+(e_t from F_AP(q) = F_nom(q + dq(q))) and :class:`torchcal.model.RobotModel`
+(e_t from the modeled flange with every joint error term, gravity compliance
+included, the base-frame correction and backlash excluded: the former is the
+measurement frame, the latter depends on the approach direction, not on q).
+
+:func:`slope_points` makes the dense point set the bound is imposed on:
+seeded scrambled Sobol points over the command box, plus Sobol points on every
+face of the box and all its corners (a polynomial's slope is largest at the
+border).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+from scipy.stats import qmc
+from torch import nn
+from torch.func import functional_call, jacfwd, vmap
+
+from ..kinematics.fk import chain_frames
+
+
+# ------------------------------------------------------------------ the modeled error
+def _is_machine(model) -> bool:
+    return callable(getattr(model, "machine_flange", None))
+
+
+def _is_robot(model) -> bool:
+    return hasattr(model, "joint_errors") and callable(getattr(model, "_variables", None))
+
+
+def modeled_flange(model, q: torch.Tensor) -> torch.Tensor:
+    """Modeled last-frame pose (B, 4, 4) in the machine's nominal base frame, without the measurement frame.
+
+    MachineModel: F_AP(q) = F_nom(q + dq(q)); RobotModel: the chain with every
+    joint error term at the command q (no backlash: direction unknown), no base correction.
+    """
+    if _is_machine(model):
+        return model.machine_flange(q)
+    if _is_robot(model):
+        theta, u, _ = model._variables(q, None)
+        E = model.joint_errors(u, None)
+        return chain_frames(model.origins, model.axes, model.prismatic, theta, E, model.tip)[2]
+    raise TypeError(f"{type(model).__name__}: the slope needs a MachineModel or a RobotModel "
+                    f"(machine_flange(q), or joint_errors with _variables)")
+
+
+def modeled_error(model, q: torch.Tensor, tool_vector: torch.Tensor) -> torch.Tensor:
+    """e_t(q) (B, 3), m: modeled minus nominal tool point for the tool vector (3,) in the last frame."""
+    F = modeled_flange(model, q)
+    N = model.nominal_flange(q)
+    p = tool_vector.to(q)
+    return (F[:, :3, :3] - N[:, :3, :3]) @ p + F[:, :3, 3] - N[:, :3, 3]
+
+
+def tool_vectors(model, tool=None) -> torch.Tensor:
+    """(T, 3) nominal tool vectors the slope is taken for.
+
+    tool: None (every nominal tool of the model), an index or list of indices
+    into ``model.tools.nominal``, or vectors (3,) / (T, 3) in m in the last frame.
+    """
+    nominal = model.tools.nominal
+    if tool is None:
+        return nominal
+    t = torch.as_tensor(tool)
+    if not t.is_floating_point():
+        return nominal[t.reshape(-1).to(nominal.device)]
+    t = t.to(dtype=nominal.dtype, device=nominal.device)
+    if t.shape[-1] != 3:
+        raise ValueError(f"tool vectors must have shape (3,) or (T, 3), got {tuple(t.shape)}")
+    return t.reshape(-1, 3)
+
+
+def half_ranges(model) -> torch.Tensor:
+    """(n,) half of each command range, SI: the scaling of (30)."""
+    lim = model.command_limits
+    return 0.5 * (lim[:, 1] - lim[:, 0])
+
+
+def _slopes(model, q: torch.Tensor, P: torch.Tensor, method: str = "auto") -> torch.Tensor:
+    """hbar (T, B, n, 3) for tool vectors P (T, 3)."""
+    if method not in ("auto", "autograd"):
+        raise ValueError(f"slope method must be 'auto' or 'autograd', got {method!r}")
+    if method == "auto" and _is_machine(model):
+        return machine_slope_terms(model, q, P)["hbar"]
+    half = half_ranges(model).to(q)
+    out = []
+    for p in P:
+        def e(q1, p=p):
+            return modeled_error(model, q1[None], p)[0]
+
+        J = vmap(jacfwd(e))(q)  # (B, 3, n)
+        out.append((J * half).transpose(1, 2))
+    return torch.stack(out)
+
+
+# ------------------------------------------------------------------ closed form for machines
+def point_jacobian_and_hessian(origins, axes, prismatic, tip, theta, points, hessian: bool = True):
+    """Nominal point Jacobians of a serial chain and their derivatives w.r.t. the joint variables.
+
+    theta: (B, n); points: (T, 3) in the last frame. -> J (T, B, 3, n) = d p / d theta
+    and H (T, B, 3, n, n) with H[..., r, s] = d J[..., r] / d theta_s (None
+    unless ``hessian``): for s before r a revolute joint s turns J_r rigidly
+    (z_s x J_r); for s at or after r, p moves by J_s and a revolute r turns it
+    (z_r x J_s); prismatic joints translate and leave J unchanged.
+    """
+    jR, jp, F = chain_frames(origins, axes, prismatic, theta, None, tip, None)
+    p = torch.einsum("bij,tj->tbi", F[:, :3, :3], points.to(theta)) + F[None, :, :3, 3]  # (T, B, 3)
+    z = (jR @ axes.to(theta)[:, :, None])[..., 0]  # (B, n, 3)
+    pm = prismatic[None, None, :, None]
+    zz = z.expand(p.shape[0], -1, -1, -1)
+    Jr = torch.where(pm, zz, torch.linalg.cross(zz, p[:, :, None, :] - jp, dim=-1))  # (T, B, n, 3), row r = J_r
+    if not hessian:
+        return Jr.transpose(-1, -2), None
+    n = theta.shape[1]
+    rev = (~prismatic).to(theta)
+    r_idx = torch.arange(n, device=theta.device)
+    before = (r_idx[None, :] < r_idx[:, None]).to(theta)  # [r, s]: s before r
+    sh = Jr.shape[:2] + (n, n, 3)
+    # [t, b, r, s]: z_s x J_r (s before r, s revolute) + z_r x J_s (s at or after r, r revolute)
+    lower = torch.linalg.cross(zz[:, :, None, :, :].expand(sh), Jr[:, :, :, None, :].expand(sh), dim=-1)
+    upper = torch.linalg.cross(zz[:, :, :, None, :].expand(sh), Jr[:, :, None, :, :].expand(sh), dim=-1)
+    H = lower * (before * rev[None, :])[..., None] + upper * ((1 - before) * rev[:, None])[..., None]
+    return Jr.transpose(-1, -2), H.permute(0, 1, 4, 2, 3)
+
+
+def machine_slope_terms(model, q: torch.Tensor, P: torch.Tensor, hessian: bool = False) -> dict:
+    """hbar (30) of a MachineModel in closed form, with what its coefficient Jacobian needs.
+
+    e_t(q) = G(q + dq(q)) - G(q), G the nominal tool point: d e_t / d q =
+    J_G(a) (I + D(q)) - J_G(q), a = q + dq(q), D = d dq / d q (the table slopes).
+    q: (B, n); P: (T, 3) tool vectors. -> dict with 'hbar' (T, B, n, 3) and the
+    pieces: 'JG' (T, B, 3, n) = J_G(a), 'HG' (T, B, 3, n, n) = d J_G(a)[..., m] / d a_i
+    (with ``hessian``), 'ID' (B, n, n) = I + D, 'design', 'ddesign' (B, n, K):
+    Chebyshev values and their derivative w.r.t. q_j per input axis.
+    """
+    from ..basis import chebyshev_with_derivative
+
+    ae = model.axis_errors
+    A = model.coupling.to(q)
+    a = q + ae.delta(q)
+    theta_a = a @ A.T + model.offset.to(q)
+    theta_q = q @ A.T + model.offset.to(q)
+    Ja, Ha = point_jacobian_and_hessian(model.origins, model.axes, model.prismatic, model.tip, theta_a, P, hessian)
+    Jq, _ = point_jacobian_and_hessian(model.origins, model.axes, model.prismatic, model.tip, theta_q, P, False)
+    JG = Ja @ A
+    lam = ae.normalized(q)
+    design, dl = chebyshev_with_derivative(lam, ae.coef.shape[-1] - 1)
+    lim = ae.limits.to(q)
+    ddesign = dl * (2.0 / (lim[:, 1] - lim[:, 0]))[:, None]
+    D = torch.einsum("bjk,ijk->bij", ddesign, ae.masked_coef())
+    ID = torch.eye(q.shape[1], dtype=q.dtype, device=q.device) + D
+    dedq = JG @ ID - Jq @ A
+    out = {"hbar": (dedq * half_ranges(model).to(q)).transpose(-1, -2), "JG": JG, "ID": ID, "design": design,
+           "ddesign": ddesign}
+    if hessian:
+        out["HG"] = torch.einsum("tbcrs,rm,si->tbcmi", Ha, A, A)
+    return out
+
+
+def machine_slope_norm_jacobian(model, q: torch.Tensor, p: torch.Tensor, axis: torch.Tensor):
+    """|hbar_m| at (q_b, m = axis_b) and its Jacobian w.r.t. ``axis_errors.coef``, closed form.
+
+    q: (A, n) points; p: (3,) tool; axis: (A,) long, the axis m of each entry.
+    -> norms (A,), d norm / d coef (A, n, n, K) (masked entries zero).
+
+    d hbar_m / d a_kij = half_m [HG[:, m, i] . (I + D)[:, m] design_jk + J_G[:, i] delta_jm ddesign_jk]
+    """
+    t = machine_slope_terms(model, q, p.reshape(1, 3), hessian=True)
+    ar = torch.arange(q.shape[0], device=q.device)
+    h = t["hbar"][0, ar, axis]  # (A, 3)
+    nrm = h.norm(dim=-1)
+    u = h / nrm.clamp(min=1e-300)[:, None]
+    half = half_ranges(model).to(q)[axis]  # (A,)
+    col = torch.einsum("bcmi,bm->bci", t["HG"][0], t["ID"][ar, :, axis])  # (A, 3, n_i): d J_G(a) (I+D)[:, m] / d a_i
+    t1 = torch.einsum("bc,bci,bjk->bijk", u, col, t["design"])
+    uj = torch.einsum("bc,bci->bi", u, t["JG"][0])  # (A, n_i)
+    n = q.shape[1]
+    onehot = torch.nn.functional.one_hot(axis, n).to(q)  # (A, n_j)
+    t2 = uj[:, :, None, None] * (onehot[:, :, None] * t["ddesign"])[:, None, :, :]
+    J = (t1 + t2) * half[:, None, None, None] * model.axis_errors.mask.to(q)
+    return nrm, J
+
+
+def model_slopes(model, q: torch.Tensor, tool=None, method: str = "auto") -> torch.Tensor:
+    """hbar (30): slope of the modeled tool-tip error per axis, scaled to half the axis range.
+
+    model: MachineModel or RobotModel; q: (B, n) commands, SI; tool: the tool
+    vector: None = the longest nominal tool of the model, an index into its
+    nominal tools, or a (3,) vector in m in the last frame; method: 'auto'
+    (closed form for a MachineModel, :func:`machine_slope_terms`; forward-mode
+    autograd otherwise) or 'autograd' (always torch.func.jacfwd, vmapped over points).
+    -> (B, n, 3), m per half axis motion: hbar[b, i] = d e_t / d q_i (q_b) (q_i,max - q_i,min) / 2.
+
+    Example:
+        >>> import torch, torchcal
+        >>> from torchcal.machine import MachineModel
+        >>> robot = torchcal.load_robot("five_axis_xyzcb")
+        >>> model = MachineModel(robot, torch.tensor([[0.0, 0.0, 0.5009]], dtype=torch.float64), orders=2)
+        >>> with torch.no_grad():
+        ...     _ = model.axis_errors.coef[2, 4, 1].fill_(1e-4)   # Z error growing linearly with B: 0.1 mm per half B range
+        >>> h = model_slopes(model, robot.joint_map.limits.mean(1)[None])
+        >>> round(float(h[0, 4].detach().norm()) * 1e3, 6)         # mm per half B motion
+        0.1
+    """
+    if tool is None:
+        nominal = model.tools.nominal
+        p = nominal[nominal.norm(dim=1).argmax()]
+    else:
+        p = tool_vectors(model, tool)
+        if p.shape[0] != 1:
+            raise ValueError("model_slopes takes one tool; use slope_norms for several")
+        p = p[0]
+    return _slopes(model, q, p[None], method)[0]
+
+
+def slope_norms(model, q: torch.Tensor, tools=None) -> torch.Tensor:
+    """|hbar_i|_2 for several tools: (T, B, n), m per half axis motion; tools as in :func:`tool_vectors`."""
+    return _slopes(model, q, tool_vectors(model, tools)).norm(dim=-1)
+
+
+def max_slope(model, q: torch.Tensor, tools=None) -> float:
+    """max over points, axes and tools of |hbar_i|_2 (m per half axis motion)."""
+    with torch.no_grad():
+        return float(slope_norms(model, q, tools).max())
+
+
+class _SlopeNorms(nn.Module):
+    """slope_norms(model, q, tools) as a module whose parameters are the model's (for functional_call)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, q, P):
+        return _slopes(self.model, q, P).norm(dim=-1)
+
+
+def functional_slope_norms(model, params: dict, q: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """slope_norms with the model's parameters replaced by ``params`` {name: tensor} (differentiable in them)."""
+    wrapper = _SlopeNorms(model)
+    return functional_call(wrapper, {f"model.{k}": t for k, t in params.items()}, (q, P))
+
+
+# ------------------------------------------------------------------ where the bound is imposed
+def _sobol(d: int, count: int, seed: int) -> np.ndarray:
+    if d == 0 or count == 0:
+        return np.zeros((count, d))
+    sampler = qmc.Sobol(d=d, scramble=True, seed=np.random.default_rng(seed))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # balance is best at powers of two; any count is fine here
+        return sampler.random(count)
+
+
+def slope_points(limits: torch.Tensor, count: int = 512, seed: int = 0, face_count: int | None = None,
+                 corners: bool = True) -> torch.Tensor:
+    """Dense points over the WHOLE command box where the slope bound (31) is imposed or checked.
+
+    limits: (n, 2) command range, SI; count: scrambled Sobol points inside the
+    box (seeded); face_count: Sobol points on each of the 2n faces (default
+    count // 4), the axis of the face at its lower or upper limit; corners: add
+    all 2^n corners (n <= 12). -> (M, n) on ``limits``' device and dtype.
+    Two seeds give disjoint quasi-random points (the corners are shared).
+
+    Example:
+        >>> lim = torch.tensor([[0.0, 1.0], [-2.0, 2.0]], dtype=torch.float64)
+        >>> pts = slope_points(lim, count=16, seed=0)
+        >>> pts.shape, bool(((pts >= lim[:, 0]) & (pts <= lim[:, 1])).all())
+        (torch.Size([36, 2]), True)
+    """
+    lim = torch.as_tensor(limits)
+    n = lim.shape[0]
+    if lim.ndim != 2 or lim.shape[1] != 2 or not bool((lim[:, 0] < lim[:, 1]).all()):
+        raise ValueError(f"slope_points: limits must be (n, 2) with lower < upper, got {lim.tolist()}")
+    if count < 0:
+        raise ValueError(f"slope_points: count must be >= 0, got {count}")
+    face_count = count // 4 if face_count is None else int(face_count)
+    parts = [_sobol(n, count, seed)]
+    for i in range(n):
+        for side in (0.0, 1.0):
+            u = _sobol(n - 1, face_count, seed * 1009 + 2 * i + int(side) + 1)
+            parts.append(np.insert(u, i, side, axis=1))
+    if corners and n <= 12:
+        parts.append(((np.arange(2 ** n)[:, None] >> np.arange(n)[None, :]) & 1).astype(np.float64))
+    u = torch.from_numpy(np.concatenate(parts)).to(dtype=lim.dtype, device=lim.device)
+    return lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
+
+
+def worst_points(model, q0: torch.Tensor, tools=None, steps: int = 30, lr: float = 0.05) -> torch.Tensor:
+    """Local maxima of the slope near given points: projected gradient ascent in the command box.
+
+    q0: (K, n) starting commands, SI; each start climbs max over axes and tools
+    of |hbar| (Adam on the normalized commands, clamped to the box, ``steps``
+    steps of size ``lr`` of the half range). -> (K, n) the points reached, SI.
+    Used to find where a slope bound is tightest between quasi-random points.
+    """
+    lim = model.command_limits.to(q0)
+    lo, span = lim[:, 0], lim[:, 1] - lim[:, 0]
+    P = tool_vectors(model, tools)
+    u = ((q0 - lo) / span).detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([u], lr=lr)
+    for _ in range(steps):
+        opt.zero_grad()
+        nrm = _slopes(model, lo + u * span, P).norm(dim=-1)  # (T, K, n)
+        (-nrm.amax(dim=(0, 2)).sum()).backward()
+        opt.step()
+        with torch.no_grad():
+            u.clamp_(0.0, 1.0)
+    return (lo + u.detach() * span).detach()

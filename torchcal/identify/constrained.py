@@ -301,7 +301,7 @@ def _reduced_system(f, A, C, w_v, v, lam_b, dx, mu, H_blk, g_blk, v_free):
     return S, rhs, back
 
 
-class _QPNotConverged(RuntimeError):
+class _QPNotConverged(TorchcalError, RuntimeError):
     """NNLS stopped at its iteration limit (degenerate constraints); the caller damps or stops."""
 
 

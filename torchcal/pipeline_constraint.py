@@ -67,6 +67,17 @@ def identify_constrained(cfg, inp, make, orders, run_dir: Path, progress, files:
     """
     c_cfg = cfg.constraint
     opts = _solver_options(inp)
+    base_make = make
+
+    def make(o):  # noqa: F811 (the factory with the slope's reference set)
+        m = base_make(o)
+        if c_cfg.reference != "nominal":
+            if not hasattr(m, "joint_errors"):
+                raise ConfigError(f"{cfg.config_file or 'config'}: key 'constraint.reference': 'constant' is for robot "
+                                  "models (model.kind: joint_dependent)")
+            m.slope_reference = c_cfg.reference
+        return m
+
     common = dict(points=int(c_cfg.points), check_points=int(c_cfg.check_points), tol=float(c_cfg.tol),
                   seed=int(cfg.seed), **opts)
     summary: dict = {"units": "mm per half axis range", "c": None}

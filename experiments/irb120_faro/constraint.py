@@ -51,6 +51,9 @@ def main(argv=None):
     ap.add_argument("--border-axes", default="J2,J5", help="two joints for BORDER (the IRB 120's sparse edges)")
     ap.add_argument("--knee-tol-mm", type=float, default=0.01)
     ap.add_argument("--points", type=int, default=512)
+    ap.add_argument("--reference", choices=["nominal", "constant"], default="nominal",
+                    help="slope of the whole modeled error (Paper I) or of its joint-dependent part only "
+                         "(reference: the chain with the constant error terms)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("runs/irb120_constraint"))
     args = ap.parse_args(argv)
@@ -70,8 +73,10 @@ def main(argv=None):
         al = align(robot, ident, n_tools=3)
 
         def make():
-            return RobotModel(robot, al.tools, orders=args.order, backlash=True if args.backlash else None,
-                              base_nominal=al.base_nominal, compliance=compliance)
+            m = RobotModel(robot, al.tools, orders=args.order, backlash=True if args.backlash else None,
+                           base_nominal=al.base_nominal, compliance=compliance)
+            m.slope_reference = args.reference
+            return m
 
         t = time.perf_counter()
         free = make()

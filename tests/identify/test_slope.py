@@ -186,3 +186,29 @@ def test_worst_points_climb_to_a_larger_slope(machine):
         before = slope_norms(model, q0).amax(dim=(0, 2))
         after = slope_norms(model, q1).amax(dim=(0, 2))
     assert bool((after >= before - 1e-12).all()) and float(after.max()) > float(before.max())
+
+
+def test_robot_constant_reference_bounds_only_the_joint_dependent_terms():
+    """slope_reference='constant': constant (DH-like) errors have no slope; a c1 term has the same one either way
+    when it is the only error."""
+    import torchcal
+    from torchcal.identify.slope import model_slopes, slope_points
+
+    robot = torchcal.load_robot("abb_irb120")
+    m = torchcal.RobotModel(robot, torch.tensor([[0.0, 0.0, 0.1]], dtype=torch.float64), orders=2)
+    q = slope_points(m.command_limits, 32, 0)
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        m.joint_errors.coef[..., 1] = 1e-4 * torch.randn(m.joint_errors.coef[..., 1].shape, generator=g,
+                                                         dtype=torch.float64)
+    m.slope_reference = "constant"
+    linear_only = model_slopes(m, q, 0).detach()
+    m.slope_reference = "nominal"
+    assert torch.allclose(model_slopes(m, q, 0).detach(), linear_only, atol=1e-12)
+    with torch.no_grad():
+        m.joint_errors.coef[..., 0] = 1e-3 * torch.randn(m.joint_errors.coef[..., 0].shape, generator=g,
+                                                         dtype=torch.float64)
+        m.joint_errors.coef[..., 1] = 0.0
+    assert model_slopes(m, q, 0).detach().norm(dim=-1).max() > 1e-3  # constants move the tool with the joints
+    m.slope_reference = "constant"
+    assert model_slopes(m, q, 0).detach().norm(dim=-1).max() < 1e-12

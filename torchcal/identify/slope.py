@@ -65,10 +65,36 @@ def modeled_flange(model, q: torch.Tensor) -> torch.Tensor:
                     f"(machine_flange(q), or joint_errors with _variables)")
 
 
+SLOPE_REFERENCES = ("nominal", "constant")
+
+
+def constant_flange(model, q: torch.Tensor) -> torch.Tensor:
+    """RobotModel only: the chain with just the constant (c0) term of every joint error, (B, 4, 4).
+
+    The reference of ``model.slope_reference = 'constant'``: the slope then measures the joint-DEPENDENT
+    part of the modeled error only. On a robot, constant (DH-like) errors move the tool point by their
+    lever arm times the joint motion: large, legitimate slopes (~12 mm per half range on the IRB 120)
+    that a bound on the whole error would fight.
+    """
+    from ..kinematics.transforms import twist_to_transform
+
+    je = model.joint_errors
+    e0 = (je.coef * je.mask)[..., 0]  # (n, 6): every series' constant term (c_0 = 1)
+    E0 = twist_to_transform(e0).expand(q.shape[0], -1, 4, 4)
+    return chain_frames(model.origins, model.axes, model.prismatic, model.joint_variables(q), E0, model.tip)[2]
+
+
 def modeled_error(model, q: torch.Tensor, tool_vector: torch.Tensor) -> torch.Tensor:
-    """e_t(q) (B, 3), m: modeled minus nominal tool point for the tool vector (3,) in the last frame."""
+    """e_t(q) (B, 3), m: modeled minus reference tool point for the tool vector (3,) in the last frame.
+
+    The reference is the nominal chain (Paper I (23)), or for a RobotModel whose ``slope_reference`` is
+    'constant' the chain with the constant error terms only (:func:`constant_flange`).
+    """
     F = modeled_flange(model, q)
-    N = model.nominal_flange(q)
+    ref = getattr(model, "slope_reference", "nominal")
+    if ref not in SLOPE_REFERENCES:
+        raise ValueError(f"slope_reference must be one of {SLOPE_REFERENCES}, got {ref!r}")
+    N = constant_flange(model, q) if ref == "constant" and _is_robot(model) else model.nominal_flange(q)
     p = tool_vector.to(q)
     return (F[:, :3, :3] - N[:, :3, :3]) @ p + F[:, :3, 3] - N[:, :3, 3]
 

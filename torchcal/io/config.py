@@ -137,6 +137,10 @@ class ConstraintConfig:
     """c: auto, the c values tried (mm); null: a geometric grid below the unconstrained model's largest slope."""
     knee_tol_mm: float = 0.01
     """c: auto, the knee: the smallest c before the boundary max or the sub-identification mean rises by more than this."""
+    reference: str = "nominal"
+    """What the slope is of: the modeled error against the nominal chain (Paper I), or, for robots, 'constant':
+    against the chain with the constant error terms, i.e. the joint-dependent part only (constant DH-like
+    errors have large, legitimate slopes on a robot)."""
 
 
 @dataclass
@@ -472,6 +476,8 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
             fail(f"constraint.{key}", f"{cfg.constraint[key]!r}: give a positive integer")
     if not cfg.constraint.tol > 0 or not cfg.constraint.knee_tol_mm > 0:
         fail("constraint.tol" if not cfg.constraint.tol > 0 else "constraint.knee_tol_mm", "must be positive")
+    if cfg.constraint.reference not in ("nominal", "constant"):
+        fail("constraint.reference", f"{cfg.constraint.reference!r}: give nominal or constant")
     axes = _plain(cfg.constraint.border_axes)
     if axes is not None and (not isinstance(axes, list) or len(axes) != 2 or len(set(axes)) != 2):
         fail("constraint.border_axes", f"{axes!r}: give two different axis (joint) names")

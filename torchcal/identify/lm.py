@@ -122,6 +122,10 @@ def levenberg_marquardt(
             # blocks' Gauss-Newton model: |r + J db|^2 = c + 2 g^T db + db^T H db
             lin_blk = None if H_blk is None else c_blk + 2 * (g_blk @ db) + db @ (H_blk @ db)
             predicted = cost - float(problem.cost_from(lin, x_new, v_new, lin_blk))
+            if attempt == 0 and it > 1 and 0 <= predicted <= 0.1 * ftol * cost:
+                # the Gauss-Newton model at the current point sees less to gain than the stopping test
+                # accepts: stop here rather than pay a kinematics pass to confirm it
+                break
             if trial_linearize and attempt == 0:
                 linearized = problem.linearize(x_new, v_new)
                 f_new = linearized[0]
@@ -145,7 +149,8 @@ def levenberg_marquardt(
         if not accepted:
             layout.set(x)
             success = True
-            message = "converged: no step lowers the cost further"
+            message = ("converged: the predicted cost reduction is below ftol" if attempt == 0 else
+                       "converged: no step lowers the cost further")
             break
         step_small = bool((db.abs() <= xtol * (x.abs() + xtol)).all())
         x, v = x_new, v_new

@@ -54,6 +54,7 @@ from torchcal.sim.machine_truth import (
     MachineTruth,
     region_commands,
     simulate_machine_dataset,
+    write_machine_csv,
 )
 
 PAPER_TABLE5 = {  # Paper I Table 5, mm: (mean, max) per set
@@ -180,6 +181,9 @@ def main(argv=None) -> int:
     truth = MachineTruth(seed=args.seed)
     data, split = simulate_machine_dataset(truth, seed=args.seed, csv_path=out / "measurements.csv")
     sets = {k: data.subset(v) for k, v in split.items()}
+    # the same split as CSV files, for `torchcal fit experiments/paper1_machine_tool/fit.yaml`
+    write_machine_csv(out / "identification.csv", sets["identification"])
+    write_machine_csv(out / "validation.csv", data.subset(torch.cat([split["interpolation"], split["extrapolation"]])))
     tools = torch.tensor([[0.0, 0.0, units.mm_to_m(l)] for l in PAPER1_TOOLS_MM], dtype=torch.float64)
     noise = NoiseModel.from_robot(robot, sigma_m=20e-6)
     lim = robot.joint_map.limits

@@ -208,32 +208,44 @@ class RobotModel(nn.Module):
         d = self._parts(q, direction, v)
         F = d["F"]
         p = self.tool_points(F, tool)
+        B = q.shape[0]
+        J = self.chain_jacobians(d, q, p, rows=3)
+        Jt = torch.zeros(B, 3, self.tools.count, 3, dtype=q.dtype, device=q.device)
+        Jt[torch.arange(B, device=q.device), :, tool, :] = F[:, :3, :3]
+        J["tools.delta"] = Jt
+        return p, J
+
+    def chain_jacobians(self, d: dict, q: torch.Tensor, p: torch.Tensor, rows: int = 3) -> dict:
+        """Jacobians of a point p (B, 3) carried by the flange w.r.t. every chain parameter group and v.
+
+        d: :meth:`_parts` at (q, direction, v); rows: 3 (velocity of p) or 6 (then also the angular
+        velocity of the flange, so that dR = S(omega) R). -> {'joint_errors.coef' (B, rows, n, 6, K),
+        'joint_errors.backlash', 'base.twist' (B, rows, 6), ['compliance.coef'], ['fine.values'],
+        'v' (B, rows, n)}: everything but the tool vectors, shared by point targets and sensor rigs.
+        """
         B, n = q.shape
-        Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :])[:, :, :3, :]  # (B, n, 3, 6)
-        Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :3, :]  # (B, 3, n) per θ_i
-        slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 3, n): d p / d u_i through E_i's series
+        Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :])[:, :, :rows, :]  # (B, n, rows, 6)
+        Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :rows, :]  # per θ_i
+        slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, rows, n): through E_i's series
         J = {"joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
         if d["s"] is not None:
             J["joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None], d["basis"][..., : d["Kb"]])
         else:
-            J["joint_errors.backlash"] = torch.zeros(B, 3, n, d["Kb"], dtype=q.dtype, device=q.device)
+            J["joint_errors.backlash"] = torch.zeros(B, rows, n, d["Kb"], dtype=q.dtype, device=q.device)
         nominal = self.base.nominal.expand(B, 4, 4)
         T0 = nominal @ twist_to_transform(self.base.twist)
-        J["base.twist"] = twist_jacobian(T0[:, :3, :3], T0[:, :3, 3], self.base.twist.expand(B, 6), p)[:, :3, :]
-        Jt = torch.zeros(B, 3, self.tools.count, 3, dtype=q.dtype, device=q.device)
-        Jt[torch.arange(B, device=q.device), :, tool, :] = F[:, :3, :3]
-        J["tools.delta"] = Jt
+        J["base.twist"] = twist_jacobian(T0[:, :3, :3], T0[:, :3, 3], self.base.twist.expand(B, 6), p)[:, :rows, :]
+        # Δθ_j (compliance, fine tables) moves θ_j and u_j where the errors follow θ_j: d / d Δθ_j
+        moves = Jax + slope * self.error_follows_joint
         if self.compliance is not None:
             c = self.compliance
-            # Δθ_j = Σ_k coef[j, k] F[j, k] moves θ_j (and u_j where the errors follow θ_j): d p / d coef = d p / d Δθ_j · F[j, k]
-            Jdef = Jax + slope * self.error_follows_joint
-            J["compliance.coef"] = torch.einsum("bcm,bmk->bcmk", Jdef[:, :, c.joints], d["comp"]) * c.mask
+            J["compliance.coef"] = torch.einsum("bcm,bmk->bcmk", moves[:, :, c.joints], d["comp"]) * c.mask
         if self.fine is not None:
             w, _ = self.fine.weights(self.joint_variables(q))
-            J["fine.values"] = torch.einsum("bcn,bnk->bcnk", Jax + slope * self.error_follows_joint, w) * self.fine.mask
+            J["fine.values"] = torch.einsum("bcn,bnk->bcnk", moves, w) * self.fine.mask
         # v moves θ = A (q + v) + offset and u = A_u (q + v) + b_u
         J["v"] = Jax @ self.coupling + slope @ self.error_coupling
-        return p, J
+        return J
 
     def flange_jacobian(self, q, direction=None, base: bool = False):
         """Flange pose and its body-frame Jacobian w.r.t. the controller commands, error slopes included.

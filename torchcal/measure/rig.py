@@ -167,36 +167,17 @@ class SensorRig(nn.Module):
         dR = S(omega) R. Same chain as :meth:`sensor_pose`, the robot part as in
         :meth:`RobotModel.point_jacobians <torchcal.model.RobotModel.point_jacobians>`.
         """
-        from ..jacobian import joint_axis_jacobian, twist_jacobian
-        from ..kinematics.transforms import twist_to_transform
+        from ..jacobian import twist_jacobian
 
         m = self.model
         d = m._parts(q, direction, v)
-        F = d["F"]
-        T = F @ self.mount()
+        T = d["F"] @ self.mount()
         p = T[:, :3, 3]
-        B, n = q.shape
-        Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :])  # (B, n, 6, 6)
-        Jax = joint_axis_jacobian(d["jR"], d["jp"], m.axes, m.prismatic, p)  # (B, 6, n) per θ_i
-        slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 6, n): through E_i's series
-        J = {"model.joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
-        if d["s"] is not None:
-            J["model.joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None],
-                                                            d["basis"][..., : d["Kb"]])
-        else:
-            J["model.joint_errors.backlash"] = q.new_zeros(B, 6, n, d["Kb"])
-        T0 = m.base.nominal.expand(B, 4, 4) @ twist_to_transform(m.base.twist)
-        J["model.base.twist"] = twist_jacobian(T0[:, :3, :3], T0[:, :3, 3], m.base.twist.expand(B, 6), p)
+        B = q.shape[0]
+        chain = m.chain_jacobians(d, q, p, rows=6)
+        J = {"v": chain.pop("v")} | {f"model.{k}": t for k, t in chain.items()}
         J["model.tools.delta"] = q.new_zeros(B, 6, m.tools.count, 3)  # not used by the rig (empty mask)
         J["mount.twist"] = twist_jacobian(T[:, :3, :3], p, self.mount.twist.expand(B, 6), p)
-        moves = Jax + slope * m.error_follows_joint
-        if m.compliance is not None:
-            c = m.compliance
-            J["model.compliance.coef"] = torch.einsum("bcm,bmk->bcmk", moves[:, :, c.joints], d["comp"]) * c.mask
-        if getattr(m, "fine", None) is not None:
-            w, _ = m.fine.weights(m.joint_variables(q))
-            J["model.fine.values"] = torch.einsum("bcn,bnk->bcnk", moves, w) * m.fine.mask
-        J["v"] = Jax @ m.coupling + slope @ m.error_coupling
         return T, J
 
     # ------------------------------------------------------------- parameters

@@ -28,11 +28,13 @@ import torchcal
 from torchcal.error_models import FineJointErrors, SmoothnessPenalty
 from torchcal.identify import NoiseModel, Prior
 from torchcal.identify.alignment import kabsch
+from torchcal.identify.hand_eye import hand_eye
 from torchcal.io.tmac import read_tmac, read_trafo
 from torchcal.measure import PointTargets
 from torchcal.measure.pose import PoseInstrument, rotation_error, rotation_log
 from torchcal.measure.rig import SensorRig
 from torchcal.model import RobotModel
+from torchcal.pipeline_sensor import measured_poses
 
 SERIES = {"A": "measurements_grid.csv", "B": "measurements_joint_configurations.csv",
           "C": "measurements_random_poses.csv", "D": "measurements_iso_cubes.csv"}
@@ -58,44 +60,7 @@ NO_JOINT_NOISE = NoiseModel(POINT_SIGMA, torch.zeros(6, dtype=torch.float64), to
 TARGETS = {"C pos mean": 0.10, "C pos p99": 0.30, "C rot mean": 0.015, "B/D pos mean": 0.45}
 
 
-# ------------------------------------------------------------------ hand-eye
-def hand_eye(F: torch.Tensor, T: torch.Tensor, pairs: int = 8000, seed: int = SEED):
-    """Closed-form T = X F M: tracker <- base X (4, 4) and flange -> sensor M (4, 4) from (N, 4, 4) poses.
-
-    Rotations: R_Ti R_Tj^T = R_X (R_Fi R_Fj^T) R_X^T, so the rotation vectors of the measured
-    relative motions are R_X times the modeled ones: Kabsch on the axes (pairs 0.2-2.9 rad apart,
-    seeded). R_M: nearest rotation to Σ R_F^T R_X^T R_T. Translations: p_T - R_X p_F = R_X R_F t_M + t_X,
-    linear least squares in (t_M, t_X).
-    """
-    g = torch.Generator().manual_seed(seed)
-    N = F.shape[0]
-    i, j = torch.randint(N, (pairs,), generator=g), torch.randint(N, (pairs,), generator=g)
-    RF, pF, RT, pT = F[:, :3, :3], F[:, :3, 3], T[:, :3, :3], T[:, :3, 3]
-    a = rotation_log(RT[i] @ RT[j].transpose(1, 2))
-    b = rotation_log(RF[i] @ RF[j].transpose(1, 2))
-    keep = (b.norm(dim=1) > 0.2) & (b.norm(dim=1) < 2.9)
-    # the relative rotation axes must span 3-D, else R_X is not determined (e.g. poses of one orientation)
-    sv = torch.linalg.svdvals(b[keep]) if int(keep.sum()) >= 3 else torch.zeros(3, dtype=F.dtype)
-    if int(keep.sum()) < 20 or float(sv[-1]) < 1e-2 * float(sv[0]):
-        raise ValueError(f"hand_eye: the poses' relative rotations ({int(keep.sum())} pairs of {pairs} between 0.2 and "
-                         f"2.9 rad, axis spread {(sv / sv[0].clamp(min=1e-300)).tolist()}) do not determine the frames")
-    RX, _ = kabsch(b[keep], a[keep])
-    Msum = (RF.transpose(1, 2) @ RX.T @ RT).sum(0)
-    U, _, Vh = torch.linalg.svd(Msum)
-    d = torch.sign(torch.linalg.det(U @ Vh))
-    RM = U @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ Vh
-    A = torch.cat([RX @ RF, torch.eye(3, dtype=F.dtype).expand(N, 3, 3)], 2).reshape(-1, 6)
-    y = (pT - pF @ RX.T).reshape(-1)
-    sol = torch.linalg.lstsq(A, y[:, None]).solution[:, 0]
-    X, M = torch.eye(4, dtype=F.dtype), torch.eye(4, dtype=F.dtype)
-    X[:3, :3], X[:3, 3], M[:3, :3], M[:3, 3] = RX, sol[3:], RM, sol[:3]
-    return X, M
-
-
-def measured_poses(data) -> torch.Tensor:
-    T = torch.eye(4, dtype=torch.float64).repeat(len(data), 1, 1)
-    T[:, :3, :3], T[:, :3, 3] = data.extra["rotation"], data.xyz
-    return T
+# hand-eye (torchcal.identify.hand_eye) and the measured poses (torchcal.pipeline_sensor), as torchcal fit uses them
 
 
 # ---------------------------------------------------------------- evaluation

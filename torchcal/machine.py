@@ -31,16 +31,15 @@ from torch import nn
 
 from .error_models.axis_perturbation import AxisPerturbation
 from .error_models.frame import FrameCorrection, ToolSet
-from .jacobian import twist_jacobian
+from .jacobian import joint_axis_jacobian, twist_jacobian
 from .kinematics.fk import chain_frames
-from .kinematics.robot import Robot
+from .kinematics.robot import ChainBuffers, Robot
 from .kinematics.transforms import twist_to_transform
-from .jacobian import joint_axis_jacobian
 
 TOOL_TERMS = ("z", "xyz")
 
 
-class MachineModel(nn.Module):
+class MachineModel(ChainBuffers, nn.Module):
     """Paper I's model of a machine tool: axis perturbation tables + measurement frame + tools.
 
     robot: the nominal machine (e.g. ``torchcal.load_robot("five_axis_xyzcb")``);
@@ -68,32 +67,13 @@ class MachineModel(nn.Module):
         if tool_terms not in TOOL_TERMS:
             raise ValueError(f"MachineModel: tool_terms must be one of {TOOL_TERMS}, got {tool_terms!r}")
         self.robot = robot
-        chain, jm = robot.chain, robot.joint_map
-        self.register_buffer("origins", chain.origins.clone())
-        self.register_buffer("axes", chain.axes.clone())
-        self.register_buffer("prismatic", chain.prismatic.clone())
-        self.register_buffer("tip", chain.tip.clone())
-        self.register_buffer("coupling", jm.coupling.clone())
-        self.register_buffer("offset", jm.offset.clone())
-        self.register_buffer("command_limits", jm.limits.clone())
+        jm = robot.joint_map
+        self.register_chain(robot)
         self.axis_errors = AxisPerturbation(jm.limits, jm.prismatic, orders, pairs, jm.names)
         self.base = FrameCorrection(base_nominal)
         self.tools = ToolSet(tools)
         self.tool_terms = tool_terms
         self.coverage = None  # RobotModel's direction coverage; machines carry none
-
-    # ------------------------------------------------------------------ shapes
-    @property
-    def n(self) -> int:
-        return self.origins.shape[0]
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.origins.dtype
-
-    @property
-    def device(self) -> torch.device:
-        return self.origins.device
 
     # -------------------------------------------------------------- kinematics
     def perturbed_commands(self, q: torch.Tensor, v: torch.Tensor | None = None) -> torch.Tensor:
@@ -200,7 +180,7 @@ class MachineModel(nn.Module):
         }
 
     @classmethod
-    def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> "MachineModel":
+    def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> MachineModel:
         """Rebuild an (all-zero) model from :meth:`spec`; load the state dict to restore values."""
         from .kinematics.robot import load_robot
 

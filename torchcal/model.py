@@ -28,11 +28,11 @@ from .error_models.frame import FrameCorrection, ToolSet
 from .error_models.joint import JointErrors
 from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
 from .kinematics.fk import chain_frames
-from .kinematics.robot import Robot
+from .kinematics.robot import ChainBuffers, Robot
 from .kinematics.transforms import twist_to_transform
 
 
-class RobotModel(nn.Module):
+class RobotModel(ChainBuffers, nn.Module):
     """Paper II's generalized kinematic error model (19)-(27) for one robot.
 
     robot: nominal machine (chain + joint map); tools: (T, 3) nominal tool
@@ -68,13 +68,7 @@ class RobotModel(nn.Module):
             robot = robot.with_error_variable(error_variable)
         self.robot = robot
         chain, jm = robot.chain, robot.joint_map
-        self.register_buffer("origins", chain.origins.clone())
-        self.register_buffer("axes", chain.axes.clone())
-        self.register_buffer("prismatic", chain.prismatic.clone())
-        self.register_buffer("tip", chain.tip.clone())
-        self.register_buffer("coupling", jm.coupling.clone())
-        self.register_buffer("offset", jm.offset.clone())
-        self.register_buffer("command_limits", jm.limits.clone())
+        self.register_chain(robot)
         self.error_variable = list(jm.error_variable)
         A_u, b_u = jm.error_map()
         # structure, not state: rebuilt from the spec, so state dicts of older runs (without them) still load
@@ -89,19 +83,6 @@ class RobotModel(nn.Module):
         self.fine = build_fine(robot, fine)
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
         self.coverage = None  # DirectionCoverage of the identification data, set by fit()
-
-    # ------------------------------------------------------------------ shapes
-    @property
-    def n(self) -> int:
-        return self.origins.shape[0]
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.origins.dtype
-
-    @property
-    def device(self) -> torch.device:
-        return self.origins.device
 
     # -------------------------------------------------------------- kinematics
     def joint_variables(self, q: torch.Tensor) -> torch.Tensor:
@@ -312,7 +293,7 @@ class RobotModel(nn.Module):
         return out
 
     @classmethod
-    def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> "RobotModel":
+    def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> RobotModel:
         """Rebuild an (all-zero) model from :meth:`spec`; load the state dict to restore values."""
         from .kinematics.robot import load_robot
 

@@ -159,3 +159,31 @@ def load_robot(spec: str | Path) -> Robot:
     jm = _joint_map_from_yaml(spec_d, chain, str(path))
     return Robot(path.stem, chain, jm, spec_s if bundled else str(path.resolve()),
                  _repeatability_from_yaml(spec_d, jm, str(path)))
+
+
+class ChainBuffers:
+    """Mixin for ``nn.Module`` models of a robot or machine: the nominal chain and joint map as buffers.
+
+    :meth:`register_chain` stores origins, axes, prismatic, tip, coupling, offset and
+    command_limits (what the functional FK and the joint map need, moved by ``.to()``);
+    ``n``, ``dtype`` and ``device`` follow them.
+    """
+
+    def register_chain(self, robot: Robot) -> None:
+        chain, jm = robot.chain, robot.joint_map
+        for name, t in (("origins", chain.origins), ("axes", chain.axes), ("prismatic", chain.prismatic),
+                        ("tip", chain.tip), ("coupling", jm.coupling), ("offset", jm.offset),
+                        ("command_limits", jm.limits)):
+            self.register_buffer(name, t.clone())
+
+    @property
+    def n(self) -> int:
+        return self.origins.shape[0]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.origins.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.origins.device

@@ -96,6 +96,12 @@ def test_information_block_normal_equations_follow_names(fanuc, tools_m):
     xn2 = xn.clone()
     xn2[free] += 1e-3
     assert float((r2 @ r2 - r @ r) - (blk.quadratic(xn2) - blk.quadratic(xn))) == pytest.approx(0.0, abs=1e-12)
+    # the direct form LM uses (no eigendecomposition) agrees with the residual form
+    Hn, gn, cn = blk.normal_equations(x, lay)
+    assert torch.allclose(Hn, J.T @ J, atol=1e-12) and torch.allclose(gn, J.T @ r, atol=1e-12)
+    Hn2, gn2, cn2 = blk.normal_equations(x2, lay)
+    assert float((cn2 - cn) - (r2 @ r2 - r @ r)) == pytest.approx(0.0, abs=1e-12)
+    assert float(blk.cost(x2, lay)) == pytest.approx(float(cn2), abs=1e-14)
 
 
 def test_point_targets_cat_keeps_every_rows_weight():
@@ -241,6 +247,29 @@ def test_steps_report_rows_and_warm_starts(fanuc_stream):
     # from zero, 7)
     assert all(s.result.nit <= 5 and s.result.nit < info[0].result.nit for s in info[1:])
     assert info[1].result.v.shape == (30, 6)  # only the new rows' joint errors are solved for
+
+
+def test_warm_tolerance_stops_within_a_standard_error(fanuc, tools_m, fanuc_stream):
+    """Updates stopped at warm_tol = 1 (the remaining Gauss-Newton decrease under s^2) take fewer
+    iterations than updates solved to 1e-7 s^2 (measured 2, 2, 2 against 4, 3, 3), yet land next to
+    them: the difference, in the metric of the tight run's carried information scaled by s^2 (squared
+    standard errors), is measured 0.001 (one Gauss-Newton step from the warm start does nearly all).
+    Skipping an update's step, or the first fit stopping early, would not pass."""
+    data, noise, batches = fanuc_stream["data"], fanuc_stream["noise"], fanuc_stream["batches"]
+    runs = {}
+    for tol in (1.0, 1e-7):
+        model = torchcal.RobotModel(fanuc, tools_m, orders=1)
+        online = OnlineCalibration(model, noise, warm_tol=tol)
+        steps = [online.update(data.poses_subset(b)) for b in batches]
+        runs[tol] = (model, online, steps)
+    loose, tight = runs[1.0], runs[1e-7]
+    assert sum(s.result.nit for s in loose[2][1:]) < sum(s.result.nit for s in tight[2][1:])
+    assert loose[2][0].result.nit == tight[2][0].result.nit  # the first fit is not a warm update
+    online = tight[1]
+    vals = {m: dict(zip(ParameterLayout(r[0]).names(), ParameterLayout(r[0]).get().tolist())) for m, r in runs.items()}
+    d = torch.tensor([vals[1.0][n] - vals[1e-7][n] for n in online.names], dtype=torch.float64)
+    s2 = tight[2][-1].result.fun / (len(batches[-1]) * 3 * 3)  # cost per residual entry of the last batch
+    assert float(d @ online.H @ d) / s2 < 0.05
 
 
 def test_literal_keeps_earlier_joint_errors_frozen(fanuc, tools_m, fanuc_stream):

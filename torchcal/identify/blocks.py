@@ -3,7 +3,10 @@
 A block is any object with ``linearize(x, layout) -> (r (k,), J (k, P))``:
 its whitened residual at the free vector x (P,) of ``layout`` and the
 Jacobian. LM adds J^T J and J^T r to the normal equations, L-BFGS adds |r|^2
-(so r must be computed from x with differentiable torch operations). Blocks
+(so r must be computed from x with differentiable torch operations). A block
+that is a quadratic in x may also offer ``normal_equations(x, layout) -> (H,
+g, cost)`` and ``cost(x, layout)``, used instead (both must agree with each
+other; the cost may differ from |r|^2 by a constant). Blocks
 refer to parameters by entry name (:meth:`ParameterLayout.names`), so they
 survive the gauge fixing that pins some entries.
 """
@@ -90,6 +93,10 @@ def block_normal_equations(blocks, x: torch.Tensor, layout: ParameterLayout):
     g = torch.zeros(P, dtype=x.dtype, device=x.device)
     cost = x.new_zeros(())
     for b in blocks:
+        if hasattr(b, "normal_equations"):  # a quadratic block hands its H, g, cost over directly
+            Hb, gb, cb = b.normal_equations(x, layout)
+            H, g, cost = H + Hb, g + gb, cost + cb
+            continue
         r, J = b.linearize(x, layout)
         H = H + J.T @ J
         g = g + J.T @ r
@@ -101,6 +108,9 @@ def block_cost(blocks, x: torch.Tensor, layout: ParameterLayout) -> torch.Tensor
     """Sum over blocks of |r(x)|^2 (differentiable in x where the blocks are)."""
     cost = x.new_zeros(())
     for b in blocks:
+        if hasattr(b, "cost"):
+            cost = cost + b.cost(x, layout)
+            continue
         r, _ = b.linearize(x, layout)
         cost = cost + (r * r).sum()
     return cost

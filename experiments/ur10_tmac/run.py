@@ -83,11 +83,14 @@ def fmt(pos, rot) -> str:
 
 
 # ---------------------------------------------------------------- models
-COMPLIANCE = {"mode": "functions", "joints": [1, 2, 3]}
-"""Gravity compliance of the UR10's three parallel joints (shoulder_lift, elbow, wrist_1), arm-angle
-functions (the URDF has no inertials). Named explicitly: the default picks every joint whose axis is
-horizontal at q = 0, which on a UR10 includes wrist_3 (not parallel to the others), whose 'arm angle'
-functions then extrapolate badly outside Series C."""
+COMPLIANCE = {"mode": "gravity", "joints": [1, 2, 3]}
+"""Gravity compliance of the UR10's three parallel joints (shoulder_lift, elbow, wrist_1): each deflects by
+its own compliance (rad per N·m, one parameter per joint) times the gravity torque it holds, computed from
+the URDF's inertials (Universal Robots' published masses and centres of mass). Physical torques extrapolate
+to configurations Series C never visits (elbow-down, other shoulder angles); the arm-angle functions of
+'functions' mode (12 free coefficients) fitted C equally well but transferred at 0.74 / 0.57 mm instead of
+0.45 / 0.50. The T-Mac's own weight (a point mass at the flange, tried at 0, 1.5 and 3 kg) changes the
+transfer by under 0.005 mm and is left out. wrist_3 is not named: the default joint choice would add it."""
 
 MODELS = {
     # name: (Chebyshev orders, compliance, fine tables)
@@ -142,7 +145,7 @@ def instrument_for(data, mode: str):
 
 
 PRIOR = Prior()
-"""The prior of every fit; main() sets its compliance sigma by extrapolation validation (choose_compliance_prior)."""
+"""The prior of every fit: the defaults (each group's declared scale; compliance 0.01 rad per N·m, i.e. free)."""
 
 
 def fit_rig(rig, data, mode: str, fine_sigma=None, fixed=("gravity",), max_iter=40, prior=None):
@@ -151,29 +154,6 @@ def fit_rig(rig, data, mode: str, fine_sigma=None, fixed=("gravity",), max_iter=
         blocks.append(SmoothnessPenalty(rig.model.fine, fine_sigma))
     return torchcal.fit(rig, data, NO_JOINT_NOISE, PRIOR if prior is None else prior, fixed=fixed,
                         instrument=instrument_for(data, mode), blocks=blocks, max_iter=max_iter)
-
-
-def choose_compliance_prior(robot, X, M, train, grid, joints=(1, 2), quantile=0.6):
-    """Prior sigma of the compliance coefficients by *extrapolation* validation inside the training rows.
-
-    The arm-angle functions are nearly confounded with the constant joint errors over a part of the
-    joints' range: left free they fit Series C equally well in many ways that differ outside it. For each
-    joint in ``joints`` (shoulder_lift, elbow) the geometric + compliance model is fitted on the rows
-    below the joint's ``quantile`` and scored on the rows above it (mean position error, same tracker);
-    the sigma with the smallest sum wins. -> sigma (rad per unit function).
-    """
-    total = {pc: 0.0 for pc in grid}
-    for j in joints:
-        qj = train.q[:, j]
-        cut = torch.quantile(qj, quantile)
-        lo, hi = train.subset(qj <= cut), train.subset(qj > cut)
-        for pc in grid:
-            rig = build_rig(robot, X, M, "compliance", train.q)
-            fit_rig(rig, lo, "pose", prior=Prior(compliance=pc))
-            total[pc] += float(pose_errors(rig, hi)[0].mean())
-    for pc in grid:
-        print(f"    compliance prior {pc:.0e}: extrapolation score {total[pc]:.4f} mm", flush=True)
-    return min(grid, key=lambda pc: total[pc])
 
 
 def refit_tracker(rig, data, max_iter=30):
@@ -252,14 +232,14 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer models (rigid, compliance, fine), pose fits only")
     ap.add_argument("--grid", type=float, nargs="*", default=[3e-5, 1e-4, 3e-4],
                     help="smoothness sigmas (rad) tried by validation")
-    ap.add_argument("--compliance-grid", type=float, nargs="*", default=[1e-2, 1e-4, 3e-5, 1e-5, 3e-6],
-                    help="compliance prior sigmas tried by extrapolation validation")
     ap.add_argument("--out", type=Path, default=None,
                     help="write the C split in the sensor CSV contract (identification.csv, validation.csv) and the "
                          "best full-pose model (model.pt) there")
+    ap.add_argument("--seed", type=int, default=SEED, help="seed of the Series C 70/30 split (and the inner validation split)")
     ap.add_argument("--per-joint", action="store_true", help="then refine the sigma joint by joint (6 x more fits)")
     args = ap.parse_args(argv)
-    torch.manual_seed(SEED)
+    seed = args.seed
+    torch.manual_seed(seed)
     t0 = time.time()
     robot = torchcal.load_robot("ur10")
     data = {}
@@ -275,11 +255,11 @@ def main(argv=None) -> int:
               f"to {[round(v, 2) for v in d.q.max(0).values.tolist()]}")
 
     C = data["C"]
-    g = torch.Generator().manual_seed(SEED)
+    g = torch.Generator().manual_seed(seed)
     perm = torch.randperm(len(C), generator=g)
     k = round(TRAIN_FRACTION * len(C))
     train, test = C.subset(perm[:k].sort().values), C.subset(perm[k:].sort().values)
-    print(f"Series C split (seed {SEED}): {len(train)} identification, {len(test)} held out")
+    print(f"Series C split (seed {seed}): {len(train)} identification, {len(test)} held out")
 
     # initial frames from the data alone
     F = robot.chain.fk(robot.joint_map.to_joint(train.q))
@@ -294,11 +274,6 @@ def main(argv=None) -> int:
     print(f"Euler XYZ (intrinsic) check: the implied flange->T-Mac rotation is constant to {float(spread.mean()):.3f} deg "
           f"mean ({float(spread.max()):.3f} max) over {len(train)} poses")
 
-    global PRIOR
-    print("  choosing the compliance prior by extrapolation validation (shoulder_lift, elbow) ...", flush=True)
-    pc = choose_compliance_prior(robot, X, M, train, args.compliance_grid)
-    PRIOR = Prior(compliance=pc)
-    print(f"  compliance prior sigma: {pc:.0e} rad per unit function", flush=True)
     kinds = ["rigid", "compliance", "fine"] if args.quick else list(MODELS)
     modes = ["pose"] if args.quick else ["pose", "position"]
     results = {}
@@ -309,7 +284,7 @@ def main(argv=None) -> int:
             if kind == "fine":
                 if fine_sigma is None:  # chosen once, on the full-pose fit
                     print(f"  [{mode}] choosing the fine tables' smoothness by validation ...", flush=True)
-                    fine_sigma, _ = choose_fine_sigma(robot, X, M, train, mode, args.grid, args.per_joint)
+                    fine_sigma, _ = choose_fine_sigma(robot, X, M, train, mode, args.grid, args.per_joint, seed)
                 rig = fit_fine(robot, X, M, train, mode, fine_sigma, start=results[(mode, "compliance")][0])
             else:
                 rig = build_rig(robot, X, M, kind, train.q)
@@ -341,7 +316,7 @@ def main(argv=None) -> int:
         write_pose_measurements(args.out / "identification.csv", train, robot)
         write_pose_measurements(args.out / "validation.csv", test, robot)
         rig = results[("pose", best)][0]
-        save_model(args.out, rig, smoothness_sigma_rad=fine_sigma.tolist(), compliance_prior=PRIOR.compliance, seed=SEED)
+        save_model(args.out, rig, smoothness_sigma_rad=fine_sigma.tolist(), compliance_prior=PRIOR.compliance, seed=seed)
         back = load_model(args.out)
         same = torch.allclose(back.sensor_pose(test.q), rig.sensor_pose(test.q).detach(), atol=1e-12)
         print(f"wrote {args.out}/identification.csv, validation.csv, model.pt (reloads identically: {same})")

@@ -172,7 +172,8 @@ class RobotModel(ChainBuffers, nn.Module):
             zpad = (2, 3)
             e = e + torch.nn.functional.pad(((basis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
             de = de + torch.nn.functional.pad(((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
-        T0 = self.base() if base else self.base.correction()
+        # base=None: no base frame at all (Paper I's modeled error is taken in the robot's own base frame)
+        T0 = None if base is None else (self.base() if base else self.base.correction())
         jR, jp, F = chain_frames(self.origins, self.axes, self.prismatic, theta, twist_to_transform(e), self.tip, T0)
         return dict(theta=theta, basis=basis, e=e, de=de, s=s, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp)
 

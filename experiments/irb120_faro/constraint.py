@@ -47,7 +47,10 @@ def main(argv=None):
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--order", type=int, default=4)
     ap.add_argument("--backlash", action=argparse.BooleanOptionalAction, default=True)
-    ap.add_argument("--compliance", default="functions", help="false, functions or gravity")
+    ap.add_argument("--compliance", default="gravity",
+                    help="false, functions (arm-angle functions of J2, J3) or gravity (torques from the URDF's inertials)")
+    ap.add_argument("--compliance-joints", default="J2,J3,J5",
+                    help="joints whose gravity deflection is modelled ('gravity' mode; 'functions' needs parallel axes)")
     ap.add_argument("--border-axes", default="J2,J5", help="two joints for BORDER (the IRB 120's sparse edges)")
     ap.add_argument("--knee-tol-mm", type=float, default=0.01)
     ap.add_argument("--points", type=int, default=512)
@@ -66,6 +69,8 @@ def main(argv=None):
     _, data = load(args.data_dir, robot, args.out)
     noise = NoiseModel.from_robot(robot)
     compliance = False if args.compliance in ("false", "False", "0") else args.compliance
+    if compliance == "gravity":
+        compliance = {"mode": "gravity", "joints": [names.index(j.strip()) for j in args.compliance_joints.split(",")]}
     rows = []
     t0 = time.perf_counter()
     for seed in args.seeds:

@@ -84,3 +84,56 @@ def test_joint_map_round_trip(irb120):
     assert torch.allclose(theta[:, 1], q[:, 1] - 90 * DEG, atol=1e-15)
     assert torch.equal(theta[:, [0, 2, 3, 4, 5]], q[:, [0, 2, 3, 4, 5]])
     assert torch.allclose(irb120.joint_map.to_command(theta), q, atol=1e-15)
+
+
+# ROS-Industrial abb_irb120_support (irb120_3_58): every link frame parallel to the base at the controller
+# zero; joint origins (m), axes, and each link's mass (kg) and centre of mass in its own frame
+ROSI_ORIGIN = [(0, 0, 0), (0, 0, 0.29), (0, 0, 0.27), (0, 0, 0.07), (0.302, 0, 0), (0.072, 0, 0)]
+ROSI_AXIS = ["z", "y", "y", "x", "y", "x"]
+ROSI_MASS = [3.067, 3.909, 2.944, 1.328, 0.546, 0.137]
+ROSI_COM = [(9.77e-05, -0.00012, 0.23841), (0.00078, -0.00212, 0.10124), (0.02281, 0.00106, 0.05791),
+            (0.2247, 0.00015, 0.00041), (-0.00109, 3.68e-05, 6.22e-05), (-0.00706, -0.00017, -1.32e-06)]
+
+
+def _rot(axis: str, a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    R = np.tile(np.eye(3), (a.shape[0], 1, 1))
+    i, j = {"x": (1, 2), "y": (2, 0), "z": (0, 1)}[axis]
+    R[:, i, i], R[:, i, j], R[:, j, i], R[:, j, j] = c, -s, s, c
+    return R
+
+
+def irb120_rosi_gravity_torques(q_deg: np.ndarray, g: float = 9.80665) -> np.ndarray:
+    """(N, 6) controller degrees -> (N, 6) N·m holding torques on the ROS-I chain: tau_j = sum over links
+    l >= j of m_l g_vec . (z_j x (c_l - o_j)); ABB's joint directions are the ROS-I axes' positive sense."""
+    q = np.radians(np.atleast_2d(q_deg))
+    N = q.shape[0]
+    R, p = np.tile(np.eye(3), (N, 1, 1)), np.zeros((N, 3))
+    axes, origins, coms = [], [], []
+    for j in range(6):
+        p = p + R @ np.array(ROSI_ORIGIN[j])
+        unit = np.eye(3)["xyz".index(ROSI_AXIS[j])]
+        axes.append(R @ unit)
+        origins.append(p)
+        R = R @ _rot(ROSI_AXIS[j], q[:, j])
+        coms.append(p + R @ np.array(ROSI_COM[j]))
+    gvec = np.array([0.0, 0.0, -g])
+    tau = np.zeros((N, 6))
+    for j in range(6):
+        for l in range(j, 6):
+            tau[:, j] += ROSI_MASS[l] * (np.cross(axes[j], coms[l] - origins[j]) @ gvec)
+    return tau
+
+
+def test_inertials_give_the_ros_industrial_models_gravity_torques(irb120):
+    """The URDF's <inertial> blocks, carried from ROS-I's link frames into this file's, give the holding
+    torques that the ROS-I chain itself gives (an independent FK, frames and axes of its own)."""
+    from torchcal.error_models.compliance import GravityCompliance
+
+    comp = GravityCompliance(irb120, joints=[1, 2, 4], mode="gravity")
+    assert comp.mode == "gravity" and float(comp.masses.sum()) == pytest.approx(sum(ROSI_MASS))
+    q = random_commands(irb120, 300, seed=3)
+    tau = comp.functions(irb120.joint_map.to_joint(q))[..., 0].numpy()  # (B, 3): J2, J3, J5
+    ref = irb120_rosi_gravity_torques(np.degrees(q.numpy()))[:, [1, 2, 4]]
+    assert np.abs(tau - ref).max() < 1e-9  # N·m; J2 holds up to ~10 N·m
+    assert np.abs(ref[:, 0]).max() > 5.0

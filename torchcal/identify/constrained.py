@@ -57,7 +57,8 @@ from .fit import fit, resolve_noise
 from .layout import ParameterLayout
 from .problem import NoiseModel, Prior, row_errors
 from .result import FitResult
-from .slope import (_is_machine, functional_slope_norms, machine_slope_norm_jacobian, slope_norms, slope_points,
+from .slope import (_is_machine, functional_slope_norms, machine_slope_norm_jacobian, robot_fast_path, robot_slope_terms,
+                    slope_norms, slope_points,
                     tool_vectors, worst_points)
 
 log = logging.getLogger("torchcal")
@@ -201,10 +202,20 @@ class SlopePenalty:
                 groups["axis_errors.coef"] = Jc[:, None]
                 J[sel] = layout.flatten_jacobian(groups, sel.numel())[:, 0, :]
             return J
-        from torch.func import jacfwd
-
         uniq, inv = torch.unique(active[:, 1], return_inverse=True)
         pts = self.points[uniq]
+        if robot_fast_path(self.model):
+            from torch.func import functional_call
+
+            wrapper = _RobotSlopeTerms(self.model, layout)
+            with torch.no_grad():
+                h, dh = functional_call(wrapper, {f"model.{n}": v for n, v in layout.as_dict(x).items()}, (pts, self.tools))
+            h = h[active[:, 0], inv, active[:, 2]]  # (k, 3)
+            dh = dh[active[:, 0], inv, active[:, 2]]  # (k, 3, P)
+            unit = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+            return torch.einsum("kc,kcp->kp", unit, dh)
+        from torch.func import jacfwd
+
 
         def f(xx):
             nrm = functional_slope_norms(self.model, _as_dict_matmul(layout, xx), pts, self.tools)  # (T, U, n)
@@ -213,6 +224,16 @@ class SlopePenalty:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # functorch batching fallbacks: slower, still exact
             return jacfwd(f)(x)
+
+
+class _RobotSlopeTerms(nn.Module):
+    def __init__(self, model, layout):
+        super().__init__()
+        self.model = model
+        self.layout = layout
+
+    def forward(self, q, P):
+        return robot_slope_terms(self.model, q, P, self.layout)
 
 
 class _MachineNormJacobian(nn.Module):

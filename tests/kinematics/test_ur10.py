@@ -17,19 +17,24 @@ ALPHA = [math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0]
 
 def ur10_dh(theta: np.ndarray) -> np.ndarray:
     """(N, 6) rad -> (N, 4, 4) flange poses in mm: Π_i Rz(θ_i) Tz(d_i) Tx(a_i) Rx(α_i), written out per factor."""
-    N = theta.shape[0]
-    out = np.tile(np.eye(4), (N, 1, 1))
+    out = np.tile(np.eye(4), (theta.shape[0], 1, 1))
     for i in range(6):
-        c, s = np.cos(theta[:, i]), np.sin(theta[:, i])
-        Rz = np.tile(np.eye(4), (N, 1, 1))
-        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = c, -s, s, c
-        Tz, Tx, Rx = np.eye(4), np.eye(4), np.eye(4)
-        Tz[2, 3] = D_MM[i]
-        Tx[0, 3] = A_MM[i]
-        ca, sa = math.cos(ALPHA[i]), math.sin(ALPHA[i])
-        Rx[1:3, 1:3] = [[ca, -sa], [sa, ca]]
-        out = out @ Rz @ Tz @ Tx @ Rx
+        out = out @ ur10_dh_step(i, theta[:, i])
     return out
+
+
+def ur10_dh_step(i: int, th: np.ndarray) -> np.ndarray:
+    """One factor Rz(θ_i) Tz(d_i) Tx(a_i) Rx(α_i), (N, 4, 4), translation in mm."""
+    N = th.shape[0]
+    c, s = np.cos(th), np.sin(th)
+    Rz = np.tile(np.eye(4), (N, 1, 1))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = c, -s, s, c
+    Tz, Tx, Rx = np.eye(4), np.eye(4), np.eye(4)
+    Tz[2, 3] = D_MM[i]
+    Tx[0, 3] = A_MM[i]
+    ca, sa = math.cos(ALPHA[i]), math.sin(ALPHA[i])
+    Rx[1:3, 1:3] = [[ca, -sa], [sa, ca]]
+    return Rz @ Tz @ Tx @ Rx
 
 
 @pytest.fixture(scope="module")
@@ -92,20 +97,6 @@ def ur10_gravity_torques(theta: np.ndarray, g: float = 9.80665) -> np.ndarray:
         for l in range(j, 6):
             tau[:, j] += MASS[l] * (np.cross(z, coms[l] - o) @ gvec)
     return tau
-
-
-def ur10_dh_step(i: int, th: np.ndarray) -> np.ndarray:
-    """One factor Rz(θ_i) Tz(d_i) Tx(a_i) Rx(α_i), (N, 4, 4), translation in mm."""
-    N = th.shape[0]
-    c, s = np.cos(th), np.sin(th)
-    Rz = np.tile(np.eye(4), (N, 1, 1))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = c, -s, s, c
-    Tz, Tx, Rx = np.eye(4), np.eye(4), np.eye(4)
-    Tz[2, 3] = D_MM[i]
-    Tx[0, 3] = A_MM[i]
-    ca, sa = math.cos(ALPHA[i]), math.sin(ALPHA[i])
-    Rx[1:3, 1:3] = [[ca, -sa], [sa, ca]]
-    return Rz @ Tz @ Tx @ Rx
 
 
 def test_inertials_give_the_dh_tables_gravity_torques(ur10):

@@ -1,6 +1,7 @@
 """Paper I's slope constraint on a real robot: ABB IRB 120 + FARO tracker, five seeded 70/30 splits.
 
     python experiments/irb120_faro/constraint.py DATA_DIR [--seeds 0 1 2 3 4] [--order 4] [--threads 2]
+        [--compliance gravity|functions|false] [--compliance-joints J2,J3,J5] [--reference nominal|constant]
 
 On the IRB 120 the largest held-out errors of Paper II's joint-dependent model
 sit where the data end (J2 ≈ -70°, J5 ≈ ±105°): the series extrapolate
@@ -12,6 +13,14 @@ poses. Everything on the commanded joints, noise from the robot's YAML (no
 ``noise`` keys). Prints, per split, the held-out mean and max without and with
 the constraint, and the max over the five splits (issue #9: max <= 0.45 mm and
 mean <= 0.11 mm with the constraint).
+
+Measured (defaults: order 4 + backlash + gravity compliance of J2, J3, J5, one
+thread, 19 min for five splits): unconstrained max 0.307 / 0.322 / 0.557 /
+0.340 / 0.478 mm, knee c = 13.2 / inf / 11.7 / inf / 12.0 mm, constrained max
+0.321 / 0.322 / 0.390 / 0.340 / 0.368 mm, means 0.091-0.095 mm: PASS. With
+the arm-angle compliance functions of J2, J3 (``--compliance functions``, the
+only choice before the URDF had inertials) and order 2 the knee sat at c = inf
+on every split and the worst max was 0.466 mm.
 """
 
 from __future__ import annotations

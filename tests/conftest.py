@@ -50,6 +50,18 @@ def tools_m():
     return torch.tensor(PAPER2_TOOLS_MM) * 1e-3
 
 
+XYZCB_TOOLS = torch.tensor([[0.0, 0.0, 0.4029], [0.0, 0.0, 0.5009]])
+"""Paper I (32): the XYZCB machine's two tool vectors [0, 0, l_t], m."""
+
+
+@pytest.fixture(scope="module")
+def machine():
+    """The bundled XYZCB machine tool of Paper I."""
+    from torchcal.kinematics import load_robot
+
+    return load_robot("five_axis_xyzcb")
+
+
 def random_commands(robot, count: int, seed: int) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     lim = robot.joint_map.limits

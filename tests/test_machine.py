@@ -8,25 +8,20 @@ import torch
 
 import torchcal
 import torchcal.sim
-from conftest import assert_point_jacobians_match_autograd
+from conftest import XYZCB_TOOLS, assert_point_jacobians_match_autograd
 from torchcal import units
 from torchcal.identify import NoiseModel, fit
 from torchcal.io.rundir import load_model, save_model
 from torchcal.machine import MachineModel
 from torchcal.measurements import Measurements
 
-TOOLS = torch.tensor([[0.0, 0.0, 0.4029], [0.0, 0.0, 0.5009]])  # Paper I (32)
+TOOLS = XYZCB_TOOLS  # Paper I (32)
 
 
 
 @pytest.fixture(autouse=True)
 def _single_thread(one_thread):
     """Tiny tensors: torch's intra-op threads only contend on the shared 2-core machine."""
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return torchcal.load_robot("five_axis_xyzcb")
 
 
 def perturbed(machine, seed, orders=3, scale=3e-5):

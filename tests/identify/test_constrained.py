@@ -7,6 +7,7 @@ import pytest
 import torch
 
 import torchcal
+from conftest import XYZCB_TOOLS
 import torchcal.sim
 from torchcal.exceptions import TorchcalError
 from torchcal.identify import NoiseModel, fit
@@ -17,18 +18,13 @@ from torchcal.identify.slope import slope_norms, slope_points
 from torchcal.machine import MachineModel
 from torchcal.measurements import Measurements
 
-TOOLS = torch.tensor([[0.0, 0.0, 0.4029], [0.0, 0.0, 0.5009]])
+TOOLS = XYZCB_TOOLS  # Paper I (32)
 
 
 
 @pytest.fixture(autouse=True)
 def _single_thread(one_thread):
     """Tiny tensors: torch's intra-op threads only contend on the shared 2-core machine."""
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return torchcal.load_robot("five_axis_xyzcb")
 
 
 @pytest.fixture(scope="module")

@@ -6,24 +6,19 @@ import torch
 
 import torchcal
 import torchcal.sim
-from conftest import random_commands, randomize
+from conftest import XYZCB_TOOLS, random_commands, randomize
 from torchcal.identify.slope import (machine_slope_norm_jacobian, model_slopes, modeled_error, robot_slope_terms,
                                      slope_norms, slope_points, tool_vectors, worst_points)
 from torchcal.machine import MachineModel
 from torchcal.model import RobotModel
 
-TOOLS = torch.tensor([[0.0, 0.0, 0.4029], [0.0, 0.0, 0.5009]])
+TOOLS = XYZCB_TOOLS  # Paper I (32)
 
 
 
 @pytest.fixture(autouse=True)
 def _single_thread(one_thread):
     """Tiny tensors: torch's intra-op threads only contend on the shared 2-core machine."""
-
-
-@pytest.fixture(scope="module")
-def machine():
-    return torchcal.load_robot("five_axis_xyzcb")
 
 
 def machine_model(machine, coef_fn, orders=4):
@@ -99,19 +94,26 @@ def test_exact_slope_keeps_the_term_the_paper_drops(machine):
     assert torch.allclose(ours[:, 3].norm(dim=1), expected, rtol=1e-3)
 
 
+def assert_slopes_match_central_differences(model, q, tool, h):
+    """h (B, n, 3) against central differences of the modeled error along each axis, scaled to half its range."""
+    lim = model.command_limits
+    half = 0.5 * (lim[:, 1] - lim[:, 0])
+    n = q.shape[1]
+    for i in range(n):
+        d = torch.zeros(n)
+        d[i] = 1e-6
+        with torch.no_grad():
+            fd = (modeled_error(model, q + d, tool) - modeled_error(model, q - d, tool)) / 2e-6 * half[i]
+        assert torch.allclose(fd, h[:, i], atol=1e-9), i
+
+
 def test_machine_slopes_match_finite_differences_and_autograd(machine):
     g = torch.Generator().manual_seed(2)
     model = machine_model(machine, lambda s: torch.randn(s, generator=g) * 1e-4)
     q = torchcal.sim.quasi_random_commands(machine.joint_map.limits, 6, 2)
     h = model_slopes(model, q, 0).detach()
     assert torch.allclose(model_slopes(model, q, 0, method="autograd").detach(), h, atol=1e-15)
-    half = 0.5 * (machine.joint_map.limits[:, 1] - machine.joint_map.limits[:, 0])
-    for i in range(5):
-        d = torch.zeros(5)
-        d[i] = 1e-6
-        with torch.no_grad():
-            fd = (modeled_error(model, q + d, TOOLS[0]) - modeled_error(model, q - d, TOOLS[0])) / 2e-6 * half[i]
-        assert torch.allclose(fd, h[:, i], atol=1e-9), i
+    assert_slopes_match_central_differences(model, q, TOOLS[0], h)
 
 
 def test_robot_slopes_match_finite_differences(fanuc, tools_m):
@@ -119,13 +121,7 @@ def test_robot_slopes_match_finite_differences(fanuc, tools_m):
     q = random_commands(fanuc, 4, 3)
     h = model_slopes(model, q, 2).detach()
     assert h.shape == (4, 6, 3)
-    half = 0.5 * (fanuc.joint_map.limits[:, 1] - fanuc.joint_map.limits[:, 0])
-    for i in range(6):
-        d = torch.zeros(6)
-        d[i] = 1e-6
-        with torch.no_grad():
-            fd = (modeled_error(model, q + d, tools_m[2]) - modeled_error(model, q - d, tools_m[2])) / 2e-6 * half[i]
-        assert torch.allclose(fd, h[:, i], atol=1e-9), i
+    assert_slopes_match_central_differences(model, q, tools_m[2], h)
     # the nominal robot has no modeled error and no slope; the base correction is not a machine error
     nominal = RobotModel(fanuc, tools_m, orders=3)
     with torch.no_grad():

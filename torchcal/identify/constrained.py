@@ -58,8 +58,7 @@ from .layout import ParameterLayout
 from .problem import NoiseModel, Prior, row_errors
 from .result import FitResult
 from .slope import (_is_machine, functional_slope_norms, machine_slope_norm_jacobian, robot_fast_path, robot_slope_terms,
-                    slope_norms, slope_points,
-                    tool_vectors, worst_points)
+                    slope_norms, slope_points, tool_vectors, worst_points)
 
 log = logging.getLogger("torchcal")
 
@@ -215,7 +214,6 @@ class SlopePenalty:
             unit = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-300)
             return torch.einsum("kc,kcp->kp", unit, dh)
         from torch.func import jacfwd
-
 
         def f(xx):
             nrm = functional_slope_norms(self.model, _as_dict_matmul(layout, xx), pts, self.tools)  # (T, U, n)

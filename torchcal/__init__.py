@@ -25,7 +25,12 @@ import sys
 import types
 from importlib import import_module
 
-from .exceptions import TorchcalError as TorchcalError  # re-exported
+from .threads import configure_openmp as _configure_openmp
+
+# before anything loads torch: OpenMP threads that wait sleep instead of spinning (torchcal.threads says why)
+_configure_openmp()
+
+from .exceptions import TorchcalError as TorchcalError  # noqa: E402  (re-exported)
 
 _LAZY = {
     # robots and models

@@ -37,236 +37,239 @@ except ImportError:  # pragma: no cover - exercised only where numba cannot be i
 _CHUNK = 512  # poses per task: scratch is allocated once per chunk, not per pose
 
 
-def _build():
+# Module-level functions, not closures: numba keys a closure's cache entry on its pickled free
+# variables (other dispatchers, whose pickles differ from process to process), so closures were
+# recompiled in every process (10-26 s per CLI run); globals resolve at compile time and stay cached.
+if HAVE_NUMBA:
     njit = numba.njit
-    # plain njit: LLVM inlines these anyway (numba's IR-level inline="always" let a callee's
-    # locals clobber same-named locals of the caller here)
-    inline = dict(cache=True)
+else:  # the decorators become no-ops; available() keeps the torch kernel in use
+    def njit(*args, **kwargs):
+        return lambda f: f
 
-    @njit(**inline)
-    def series(table, i, lam, Km, has_bl, slope):
-        """Chebyshev sums of joint i's six error terms and backlash amplitude at lam, (23);
-        slope=True: their derivatives d/dlam instead (differentiated recurrence, as chebyshev_with_derivative)."""
-        if slope:
-            w0 = w1 = w2 = d0 = d1 = d2 = bl = 0.0
-        else:
-            w0, w1, w2 = table[i, 0, 0], table[i, 1, 0], table[i, 2, 0]
-            d0, d1, d2 = table[i, 3, 0], table[i, 4, 0], table[i, 5, 0]
-            bl = table[i, 6, 0] if has_bl else 0.0
-        t_prev, t_cur = 1.0, lam  # T_k
-        s_prev, s_cur = 0.0, 1.0  # dT_k / dlam
-        for k in range(1, Km):
-            if k >= 2:
-                s_prev, s_cur = s_cur, 2.0 * t_cur - s_prev + 2.0 * lam * s_cur
-                t_prev, t_cur = t_cur, 2.0 * lam * t_cur - t_prev
-            c = s_cur if slope else t_cur
-            w0 += table[i, 0, k] * c
-            w1 += table[i, 1, k] * c
-            w2 += table[i, 2, k] * c
-            d0 += table[i, 3, k] * c
-            d1 += table[i, 4, k] * c
-            d2 += table[i, 5, k] * c
-            if has_bl:
-                bl += table[i, 6, k] * c
-        return w0, w1, w2, d0, d1, d2, bl
 
-    @njit(**inline)
-    def exp_so3(w0, w1, w2):
-        """exp(S(w)) as a row-major 9-tuple, same series as FlangeKernel.error_rotations."""
-        t2 = w0 * w0 + w1 * w1 + w2 * w2
-        if t2 < 1e-4:
-            a = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0 * (1.0 - t2 / 42.0 * (1.0 - t2 / 72.0)))
-            b = 0.5 * (1.0 - t2 / 12.0 * (1.0 - t2 / 30.0 * (1.0 - t2 / 56.0 * (1.0 - t2 / 90.0))))
-        else:
-            t = np.sqrt(t2)
-            a = np.sin(t) / t
-            b = (1.0 - np.cos(t)) / t2
-        dg = 1.0 - b * t2
-        return (b * w0 * w0 + dg, b * w0 * w1 - a * w2, b * w0 * w2 + a * w1,
-                b * w1 * w0 + a * w2, b * w1 * w1 + dg, b * w1 * w2 - a * w0,
-                b * w2 * w0 - a * w1, b * w2 * w1 + a * w0, b * w2 * w2 + dg)
+# plain njit: LLVM inlines these anyway (numba's IR-level inline="always" let a callee's
+# locals clobber same-named locals of the caller here)
+inline = dict(cache=True)
 
-    @njit(**inline)
-    def right_jacobian_apply(w0, w1, w2, v0, v1, v2):
-        """J_r(w) v, same series as FlangeKernel.right_jacobian_apply."""
-        t2 = w0 * w0 + w1 * w1 + w2 * w2
-        if t2 < 1e-8:
-            a, b = 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
-        else:
-            t = np.sqrt(t2)
-            a, b = (1.0 - np.cos(t)) / t2, (t - np.sin(t)) / (t2 * t)
-        c0, c1, c2 = w1 * v2 - w2 * v1, w2 * v0 - w0 * v2, w0 * v1 - w1 * v0
-        cc0, cc1, cc2 = w1 * c2 - w2 * c1, w2 * c0 - w0 * c2, w0 * c1 - w1 * c0
-        return v0 - a * c0 + b * cc0, v1 - a * c1 + b * cc1, v2 - a * c2 + b * cc2
 
-    @njit(**inline)
-    def mul_arr(o, e):
-        """o (3, 3) array @ e (9-tuple) -> 9-tuple."""
-        return (o[0, 0] * e[0] + o[0, 1] * e[3] + o[0, 2] * e[6], o[0, 0] * e[1] + o[0, 1] * e[4] + o[0, 2] * e[7],
-                o[0, 0] * e[2] + o[0, 1] * e[5] + o[0, 2] * e[8],
-                o[1, 0] * e[0] + o[1, 1] * e[3] + o[1, 2] * e[6], o[1, 0] * e[1] + o[1, 1] * e[4] + o[1, 2] * e[7],
-                o[1, 0] * e[2] + o[1, 1] * e[5] + o[1, 2] * e[8],
-                o[2, 0] * e[0] + o[2, 1] * e[3] + o[2, 2] * e[6], o[2, 0] * e[1] + o[2, 1] * e[4] + o[2, 2] * e[7],
-                o[2, 0] * e[2] + o[2, 1] * e[5] + o[2, 2] * e[8])
+@njit(**inline)
+def series(table, i, lam, Km, has_bl, slope):
+    """Chebyshev sums of joint i's six error terms and backlash amplitude at lam, (23);
+    slope=True: their derivatives d/dlam instead (differentiated recurrence, as chebyshev_with_derivative)."""
+    if slope:
+        w0 = w1 = w2 = d0 = d1 = d2 = bl = 0.0
+    else:
+        w0, w1, w2 = table[i, 0, 0], table[i, 1, 0], table[i, 2, 0]
+        d0, d1, d2 = table[i, 3, 0], table[i, 4, 0], table[i, 5, 0]
+        bl = table[i, 6, 0] if has_bl else 0.0
+    t_prev, t_cur = 1.0, lam  # T_k
+    s_prev, s_cur = 0.0, 1.0  # dT_k / dlam
+    for k in range(1, Km):
+        if k >= 2:
+            s_prev, s_cur = s_cur, 2.0 * t_cur - s_prev + 2.0 * lam * s_cur
+            t_prev, t_cur = t_cur, 2.0 * lam * t_cur - t_prev
+        c = s_cur if slope else t_cur
+        w0 += table[i, 0, k] * c
+        w1 += table[i, 1, k] * c
+        w2 += table[i, 2, k] * c
+        d0 += table[i, 3, k] * c
+        d1 += table[i, 4, k] * c
+        d2 += table[i, 5, k] * c
+        if has_bl:
+            bl += table[i, 6, k] * c
+    return w0, w1, w2, d0, d1, d2, bl
 
-    @njit(**inline)
-    def mul(r, a):
-        """9-tuple @ 9-tuple."""
-        return (r[0] * a[0] + r[1] * a[3] + r[2] * a[6], r[0] * a[1] + r[1] * a[4] + r[2] * a[7], r[0] * a[2] + r[1] * a[5] + r[2] * a[8],
-                r[3] * a[0] + r[4] * a[3] + r[5] * a[6], r[3] * a[1] + r[4] * a[4] + r[5] * a[7], r[3] * a[2] + r[4] * a[5] + r[5] * a[8],
-                r[6] * a[0] + r[7] * a[3] + r[8] * a[6], r[6] * a[1] + r[7] * a[4] + r[8] * a[7], r[6] * a[2] + r[7] * a[5] + r[8] * a[8])
+@njit(**inline)
+def exp_so3(w0, w1, w2):
+    """exp(S(w)) as a row-major 9-tuple, same series as FlangeKernel.error_rotations."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < 1e-4:
+        a = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0 * (1.0 - t2 / 42.0 * (1.0 - t2 / 72.0)))
+        b = 0.5 * (1.0 - t2 / 12.0 * (1.0 - t2 / 30.0 * (1.0 - t2 / 56.0 * (1.0 - t2 / 90.0))))
+    else:
+        t = np.sqrt(t2)
+        a = np.sin(t) / t
+        b = (1.0 - np.cos(t)) / t2
+    dg = 1.0 - b * t2
+    return (b * w0 * w0 + dg, b * w0 * w1 - a * w2, b * w0 * w2 + a * w1,
+            b * w1 * w0 + a * w2, b * w1 * w1 + dg, b * w1 * w2 - a * w0,
+            b * w2 * w0 - a * w1, b * w2 * w1 + a * w0, b * w2 * w2 + dg)
 
-    @njit(**inline)
-    def vec(r, v):
-        """9-tuple @ 3-tuple."""
-        x, y, z = v
-        return r[0] * x + r[1] * y + r[2] * z, r[3] * x + r[4] * y + r[5] * z, r[6] * x + r[7] * y + r[8] * z
+@njit(**inline)
+def right_jacobian_apply(w0, w1, w2, v0, v1, v2):
+    """J_r(w) v, same series as FlangeKernel.right_jacobian_apply."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < 1e-8:
+        a, b = 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
+    else:
+        t = np.sqrt(t2)
+        a, b = (1.0 - np.cos(t)) / t2, (t - np.sin(t)) / (t2 * t)
+    c0, c1, c2 = w1 * v2 - w2 * v1, w2 * v0 - w0 * v2, w0 * v1 - w1 * v0
+    cc0, cc1, cc2 = w1 * c2 - w2 * c1, w2 * c0 - w0 * c2, w0 * c1 - w1 * c0
+    return v0 - a * c0 + b * cc0, v1 - a * c1 + b * cc1, v2 - a * c2 + b * cc2
 
-    @njit(**inline)
-    def vec_arr(o, v):
-        """(3, 3) array @ 3-tuple."""
-        x, y, z = v
-        return (o[0, 0] * x + o[0, 1] * y + o[0, 2] * z, o[1, 0] * x + o[1, 1] * y + o[1, 2] * z,
-                o[2, 0] * x + o[2, 1] * y + o[2, 2] * z)
+@njit(**inline)
+def mul_arr(o, e):
+    """o (3, 3) array @ e (9-tuple) -> 9-tuple."""
+    return (o[0, 0] * e[0] + o[0, 1] * e[3] + o[0, 2] * e[6], o[0, 0] * e[1] + o[0, 1] * e[4] + o[0, 2] * e[7],
+            o[0, 0] * e[2] + o[0, 1] * e[5] + o[0, 2] * e[8],
+            o[1, 0] * e[0] + o[1, 1] * e[3] + o[1, 2] * e[6], o[1, 0] * e[1] + o[1, 1] * e[4] + o[1, 2] * e[7],
+            o[1, 0] * e[2] + o[1, 1] * e[5] + o[1, 2] * e[8],
+            o[2, 0] * e[0] + o[2, 1] * e[3] + o[2, 2] * e[6], o[2, 0] * e[1] + o[2, 1] * e[4] + o[2, 2] * e[7],
+            o[2, 0] * e[2] + o[2, 1] * e[5] + o[2, 2] * e[8])
 
-    @njit(**inline)
-    def add_column(outJ, b, n, R, v, w, c_row):
-        """Add one joint's world velocity (v, w) per unit motion, taken into the flange frame (R^T), to the
-        body-Jacobian columns of the controller commands through the chain rule row c_row (n,)."""
-        vx, vy, vz = v
-        wx, wy, wz = w
-        col = (R[0] * vx + R[3] * vy + R[6] * vz, R[1] * vx + R[4] * vy + R[7] * vz, R[2] * vx + R[5] * vy + R[8] * vz,
-               R[0] * wx + R[3] * wy + R[6] * wz, R[1] * wx + R[4] * wy + R[7] * wz, R[2] * wx + R[5] * wy + R[8] * wz)
-        for j in range(n):
-            cij = c_row[j]
-            if cij != 0.0:
-                for r in range(6):
-                    outJ[r, j, b] += col[r] * cij
+@njit(**inline)
+def mul(r, a):
+    """9-tuple @ 9-tuple."""
+    return (r[0] * a[0] + r[1] * a[3] + r[2] * a[6], r[0] * a[1] + r[1] * a[4] + r[2] * a[7], r[0] * a[2] + r[1] * a[5] + r[2] * a[8],
+            r[3] * a[0] + r[4] * a[3] + r[5] * a[6], r[3] * a[1] + r[4] * a[4] + r[5] * a[7], r[3] * a[2] + r[4] * a[5] + r[5] * a[8],
+            r[6] * a[0] + r[7] * a[3] + r[8] * a[6], r[6] * a[1] + r[7] * a[4] + r[8] * a[7], r[6] * a[2] + r[7] * a[5] + r[8] * a[8])
 
-    @njit(**inline)
-    def rotate(m, th, z_axes, K, K2):
-        """M @ joint rotation(θ): column rotation for +z axes, Rodrigues otherwise."""
-        cs, sn = np.cos(th), np.sin(th)
-        if z_axes:
-            return (m[0] * cs + m[1] * sn, m[1] * cs - m[0] * sn, m[2],
-                    m[3] * cs + m[4] * sn, m[4] * cs - m[3] * sn, m[5],
-                    m[6] * cs + m[7] * sn, m[7] * cs - m[6] * sn, m[8])
-        mk, mk2 = mul_arr_right(m, K), mul_arr_right(m, K2)
-        vc = 1.0 - cs
-        return (m[0] + sn * mk[0] + vc * mk2[0], m[1] + sn * mk[1] + vc * mk2[1], m[2] + sn * mk[2] + vc * mk2[2],
-                m[3] + sn * mk[3] + vc * mk2[3], m[4] + sn * mk[4] + vc * mk2[4], m[5] + sn * mk[5] + vc * mk2[5],
-                m[6] + sn * mk[6] + vc * mk2[6], m[7] + sn * mk[7] + vc * mk2[7], m[8] + sn * mk[8] + vc * mk2[8])
+@njit(**inline)
+def vec(r, v):
+    """9-tuple @ 3-tuple."""
+    x, y, z = v
+    return r[0] * x + r[1] * y + r[2] * z, r[3] * x + r[4] * y + r[5] * z, r[6] * x + r[7] * y + r[8] * z
 
-    @njit(**inline)
-    def mul_arr_right(m, K):
-        """9-tuple @ (3, 3) array."""
-        return (m[0] * K[0, 0] + m[1] * K[1, 0] + m[2] * K[2, 0], m[0] * K[0, 1] + m[1] * K[1, 1] + m[2] * K[2, 1],
-                m[0] * K[0, 2] + m[1] * K[1, 2] + m[2] * K[2, 2],
-                m[3] * K[0, 0] + m[4] * K[1, 0] + m[5] * K[2, 0], m[3] * K[0, 1] + m[4] * K[1, 1] + m[5] * K[2, 1],
-                m[3] * K[0, 2] + m[4] * K[1, 2] + m[5] * K[2, 2],
-                m[6] * K[0, 0] + m[7] * K[1, 0] + m[8] * K[2, 0], m[6] * K[0, 1] + m[7] * K[1, 1] + m[8] * K[2, 1],
-                m[6] * K[0, 2] + m[7] * K[1, 2] + m[8] * K[2, 2])
+@njit(**inline)
+def vec_arr(o, v):
+    """(3, 3) array @ 3-tuple."""
+    x, y, z = v
+    return (o[0, 0] * x + o[0, 1] * y + o[0, 2] * z, o[1, 0] * x + o[1, 1] * y + o[1, 2] * z,
+            o[2, 0] * x + o[2, 1] * y + o[2, 2] * z)
 
-    @njit(parallel=True, cache=True)
-    def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                   oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian):
-        """F_a(q, s) (errors=True) or F_n(q) into outR (3, 3, B), outp (3, B); with jacobian=True also
-        the body Jacobian w.r.t. the controller commands into outJ (6, n, B), as FlangeKernel."""
-        n, B = qT.shape
-        Km = table.shape[2]
-        nchunks = (B + _CHUNK - 1) // _CHUNK
-        for c in numba.prange(nchunks):
-            th = np.empty(n)
-            ue = np.empty(n)  # the error series' variables: command (Paper II (24)) or joint variable
-            zs = np.empty((n, 3))  # joint axis after E_i, world
-            os_ = np.empty((n, 3))  # origin of the frame joint i moves in, world
-            ws = np.empty((n, 3))  # velocity of E_i's rotation per unit joint motion, world
-            ds = np.empty((n, 3))  # velocity of E_i's translation per unit joint motion, world
-            for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
-                for i in range(n):
-                    x = offset[i]
-                    for j in range(n):
-                        x += coupling[i, j] * qT[j, b]
-                    th[i] = x
-                    y = eoffset[i]
-                    for j in range(n):
-                        y += ecoupling[i, j] * qT[j, b]
-                    ue[i] = y
-                # running pose of the chain in scalars (registers)
-                R = (baseR[0, 0], baseR[0, 1], baseR[0, 2], baseR[1, 0], baseR[1, 1], baseR[1, 2],
-                     baseR[2, 0], baseR[2, 1], baseR[2, 2])
-                p0, p1, p2 = basep[0], basep[1], basep[2]
-                for i in range(n):
-                    if errors:
-                        lam = 2.0 * (ue[i] - lo[i]) / width[i] - 1.0
-                        w0, w1, w2, d0, d1, d2, bl = series(table, i, lam, Km, has_bl, False)
-                        if has_bl and use_s:
-                            w2 += bl * sT[i, b]
-                        M = mul_arr(oR[i], exp_so3(w0, w1, w2))
-                        tx, ty, tz = vec_arr(oR[i], (d0, d1, d2))
-                        tx, ty, tz = tx + op[i, 0], ty + op[i, 1], tz + op[i, 2]
-                    else:
-                        o = oR[i]
-                        M = (o[0, 0], o[0, 1], o[0, 2], o[1, 0], o[1, 1], o[1, 2], o[2, 0], o[2, 1], o[2, 2])
-                        tx, ty, tz = op[i, 0], op[i, 1], op[i, 2]
-                    gx, gy, gz = vec(R, (tx, ty, tz))
-                    p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
-                    if jacobian:
-                        ax, ay, az = vec(R, vec(M, (axes[i, 0], axes[i, 1], axes[i, 2])))
-                        zs[i, 0], zs[i, 1], zs[i, 2] = ax, ay, az
-                        os_[i, 0], os_[i, 1], os_[i, 2] = p0, p1, p2
-                        if errors:
-                            scale = 2.0 / width[i]
-                            v0, v1, v2, u0, u1, u2, vb = series(table, i, lam, Km, has_bl, True)
-                            if has_bl and use_s:
-                                v2 += vb * sT[i, b]
-                            jw = right_jacobian_apply(w0, w1, w2, v0 * scale, v1 * scale, v2 * scale)
-                            ws[i, 0], ws[i, 1], ws[i, 2] = vec(R, vec(M, jw))
-                            ds[i, 0], ds[i, 1], ds[i, 2] = vec(R, vec_arr(oR[i], (u0 * scale, u1 * scale, u2 * scale)))
-                    if prismatic[i]:
-                        # travel along the axis after E_i; no rotation
-                        ux, uy, uz = vec(R, vec(M, (axes[i, 0] * th[i], axes[i, 1] * th[i], axes[i, 2] * th[i])))
-                        p0, p1, p2 = p0 + ux, p1 + uy, p2 + uz
-                        A = M
-                    else:
-                        A = rotate(M, th[i], z_axes, Ka[i], Ka2[i])
-                    R = mul(R, A)
-                gx, gy, gz = vec(R, (tipp[0], tipp[1], tipp[2]))
+@njit(**inline)
+def add_column(outJ, b, n, R, v, w, c_row):
+    """Add one joint's world velocity (v, w) per unit motion, taken into the flange frame (R^T), to the
+    body-Jacobian columns of the controller commands through the chain rule row c_row (n,)."""
+    vx, vy, vz = v
+    wx, wy, wz = w
+    col = (R[0] * vx + R[3] * vy + R[6] * vz, R[1] * vx + R[4] * vy + R[7] * vz, R[2] * vx + R[5] * vy + R[8] * vz,
+           R[0] * wx + R[3] * wy + R[6] * wz, R[1] * wx + R[4] * wy + R[7] * wz, R[2] * wx + R[5] * wy + R[8] * wz)
+    for j in range(n):
+        cij = c_row[j]
+        if cij != 0.0:
+            for r in range(6):
+                outJ[r, j, b] += col[r] * cij
+
+@njit(**inline)
+def rotate(m, th, z_axes, K, K2):
+    """M @ joint rotation(θ): column rotation for +z axes, Rodrigues otherwise."""
+    cs, sn = np.cos(th), np.sin(th)
+    if z_axes:
+        return (m[0] * cs + m[1] * sn, m[1] * cs - m[0] * sn, m[2],
+                m[3] * cs + m[4] * sn, m[4] * cs - m[3] * sn, m[5],
+                m[6] * cs + m[7] * sn, m[7] * cs - m[6] * sn, m[8])
+    mk, mk2 = mul_arr_right(m, K), mul_arr_right(m, K2)
+    vc = 1.0 - cs
+    return (m[0] + sn * mk[0] + vc * mk2[0], m[1] + sn * mk[1] + vc * mk2[1], m[2] + sn * mk[2] + vc * mk2[2],
+            m[3] + sn * mk[3] + vc * mk2[3], m[4] + sn * mk[4] + vc * mk2[4], m[5] + sn * mk[5] + vc * mk2[5],
+            m[6] + sn * mk[6] + vc * mk2[6], m[7] + sn * mk[7] + vc * mk2[7], m[8] + sn * mk[8] + vc * mk2[8])
+
+@njit(**inline)
+def mul_arr_right(m, K):
+    """9-tuple @ (3, 3) array."""
+    return (m[0] * K[0, 0] + m[1] * K[1, 0] + m[2] * K[2, 0], m[0] * K[0, 1] + m[1] * K[1, 1] + m[2] * K[2, 1],
+            m[0] * K[0, 2] + m[1] * K[1, 2] + m[2] * K[2, 2],
+            m[3] * K[0, 0] + m[4] * K[1, 0] + m[5] * K[2, 0], m[3] * K[0, 1] + m[4] * K[1, 1] + m[5] * K[2, 1],
+            m[3] * K[0, 2] + m[4] * K[1, 2] + m[5] * K[2, 2],
+            m[6] * K[0, 0] + m[7] * K[1, 0] + m[8] * K[2, 0], m[6] * K[0, 1] + m[7] * K[1, 1] + m[8] * K[2, 1],
+            m[6] * K[0, 2] + m[7] * K[1, 2] + m[8] * K[2, 2])
+
+@njit(parallel=True, cache=True)
+def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
+               oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian):
+    """F_a(q, s) (errors=True) or F_n(q) into outR (3, 3, B), outp (3, B); with jacobian=True also
+    the body Jacobian w.r.t. the controller commands into outJ (6, n, B), as FlangeKernel."""
+    n, B = qT.shape
+    Km = table.shape[2]
+    nchunks = (B + _CHUNK - 1) // _CHUNK
+    for c in numba.prange(nchunks):
+        th = np.empty(n)
+        ue = np.empty(n)  # the error series' variables: command (Paper II (24)) or joint variable
+        zs = np.empty((n, 3))  # joint axis after E_i, world
+        os_ = np.empty((n, 3))  # origin of the frame joint i moves in, world
+        ws = np.empty((n, 3))  # velocity of E_i's rotation per unit joint motion, world
+        ds = np.empty((n, 3))  # velocity of E_i's translation per unit joint motion, world
+        for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
+            for i in range(n):
+                x = offset[i]
+                for j in range(n):
+                    x += coupling[i, j] * qT[j, b]
+                th[i] = x
+                y = eoffset[i]
+                for j in range(n):
+                    y += ecoupling[i, j] * qT[j, b]
+                ue[i] = y
+            # running pose of the chain in scalars (registers)
+            R = (baseR[0, 0], baseR[0, 1], baseR[0, 2], baseR[1, 0], baseR[1, 1], baseR[1, 2],
+                 baseR[2, 0], baseR[2, 1], baseR[2, 2])
+            p0, p1, p2 = basep[0], basep[1], basep[2]
+            for i in range(n):
+                if errors:
+                    lam = 2.0 * (ue[i] - lo[i]) / width[i] - 1.0
+                    w0, w1, w2, d0, d1, d2, bl = series(table, i, lam, Km, has_bl, False)
+                    if has_bl and use_s:
+                        w2 += bl * sT[i, b]
+                    M = mul_arr(oR[i], exp_so3(w0, w1, w2))
+                    tx, ty, tz = vec_arr(oR[i], (d0, d1, d2))
+                    tx, ty, tz = tx + op[i, 0], ty + op[i, 1], tz + op[i, 2]
+                else:
+                    o = oR[i]
+                    M = (o[0, 0], o[0, 1], o[0, 2], o[1, 0], o[1, 1], o[1, 2], o[2, 0], o[2, 1], o[2, 2])
+                    tx, ty, tz = op[i, 0], op[i, 1], op[i, 2]
+                gx, gy, gz = vec(R, (tx, ty, tz))
                 p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
-                R = mul_arr_right(R, tipR)
-                for r in range(3):
-                    for k in range(3):
-                        outR[r, k, b] = R[3 * r + k]
-                outp[0, b], outp[1, b], outp[2, b] = p0, p1, p2
                 if jacobian:
-                    for j in range(n):
-                        for r in range(6):
-                            outJ[r, j, b] = 0.0
-                    for i in range(n):
-                        wx, wy, wz = (0.0, 0.0, 0.0) if prismatic[i] else (zs[i, 0], zs[i, 1], zs[i, 2])
-                        rx, ry, rz = p0 - os_[i, 0], p1 - os_[i, 1], p2 - os_[i, 2]
-                        vx, vy, vz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
-                        if prismatic[i]:
-                            vx, vy, vz = vx + zs[i, 0], vy + zs[i, 1], vz + zs[i, 2]
-                        # through the joint variable: θ = A q + offset
-                        add_column(outJ, b, n, R, (vx, vy, vz), (wx, wy, wz), coupling[i])
-                        if errors:
-                            # the error series' slopes move with u = A_u q + b_u, not with the joint variable
-                            sx, sy, sz = ws[i, 0], ws[i, 1], ws[i, 2]
-                            tx, ty, tz = sy * rz - sz * ry + ds[i, 0], sz * rx - sx * rz + ds[i, 1], sx * ry - sy * rx + ds[i, 2]
-                            add_column(outJ, b, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling[i])
+                    ax, ay, az = vec(R, vec(M, (axes[i, 0], axes[i, 1], axes[i, 2])))
+                    zs[i, 0], zs[i, 1], zs[i, 2] = ax, ay, az
+                    os_[i, 0], os_[i, 1], os_[i, 2] = p0, p1, p2
+                    if errors:
+                        scale = 2.0 / width[i]
+                        v0, v1, v2, u0, u1, u2, vb = series(table, i, lam, Km, has_bl, True)
+                        if has_bl and use_s:
+                            v2 += vb * sT[i, b]
+                        jw = right_jacobian_apply(w0, w1, w2, v0 * scale, v1 * scale, v2 * scale)
+                        ws[i, 0], ws[i, 1], ws[i, 2] = vec(R, vec(M, jw))
+                        ds[i, 0], ds[i, 1], ds[i, 2] = vec(R, vec_arr(oR[i], (u0 * scale, u1 * scale, u2 * scale)))
+                if prismatic[i]:
+                    # travel along the axis after E_i; no rotation
+                    ux, uy, uz = vec(R, vec(M, (axes[i, 0] * th[i], axes[i, 1] * th[i], axes[i, 2] * th[i])))
+                    p0, p1, p2 = p0 + ux, p1 + uy, p2 + uz
+                    A = M
+                else:
+                    A = rotate(M, th[i], z_axes, Ka[i], Ka2[i])
+                R = mul(R, A)
+            gx, gy, gz = vec(R, (tipp[0], tipp[1], tipp[2]))
+            p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
+            R = mul_arr_right(R, tipR)
+            for r in range(3):
+                for k in range(3):
+                    outR[r, k, b] = R[3 * r + k]
+            outp[0, b], outp[1, b], outp[2, b] = p0, p1, p2
+            if jacobian:
+                for j in range(n):
+                    for r in range(6):
+                        outJ[r, j, b] = 0.0
+                for i in range(n):
+                    wx, wy, wz = (0.0, 0.0, 0.0) if prismatic[i] else (zs[i, 0], zs[i, 1], zs[i, 2])
+                    rx, ry, rz = p0 - os_[i, 0], p1 - os_[i, 1], p2 - os_[i, 2]
+                    vx, vy, vz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
+                    if prismatic[i]:
+                        vx, vy, vz = vx + zs[i, 0], vy + zs[i, 1], vz + zs[i, 2]
+                    # through the joint variable: θ = A q + offset
+                    add_column(outJ, b, n, R, (vx, vy, vz), (wx, wy, wz), coupling[i])
+                    if errors:
+                        # the error series' slopes move with u = A_u q + b_u, not with the joint variable
+                        sx, sy, sz = ws[i, 0], ws[i, 1], ws[i, 2]
+                        tx, ty, tz = sy * rz - sz * ry + ds[i, 0], sz * rx - sx * rz + ds[i, 1], sx * ry - sy * rx + ds[i, 2]
+                        add_column(outJ, b, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling[i])
 
-    return flange_soa
 
-
-_KERNELS = None
 
 
 def _kernels():
-    global _KERNELS
-    if _KERNELS is None:
-        _KERNELS = _build()
-    return _KERNELS
+    return flange_soa
 
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
@@ -298,6 +301,7 @@ class FusedFlange:
         q = qT.detach().to(torch.float64).contiguous().numpy()
         s = q if sT is None else sT.detach().to(torch.float64).contiguous().numpy()
         # numba keeps its own thread pool: follow torch's setting so that a caller's limit holds
+        # (torchcal.threads.limit_threads sets both)
         numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
         _kernels()(q, s, sT is not None, errors, *self.model, *self.chain, *(self.base if errors else self.no_base),
                    R.numpy(), p.numpy(), J.numpy(), jacobian)

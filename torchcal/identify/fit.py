@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 from ..measurements import Measurements
+from ..threads import threads_for_work
 from .gauge import fix_gauge
 from .lbfgs import lbfgs
 from .lm import levenberg_marquardt
@@ -14,6 +15,11 @@ from .result import FitResult
 SOLVERS = {"lm": levenberg_marquardt, "lbfgs": lbfgs}
 
 log = logging.getLogger("torchcal")
+
+
+def problem_work(problem: CalibrationProblem) -> float:
+    """Flops of one Gauss-Newton iteration (the Schur complement's R d x P^2 product): what threads follow."""
+    return float(problem.rows * problem.dim * problem.layout.size ** 2)
 
 
 def resolve_noise(model, noise: NoiseModel | None) -> NoiseModel:
@@ -76,8 +82,9 @@ def fit(
     if method not in SOLVERS:
         raise ValueError(f"unknown solver '{method}', choose from {sorted(SOLVERS)}")
     problem = CalibrationProblem(model, data, resolve_noise(model, noise), prior, fixed, instrument, blocks, fixed_rows, v0)
-    pinned = fix_gauge(problem) if gauge else []
-    result = SOLVERS[method](problem, **solver_options)
+    with threads_for_work(problem_work(problem)):
+        pinned = fix_gauge(problem) if gauge else []
+        result = SOLVERS[method](problem, **solver_options)
     result.pinned = pinned
     if data.has_direction and hasattr(model, "command_limits"):
         from ..analysis.coverage import DirectionCoverage

@@ -104,11 +104,18 @@ def plot_joint_errors(model, path, samples: int = 201, title: str | None = None)
     return _save(fig, path)
 
 
+def _bar(ax, heights, color, label=None):
+    """Bars 1..N; above 60 bars one filled step patch (the same picture, edge to edge) instead of N
+    rectangles, which cost matplotlib ~3 ms each: a fit's plots took 7 s."""
+    x = np.arange(1, heights.size + 1)
+    if heights.size <= 60:
+        return ax.bar(x, heights, width=0.8, color=color, label=label)
+    return ax.stairs(heights, np.arange(0.5, heights.size + 1), fill=True, color=color, label=label, baseline=0.0)
+
+
 def _bars(ax, before, after, before_label, after_label, after_color):
-    x = np.arange(1, before.size + 1)
-    width = 1.0 if before.size > 60 else 0.8
-    ax.bar(x, before, width=width, color=NOMINAL_COLOR, label=f"{before_label} (mean {before.mean():.3f} mm)")
-    ax.bar(x, after, width=width, color=after_color, label=f"{after_label} (mean {after.mean():.3f} mm)")
+    _bar(ax, before, NOMINAL_COLOR, f"{before_label} (mean {before.mean():.3f} mm)")
+    _bar(ax, after, after_color, f"{after_label} (mean {after.mean():.3f} mm)")
     ax.set_xlim(0.5, before.size + 0.5)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("residual (mm)")
@@ -124,12 +131,10 @@ def _pair_plot(before, after, path, title, before_label, after_label, after_colo
     _bars(top, b, a, before_label, after_label, after_color)
     top.set_title(title)
     # the modeled residuals are ~30x smaller than the nominal ones: show them on their own scale too
-    x = np.arange(1, a.size + 1)
-    width = 1.0 if a.size > 60 else 0.8
-    colors = np.full(a.size, after_color, dtype=object)
     flag = np.zeros(a.size, dtype=bool) if flagged is None else _np(flagged).astype(bool).reshape(-1)
-    colors[flag] = FLAGGED_COLOR
-    bottom.bar(x, a, width=width, color=list(colors))
+    _bar(bottom, np.where(flag, 0.0, a), after_color)
+    if flag.any():
+        _bar(bottom, np.where(flag, a, 0.0), FLAGGED_COLOR)
     bottom.axhline(a.mean(), color="k", lw=0.8, ls="--", label=f"mean {a.mean():.4f} mm")
     bottom.axhline(a.max(), color="r", lw=0.8, ls=":", label=f"max {a.max():.4f} mm")
     bottom.set_xlim(0.5, a.size + 0.5)

@@ -37,6 +37,7 @@ MODULES = [
     "torchcal.compensate.tables",
     "torchcal.export.controller",
     "torchcal.analysis.border",
+    "torchcal.progress",
 ]
 
 

@@ -44,7 +44,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from . import units
+from . import threads, units
 from .analysis.stats import ResidualStats, percent_decrease, point_residuals, residual_stats
 from .identify import FitResult, NoiseModel, Prior, fit
 from .io.config import ConfigError, check_config, to_yaml
@@ -782,14 +782,14 @@ def run_fit(cfg, console=None) -> RunResult:
         >>> result.metrics["sets"]["validation"]["modeled"]["mean"]                  # doctest: +SKIP
         0.0123
     """
-    if cfg.threads is None:
+    if cfg.threads is None:  # each stage picks its threads by work size (torchcal.threads)
         return _run_fit(cfg, console)
-    old = torch.get_num_threads()
-    torch.set_num_threads(int(cfg.threads))
+    old = threads.get_override()
+    threads.set_threads(int(cfg.threads))
     try:
         return _run_fit(cfg, console)
     finally:
-        torch.set_num_threads(old)
+        threads.set_threads(old)
 
 
 def _run_fit(cfg, console=None) -> RunResult:

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import torch
 
+from . import threads
 from .identify.online import STRATEGIES, OnlineCalibration, OnlineStep
 from .io.config import ConfigError, to_yaml
 from .io.rundir import (
@@ -271,14 +272,14 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
         raise RunDirError(f"{run_dir}: not a folder; give a run directory written by 'torchcal fit' or 'torchcal update'")
     cfg = load_run_config(parent)
     dev = torch.device(device) if device is not None else torch.device(cfg.get("device", "cpu") or "cpu")
-    threads = cfg.get("threads", None)
-    old_threads = torch.get_num_threads()
-    if threads:
-        torch.set_num_threads(int(threads))
+    count = cfg.get("threads", None)
+    old_override = threads.get_override()
+    if count:
+        threads.set_threads(int(count))
     try:
         return _run_update(parent, cfg, Path(new_data), Path(out), dev, strategy, console)
     finally:
-        torch.set_num_threads(old_threads)
+        threads.set_threads(old_override)
 
 
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console) -> UpdateResult:

@@ -208,7 +208,7 @@ class FitConfig:
     device: str = "cpu"
     """torch device, e.g. cpu, cuda, cuda:1."""
     threads: Optional[int] = None
-    """torch intra-op CPU threads during the run; null = torch's default (1 is often fastest on small, shared machines)."""
+    """CPU threads of every stage (torch, its BLAS and numba); null: chosen per stage by work size and the CPUs this process may use (torchcal.threads)."""
     out: str = "runs"
     """Run directory; if it already holds a run, the run goes beside it (<out>-2, ...); if it is another
     non-empty folder, to <out>/<timestamp> (see torchcal.io.rundir.make_run_dir)."""
@@ -599,7 +599,7 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
     if dev.type == "cuda" and not torch.cuda.is_available():
         fail("device", f"'{cfg.device}' requested but CUDA is not available here (use device=cpu)")
     if cfg.threads is not None and cfg.threads < 1:
-        fail("threads", f"{cfg.threads}: must be at least 1 (or null for torch's default)")
+        fail("threads", f"{cfg.threads}: must be at least 1 (or null to choose by work size)")
     if cfg.out in (None, ""):
         fail("out", "needs a folder for the run directory")
 

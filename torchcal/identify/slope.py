@@ -37,7 +37,6 @@ import warnings
 
 import numpy as np
 import torch
-from scipy.stats import qmc
 from torch import nn
 from torch.func import functional_call, jacfwd, vmap
 
@@ -351,6 +350,8 @@ def functional_slope_norms(model, params: dict, q: torch.Tensor, P: torch.Tensor
 def _sobol(d: int, count: int, seed: int) -> np.ndarray:
     if d == 0 or count == 0:
         return np.zeros((count, d))
+    from scipy.stats import qmc  # scipy.stats takes ~1-2 s to import: only where Sobol points are drawn
+
     sampler = qmc.Sobol(d=d, scramble=True, seed=np.random.default_rng(seed))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # balance is best at powers of two; any count is fine here

@@ -82,9 +82,21 @@ def matrix_to_rpy(R: torch.Tensor) -> torch.Tensor:
     return torch.stack([roll, pitch, yaw], -1)
 
 
+def _broadcast(a: tuple, b: tuple) -> torch.Size:
+    """Broadcast shape of two batch shapes (torch.broadcast_shapes imports sympy on first use: ~1 s)."""
+    n = max(len(a), len(b))
+    a, b = (1,) * (n - len(a)) + tuple(a), (1,) * (n - len(b)) + tuple(b)
+    out = []
+    for x, y in zip(a, b):
+        if x != y and 1 not in (x, y):
+            raise RuntimeError(f"shapes {tuple(a)} and {tuple(b)} do not broadcast")
+        out.append(y if x == 1 else x)
+    return torch.Size(out)
+
+
 def homogeneous(R: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Assemble (..., 4, 4) from a rotation (..., 3, 3) and a translation (..., 3)."""
-    shape = torch.broadcast_shapes(R.shape[:-2], p.shape[:-1])
+    shape = _broadcast(R.shape[:-2], p.shape[:-1])
     top = torch.cat([R.expand(shape + (3, 3)), p.expand(shape + (3,))[..., None]], -1)
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(shape + (1, 4))
     return torch.cat([top, bottom], -2)

@@ -13,7 +13,6 @@ import warnings
 
 import numpy as np
 import torch
-from scipy.stats import qmc
 
 
 def quasi_random_commands(limits, count: int, seed: int, skip: int = 0, shuffle: bool = True) -> torch.Tensor:
@@ -53,6 +52,8 @@ def quasi_random_commands(limits, count: int, seed: int, skip: int = 0, shuffle:
         raise ValueError(f"quasi_random_commands: joint {int(bad.nonzero()[0]) + 1} lower limit is not below its upper limit")
     if count < 0 or skip < 0:
         raise ValueError(f"quasi_random_commands: count ({count}) and skip ({skip}) must be >= 0")
+    from scipy.stats import qmc  # scipy.stats takes ~1-2 s to import: only where Sobol points are drawn
+
     sampler = qmc.Sobol(d=lim.shape[0], scramble=True, seed=np.random.default_rng(seed))
     with warnings.catch_warnings():
         # Sobol's balance is best at powers of two; the paper's set sizes (250, 300) are not, which is fine here

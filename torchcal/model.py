@@ -192,9 +192,9 @@ class RobotModel(ChainBuffers, nn.Module):
         p = self.tool_points(F, tool)
         B = q.shape[0]
         J = self.chain_jacobians(d, q, p, rows=3)
-        Jt = torch.zeros(B, 3, self.tools.count, 3, dtype=q.dtype, device=q.device)
-        Jt[torch.arange(B, device=q.device), :, tool, :] = F[:, :3, :3]
-        J["tools.delta"] = Jt
+        # out of place (one-hot), so that torch.func.vmap can batch it over models
+        onehot = torch.nn.functional.one_hot(tool, self.tools.count).to(F)  # (B, T)
+        J["tools.delta"] = F[:, :3, None, :3] * onehot[:, None, :, None]
         return p, J
 
     def chain_jacobians(self, d: dict, q: torch.Tensor, p: torch.Tensor, rows: int = 3) -> dict:

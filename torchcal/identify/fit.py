@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import logging
 
+import torch
+
 from ..measurements import Measurements
 from ..threads import threads_for_work
 from .gauge import fix_gauge
+from .layout import copy_overlap
 from .lbfgs import lbfgs
 from .lm import levenberg_marquardt
 from .problem import CalibrationProblem, NoiseModel, Prior
@@ -20,6 +23,18 @@ log = logging.getLogger("torchcal")
 def problem_work(problem: CalibrationProblem) -> float:
     """Flops of one Gauss-Newton iteration (the Schur complement's R d x P^2 product): what threads follow."""
     return float(problem.rows * problem.dim * problem.layout.size ** 2)
+
+
+@torch.no_grad()
+def _warm_start(problem: CalibrationProblem, warm) -> None:
+    """Free entries of the problem's model from ``warm``; pinned and fixed entries keep their values."""
+    model = problem.model
+    keep = {n: p.detach().clone() for n, p in model.named_parameters()}
+    copy_overlap(warm, model)
+    x = problem.layout.get()
+    for n, p in model.named_parameters():
+        p.copy_(keep[n])
+    problem.layout.set(x)
 
 
 def resolve_noise(model, noise: NoiseModel | None) -> NoiseModel:
@@ -47,6 +62,7 @@ def fit(
     blocks=(),
     fixed_rows=None,
     v0=None,
+    warm=None,
     **solver_options,
 ) -> FitResult:
     """Identify ``model``'s error parameters from ``data`` by maximum likelihood (Paper II (33)).
@@ -63,7 +79,10 @@ def fit(
     (:mod:`torchcal.measure`; default point targets on ``data.xyz``); blocks:
     parameter-only residual blocks (:mod:`torchcal.identify.blocks`, e.g.
     :class:`GaussianPrior`); fixed_rows: (R,) bool, rows whose joint errors
-    are held at ``v0`` (R, n) (online identification, Paper III).
+    are held at ``v0`` (R, n) (online identification, Paper III); warm: a
+    model of the same kind (other orders allowed) whose values start the free
+    entries (:func:`~torchcal.identify.layout.copy_overlap`), the gauge fixed
+    first at ``model``'s own values, as in a cold fit.
     When the data carry approach directions, ``model.coverage`` records them
     (:class:`torchcal.analysis.coverage.DirectionCoverage`).
 
@@ -84,6 +103,8 @@ def fit(
     problem = CalibrationProblem(model, data, resolve_noise(model, noise), prior, fixed, instrument, blocks, fixed_rows, v0)
     with threads_for_work(problem_work(problem)):
         pinned = fix_gauge(problem) if gauge else []
+        if warm is not None:
+            _warm_start(problem, warm)
         result = SOLVERS[method](problem, **solver_options)
     result.pinned = pinned
     if data.has_direction and hasattr(model, "command_limits"):

@@ -19,28 +19,58 @@ import torch
 def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: float = 1e-7) -> torch.Tensor:
     """Columns of A (rows, P) that lie in the span of columns earlier in ``order``.
 
-    Greedy Gram-Schmidt (twice, for stability) on unit-normalized columns;
-    a column is dependent when less than ``rtol`` of its norm is new.
-    -> (P,) bool, True for dependent columns.
+    On unit-normalized columns taken in ``order``, the diagonal of the R factor
+    of a QR decomposition (no pivoting) is the norm of what each column adds
+    to the span of the columns before it: a column is dependent when that is
+    below ``rtol`` (the greedy Gram-Schmidt test, done by one Householder QR
+    instead of P projections). -> (P,) bool, True for dependent columns.
     """
-    A = A / A.norm(dim=0).clamp(min=1e-300)
     P = A.shape[1]
-    order = torch.arange(P) if order is None else order
+    order = torch.arange(P) if order is None else order.cpu()
+    norms = A.norm(dim=0)
     dependent = torch.zeros(P, dtype=torch.bool)
-    Q = torch.zeros(A.shape[0], 0, dtype=A.dtype, device=A.device)
-    for j in order.tolist():
-        a = A[:, j]
-        if float(a.norm()) == 0.0:
-            dependent[j] = True
-            continue
-        r = a - Q @ (Q.T @ a)
-        r = r - Q @ (Q.T @ r)
-        nr = float(r.norm())
-        if nr < rtol:
-            dependent[j] = True
-        else:
-            Q = torch.cat([Q, (r / nr)[:, None]], 1)
+    dependent[(norms == 0).cpu()] = True
+    if P == 0:
+        return dependent
+    An = (A / norms.clamp(min=1e-300))[:, order.to(A.device)]
+    if An.shape[0] < P:  # more columns than rows: pad with zero rows (R stays P x P)
+        An = torch.cat([An, An.new_zeros(P - An.shape[0], P)])
+    r = torch.linalg.qr(An, mode="r")[1].diagonal().abs().cpu()
+    dependent[order] |= r < rtol
     return dependent
+
+
+def gauge_basis(A: torch.Tensor, order: torch.Tensor | None = None):
+    """What :func:`dependent_columns_masked` needs of A (rows, P), computed once: its unit-normalized columns
+    in ``order`` reduced to their R factor (P, P) (A = Q R with Q orthonormal, so any subset of A's columns
+    has the same dependences as that subset of R's: the per-subset QRs then run on P rows, not rows).
+    -> (R, order, zero columns (P,) bool)."""
+    P = A.shape[1]
+    order = torch.arange(P) if order is None else order.cpu()
+    norms = A.norm(dim=0)
+    An = (A / norms.clamp(min=1e-300))[:, order.to(A.device)]
+    if An.shape[0] < P:
+        An = torch.cat([An, An.new_zeros(P - An.shape[0], P)])
+    return torch.linalg.qr(An, mode="r")[1], order, norms == 0
+
+
+def dependent_columns_masked(basis, keep: torch.Tensor, rtol: float = 1e-7, chunk: int = 16) -> torch.Tensor:
+    """:func:`dependent_columns` for many column subsets of one matrix at once.
+
+    basis: :func:`gauge_basis` of the matrix; keep: (M, P) bool, the columns of
+    each subset. -> (M, P) bool: the kept columns that lie in the span of the
+    kept columns earlier in the order (one batched QR per ``chunk`` subsets). A
+    column the full matrix pins may be free in a subset (its partners are
+    missing), never the other way.
+    """
+    Rb, order, zero = basis
+    M, P = keep.shape
+    kp = keep[:, order.to(keep.device)].to(Rb)
+    out = torch.zeros(M, P, dtype=torch.bool)
+    for c0 in range(0, M, chunk):
+        r = torch.linalg.qr(Rb[None] * kp[c0:c0 + chunk, None, :], mode="r")[1].diagonal(dim1=-2, dim2=-1).abs().cpu()
+        out[c0:c0 + chunk, order] = r < rtol
+    return (out.to(keep.device) & keep) | (keep & zero[None, :].to(keep.device))
 
 
 _ROLE_RANK = {"frame": 0, "tool": 1, "compliance": 3}

@@ -115,6 +115,12 @@ class ParameterLayout:
             p[m] = x[i : i + k].to(p)
             i += k
 
+    def _flat_index(self) -> list:
+        """Per entry: the flat indices of its free entries (None where all are free), computed once."""
+        if getattr(self, "_index_cache", None) is None:
+            self._index_cache = [None if bool(m.all()) else m.flatten().nonzero()[:, 0] for _, _, m in self.entries]
+        return self._index_cache
+
     def has_jacobians(self, J: dict[str, torch.Tensor]) -> bool:
         """Whether ``J`` holds a Jacobian for every free group."""
         return all(name in J for name, _, _ in self.entries)
@@ -122,14 +128,16 @@ class ParameterLayout:
     def flatten_jacobian(self, J: dict[str, torch.Tensor], rows: int) -> torch.Tensor:
         """Stack per-group Jacobians (B, c, *param_shape) into (B, c, P) in layout order."""
         cols = []
-        for name, p, m in self.entries:
+        for (name, p, m), idx in zip(self.entries, self._flat_index()):
             if name not in J:
                 # a group without a closed-form Jacobian must not be treated as one that does not move the points
                 raise KeyError(f"no Jacobian for free parameter group '{name}' (point_jacobians returned {sorted(J)}); "
                                f"fix it or hold it fixed")
             g = J[name]
             B, c = g.shape[:2]
-            cols.append(g.reshape(B, c, -1)[:, :, m.flatten()])
+            g = g.reshape(B, c, -1)
+            # index_select with a precomputed index: boolean-mask indexing costs a nonzero() pass every call
+            cols.append(g if idx is None else g.index_select(2, idx.to(g.device)))
         if not cols:
             return torch.zeros(rows, 0, 0)
         return torch.cat(cols, -1)
@@ -160,3 +168,17 @@ class ParameterLayout:
     def is_rotation(self) -> torch.Tensor:
         """(P,) bool: which free entries are angles (rad) rather than lengths (m) or numbers (declared kinds)."""
         return torch.tensor([k == ANGLE for k in self.kinds()], dtype=torch.bool)
+
+
+@torch.no_grad()
+def copy_overlap(src: torch.nn.Module, dst: torch.nn.Module) -> None:
+    """Write ``src``'s parameter values into ``dst`` where both have the parameter (the overlapping leading
+    slice along every axis, e.g. the common Chebyshev orders); every other entry of ``dst`` becomes zero.
+    A warm start between models of one factory with different orders."""
+    sp = dict(src.named_parameters())
+    for name, p in dst.named_parameters():
+        p.zero_()
+        q = sp.get(name)
+        if q is not None and q.ndim == p.ndim:
+            sl = tuple(slice(0, min(a, b)) for a, b in zip(p.shape, q.shape))
+            p[sl] = q[sl].to(p)

@@ -22,6 +22,8 @@ from typing import Callable, Iterable, Sequence
 import torch
 
 from ..measurements import Measurements
+from ..progress import task
+from .candidates import StructureSearch
 from .fit import fit, resolve_noise
 from .gauge import fix_gauge
 from .problem import CalibrationProblem, NoiseModel, Prior, row_errors
@@ -40,6 +42,8 @@ class OrderSelection:
     score: float
     criterion: str
     table: list[dict] = field(default_factory=list)
+    fitted: torch.nn.Module | None = field(default=None, repr=False)
+    """A model holding the chosen candidate's fit (the search's superset, unused terms zero): a warm start."""
 
     def uniform_scores(self) -> dict[int, float]:
         """Mean residual of each uniform order of the first stage (Figure 11's validation curve)."""
@@ -207,10 +211,106 @@ def select_orders(
     case: it took the validation ratio from 1.09 to 1.13). joint_window: in
     stage 2 try only the candidates within this distance of the joint's
     current order (the validation curve of Figure 11 is smooth in the order,
-    so far jumps rarely win). folds: 0 for the leave-one-pose-out criterion
-    (one fit per trial), K for K-fold cross-validation (K fits per trial);
-    ignored when ``validation`` is given.
+    so far jumps rarely win). folds: 0 for the leave-one-pose-out criterion,
+    K for K-fold cross-validation (K fits per trial); ignored when
+    ``validation`` is given.
+
+    With the validation or leave-one-pose-out criterion the candidates are not
+    fitted one by one: the model with the largest order of every joint is fitted
+    once and every candidate is scored from its linearization, in batches
+    (:class:`~torchcal.identify.candidates.StructureSearch`); the incumbent is
+    refitted exactly after stage 1 and after every pass that changed it, and the
+    candidates near it are scored from there. ``table`` records those scores.
     """
+    if folds and validation is None:
+        return _select_orders_refit(make_model, data, validation, noise, prior, candidates, folds, seed, per_joint,
+                                    max_passes, joint_window, margin, progress, **fit_options)
+    candidates = sorted(set(int(c) for c in candidates))
+    n = data.n_joints
+    if noise is None:
+        noise = resolve_noise(make_model([candidates[0]] * n), None)
+    pose = (validation if validation is not None else data).pose
+    table: list[dict] = []
+    seen: set = set()
+    uniform = [(m,) * n for m in candidates]
+    with task("choosing orders: first fit", total=None) as t:
+        center = uniform[len(uniform) // 2]
+        search = StructureSearch(lambda: make_model([candidates[-1]] * n), make_model, data, validation, noise, prior,
+                                 fit_options, center=center)
+        t.advance()
+
+    def scores(keys, stage):
+        """Errors of ``keys`` in the current linearization; each (epoch, key) goes into the table once."""
+        errs = search.errors(keys)
+        for k in keys:
+            if (search.epoch, k) not in seen:
+                seen.add((search.epoch, k))
+                table.append({"orders": list(k), "score": float(errs[k].mean()), "stage": stage, "epoch": search.epoch})
+                if progress is not None:
+                    progress(f"{stage}: orders {list(k)} -> {table[-1]['score'] * 1e3:.4f} mm")
+        return errs
+
+    def better(errs, trial, incumbent) -> bool:
+        gain, se = paired_improvement(errs[incumbent], errs[trial], pose)
+        return gain > margin * se
+
+    with task("choosing orders: uniform candidates", total=len(uniform)) as t:
+        errs = scores(uniform, "uniform")
+        t.advance(len(uniform))
+        best = min(uniform, key=lambda k: float(errs[k].mean()))
+        # the scores are exact next to the linearization point: move there until the best stays put
+        for _ in range(3):
+            if best == search.center:
+                break
+            search.recenter(best)
+            near = [k for k in uniform if abs(k[0] - best[0]) <= 2]
+            errs = scores(near, "uniform recentred")
+            best = min(near, key=lambda k: float(errs[k].mean()))
+    best_score = float(scores([best], "uniform")[best].mean())
+    if per_joint:
+        passes = max_passes * n
+        with task("choosing orders: per joint", total=passes) as t:
+            for _ in range(max_passes):
+                improved = False
+                for j in range(n):
+                    trials = []
+                    for m in candidates:
+                        if m == best[j] or (joint_window is not None and abs(m - best[j]) > joint_window):
+                            continue
+                        trials.append(best[:j] + (m,) + best[j + 1:])
+                    errs = scores([best] + trials, f"joint{j + 1}")
+                    # the trials of joint j differ from the incumbent in joint j only: whichever of them is
+                    # accepted, the next trial is the same model, so the batch gives the sequential answer
+                    for trial in trials:
+                        s = float(errs[trial].mean())
+                        if s < best_score and better(errs, trial, best):
+                            best, best_score, improved = trial, s, True
+                    t.advance(note=f"orders {list(best)}")
+                if not improved:
+                    break
+                search.recenter(best)
+                best_score = float(scores([best], "recentred")[best].mean())
+    criterion = "validation" if validation is not None else "loo"
+    return OrderSelection(orders=list(best), score=best_score, criterion=criterion, table=table, fitted=search.superset)
+
+
+def _select_orders_refit(
+    make_model: Callable[[Sequence[int]], torch.nn.Module],
+    data: Measurements,
+    validation: Measurements | None = None,
+    noise: NoiseModel | None = None,
+    prior: Prior | None = Prior(),
+    candidates: Iterable[int] = range(0, 11),
+    folds: int = 0,
+    seed: int = 0,
+    per_joint: bool = True,
+    max_passes: int = 2,
+    joint_window: int | None = None,
+    margin: float = 1.0,
+    progress: Callable[[str], None] | None = None,
+    **fit_options,
+) -> OrderSelection:
+    """:func:`select_orders` by refitting every candidate: the K-fold cross-validation criterion (K fits a trial)."""
     candidates = sorted(set(int(c) for c in candidates))
     if noise is None:
         noise = resolve_noise(make_model([candidates[0]] * data.n_joints), None)

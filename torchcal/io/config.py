@@ -45,6 +45,8 @@ class DataConfig:
     """Separate measurements to judge the model on (Tables 6-7); optional."""
     truth: Optional[str] = None
     """Simulated runs only: ``truth.json`` from ``torchcal simulate``; enables the compensation check (Table 7, Fig. 16)."""
+    n_poses: Optional[int] = None
+    """Identify from the first N poses of the identification file only (file order; Figure 11's 150 / 250 / 350); null: all."""
 
 
 MODEL_KINDS = ("joint_dependent", "axis_perturbation")
@@ -416,6 +418,9 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
     except OmegaConfBaseException as exc:
         raise _explain(exc, label) from None
 
+    n_poses = cfg.data.get("n_poses")
+    if n_poses is not None and (not _is_int(n_poses) or n_poses < 1):
+        fail("data.n_poses", f"{n_poses!r}: give a positive number of poses (or null for all)")
     tools = _plain(cfg.tools)
     sensor = _plain(cfg.sensor)
     if sensor["kind"] is not None and sensor["kind"] not in SENSOR_KINDS:

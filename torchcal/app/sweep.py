@@ -1,0 +1,311 @@
+"""``torchcal sweep CONFIG key=a,b,c key2=lo:hi``: a grid of configs fitted into one run directory.
+
+Figure 11 of Paper II is such a grid (``model.order=1:10 data.n_poses=150,250,350``:
+30 models). Cells that differ only in what the batched solver stacks along its
+model axis (Chebyshev and backlash orders, the first N poses of one file, the
+noise settings) are fitted together by :func:`torchcal.identify.batched.fit_batch`
+with their own convergence: one batched solve per structure, each model from
+zero as its own fit would start (warm starts from a smaller structure were
+measured: no fewer iterations, the late ones creep along near-redundant
+directions whatever the start). Each cell then lands where a separate
+``torchcal fit`` lands (the fits stop at a relative
+cost change of :data:`SWEEP_FTOL`: validation means within 0.07 % of fully
+converged fits on Figure 11's 30 cells). Any other
+difference (a model kind, a constraint, automatic orders, a sensor run) runs
+the cell as a ``torchcal fit`` of its own inside the sweep's folder.
+
+The run directory holds ``config.yaml`` (the base config), ``sweep.json`` (the
+grid), ``versions.json``, ``run.log``, ``results.csv`` / ``results.json`` (one
+row per cell: its grid values, convergence, identification and validation
+residuals in mm), ``cells/NN/model.pt`` and ``plots/sweep.png``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from .. import units
+from ..io.config import ConfigError, load_config, to_yaml
+
+log = logging.getLogger("torchcal")
+
+SWEEP_FTOL = 1e-4
+"""Relative cost reduction at which a sweep's fits stop (unless the config sets ``solver.ftol`` above the
+default): the last ~15 iterations of a fit from zero creep along near-redundant directions (~1 chi^2 unit
+each) that move no prediction that matters. Measured on Figure 11 (simulated FANUC, 30 cells): every cell's
+validation mean within 0.07 % of the fully converged fit's (1e-3: 1.1 %)."""
+
+STACKED_KEYS = ("model.order", "model.backlash", "data.n_poses", "noise.sigma_m", "noise.joint_var_fwd",
+                "noise.joint_var_bwd", "out")
+"""Config keys along which cells are stacked into one batched solve; cells differing elsewhere are separate groups."""
+
+
+@dataclass
+class SweepResult:
+    """What :func:`run_sweep` did: the run directory, the grid keys and one dict per cell (``rows``)."""
+
+    run_dir: Path
+    keys: list[str]
+    rows: list[dict] = field(default_factory=list)
+    time: float = 0.0
+
+
+def parse_grid(specs: list[str]) -> tuple[list[str], list[tuple[str, list[str]]]]:
+    """Split ``key=value`` items into plain overrides and grid axes.
+
+    ``key=a,b,c`` is an axis of those values, ``key=lo:hi`` (or ``lo:hi:step``)
+    the integers lo..hi inclusive; anything else a plain override for every
+    cell. A list value in brackets (``model.order=[6,6,4,4,4,4]``) is one
+    value. -> (overrides, [(key, values)]).
+
+    Example:
+        >>> parse_grid(["model.order=1:3", "data.n_poses=150,250", "seed=2"])
+        (['seed=2'], [('model.order', ['1', '2', '3']), ('data.n_poses', ['150', '250'])])
+    """
+    plain, axes = [], []
+    for item in specs:
+        if "=" not in item:
+            raise ConfigError(f"sweep item '{item}': expected key=value, key=a,b,c or key=lo:hi")
+        key, value = item.split("=", 1)
+        key, value = key.strip(), value.strip()
+        if value.startswith("[") or value.startswith("{"):
+            plain.append(f"{key}={value}")
+        elif "," in value:
+            axes.append((key, [v.strip() for v in value.split(",") if v.strip()]))
+        elif value.count(":") in (1, 2) and all(_is_int(p) for p in value.split(":")):
+            parts = [int(p) for p in value.split(":")]
+            lo, hi, step = parts[0], parts[1], parts[2] if len(parts) == 3 else 1
+            if step <= 0 or hi < lo:
+                raise ConfigError(f"sweep item '{item}': a range lo:hi[:step] needs lo <= hi and step > 0")
+            axes.append((key, [str(v) for v in range(lo, hi + 1, step)]))
+        else:
+            plain.append(f"{key}={value}")
+    if len({k for k, _ in axes}) != len(axes):
+        raise ConfigError("sweep: a key is given twice as a grid axis")
+    return plain, axes
+
+
+def _is_int(s: str) -> bool:
+    try:
+        int(s)
+        return True
+    except ValueError:
+        return False
+
+
+def _stackable(cfg) -> bool:
+    """Whether a cell can join a batched solve (joint-dependent robot model, fixed orders, plain LM fit)."""
+    return (cfg.model.kind == "joint_dependent" and not isinstance(cfg.model.order, str) and cfg.constraint.c is None
+            and cfg.sensor.kind is None and cfg.solver.method == "lm" and cfg.model.fine is None)
+
+
+def _group_key(cfg) -> str:
+    """The config with the stacked keys removed: cells with equal keys share one batched solve."""
+    from omegaconf import OmegaConf
+
+    c = OmegaConf.to_container(cfg, resolve=True)
+    for key in STACKED_KEYS:
+        node = c
+        *path, last = key.split(".")
+        for p in path:
+            node = node.get(p, {})
+        node.pop(last, None)
+    return json.dumps(c, sort_keys=True, default=str)
+
+
+def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
+    """Fit every cell of the grid ``specs`` over ``config`` into one run directory (see the module docstring).
+
+    config: a YAML config; specs: ``key=a,b,c`` / ``key=lo:hi`` axes and plain
+    ``key=value`` overrides; out: the run directory (default: ``sweeps`` next to
+    the config's ``out``). Each cell's config is checked before anything is
+    fitted. -> :class:`SweepResult`.
+    """
+    from ..io.rundir import collect_versions, make_run_dir, run_log, write_json
+    from ..progress import task
+
+    t0 = time.perf_counter()
+    plain, axes = parse_grid(list(specs))
+    if not axes:
+        raise ConfigError("sweep: give at least one grid axis (key=a,b,c or key=lo:hi)")
+    keys = [k for k, _ in axes]
+    cells = [dict(zip(keys, values)) for values in itertools.product(*[v for _, v in axes])]
+    cfgs = [load_config(config, plain + [f"{k}={v}" for k, v in cell.items()]) for cell in cells]
+    base = load_config(config, plain)
+    run_dir = make_run_dir(Path(out) if out is not None else Path(base.out).with_name("sweeps"))
+    (run_dir / "config.yaml").write_text(to_yaml(base), encoding="utf-8")
+    write_json(run_dir / "sweep.json", {"config": str(config), "overrides": plain, "axes": {k: v for k, v in axes},
+                                        "cells": len(cells)})
+    write_json(run_dir / "versions.json", collect_versions(torch.device(base.device)))
+    result = SweepResult(run_dir, keys)
+    groups: dict[str, list[int]] = {}
+    for i, cfg in enumerate(cfgs):
+        groups.setdefault(_group_key(cfg) if _stackable(cfg) else f"cell {i}", []).append(i)
+    rows: list[dict | None] = [None] * len(cells)
+    with run_log(run_dir):
+        log.info(f"sweep of {len(cells)} cells over {', '.join(keys)}: {len(groups)} batched solve(s); {run_dir}")
+        with task("sweep: cell groups", total=len(groups)) as bar:
+            for members in groups.values():
+                if _stackable(cfgs[members[0]]):
+                    for i, row in zip(members, _fit_stacked([cfgs[i] for i in members], run_dir, members)):
+                        rows[i] = row
+                else:
+                    for i in members:
+                        rows[i] = _fit_alone(cfgs[i], run_dir, i, console)
+                bar.advance(note=f"{sum(r is not None for r in rows)} of {len(cells)} cells")
+        result.rows = [{"cell": i, **cells[i], **rows[i]} for i in range(len(cells))]
+        result.time = time.perf_counter() - t0
+        _write_results(run_dir, result)
+        log.info(f"sweep done in {result.time:.1f} s: {run_dir / 'results.csv'}")
+    return result
+
+
+def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
+    """One batched solve for cells that differ only in orders, the number of poses and the noise."""
+    from ..analysis.stats import point_residuals, residual_stats
+    from ..identify.backlash import default_backlash_orders
+    from ..identify.batched import fit_batch
+    from ..io.rundir import save_model
+    from ..pipeline import align_inputs, config_backlash, config_noise, first_poses, load_inputs, model_factory
+
+    cfg0 = cfgs[0].copy()
+    cfg0.data.n_poses = None  # the file's every pose; each cell takes its first N
+    inp = load_inputs(cfg0)
+    tools_m, base_nominal, alignment = align_inputs(cfg0, inp)
+    if alignment is not None:
+        raise ConfigError(f"{inp.label}: the sweep stacks cells on the given tools and frame; run the alignment "
+                          "once with `torchcal fit` and give its tools and measurement frame in the config")
+    n = inp.robot.joint_map.n
+    models, rows, noises, structures = [], [], [], []
+    for cfg in cfgs:
+        data = inp.ident if cfg.data.n_poses is None else first_poses(inp.ident, int(cfg.data.n_poses), inp.label)
+        order = cfg.model.order
+        orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+        make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal, _compliance(cfg),
+                             None if cfg.model.error_variable is None else cfg.model.error_variable, cfg.model.kind)
+        if make.backlash is True and data.has_direction:  # as torchcal fit: the backlash order follows the data
+            make.backlash, _ = default_backlash_orders(orders, data.q, data.direction, inp.robot.joint_map.limits.to(data.q))
+        models.append(make(orders))
+        structures.append((orders, make.backlash))
+        rows.append(torch.isin(inp.ident.pose, data.pose.unique()))
+        noises.append(config_noise(cfg, inp.robot, inp.label))
+    # one batched solve per structure: every model of it at its own size (a superset of mixed orders would
+    # compute the small ones at the largest size); each from zero, as its own fit would start
+    levels: dict[str, list[int]] = {}
+    for i, st in enumerate(structures):
+        levels.setdefault(json.dumps(st), []).append(i)
+    out: list[dict | None] = [None] * len(models)
+    opts = {k: v for k, v in inp.opts.items() if k in ("ftol", "max_iter")}
+    opts["ftol"] = max(float(opts.get("ftol", 0.0)), SWEEP_FTOL)
+    for part in levels.values():
+        batch = fit_batch(models[part[0]], [models[i] for i in part], inp.ident, [noises[i] for i in part], inp.prior,
+                          rows=torch.stack([rows[i] for i in part]), **opts)
+        for i, r in zip(part, batch.results):
+            model = models[i]
+            data = inp.ident.subset(rows[i])
+            ident = residual_stats(point_residuals(model, data).cpu()).scaled(units.m_to_mm(1.0))
+            row = {"converged": bool(r.success), "iterations": int(r.nit), "cost": float(r.fun),
+                   "identification_mean_mm": ident.mean, "identification_max_mm": ident.max, "poses": data.n_poses,
+                   "orders": structures[i][0], "backlash_orders": structures[i][1]}
+            if inp.val is not None:
+                val = residual_stats(point_residuals(model, inp.val).cpu()).scaled(units.m_to_mm(1.0))
+                row.update(validation_mean_mm=val.mean, validation_max_mm=val.max, validation_gamma99_mm=val.gamma99)
+            cell_dir = run_dir / "cells" / f"{cells[i]:02d}"
+            cell_dir.mkdir(parents=True, exist_ok=True)
+            (cell_dir / "config.yaml").write_text(to_yaml(cfgs[i]), encoding="utf-8")
+            save_model(cell_dir, model, orders=structures[i][0], config_file=cfgs[i].config_file, fit=r.summary())
+            out[i] = row
+            log.info(f"cell {cells[i]}: orders {structures[i][0]}, {data.n_poses} poses: "
+                     + (f"validation {row['validation_mean_mm']:.4f} mm" if "validation_mean_mm" in row else
+                        f"identification {ident.mean:.4f} mm") + f" ({r.message}, {r.nit} iterations)")
+    return out
+
+
+def _compliance(cfg):
+    from ..pipeline import config_compliance
+
+    return config_compliance(cfg)
+
+
+def _fit_alone(cfg, run_dir: Path, cell: int, console) -> dict:
+    """A cell the batched solve cannot take: a `torchcal fit` of its own under cells/NN."""
+    from ..pipeline import run_fit
+
+    cfg = cfg.copy()
+    cfg.out = str(run_dir / "cells" / f"{cell:02d}")
+    res = run_fit(cfg, console=None)
+    sets = res.metrics.get("sets", {})
+    row = {"converged": bool(res.fit.success), "iterations": int(res.fit.nit), "cost": float(res.fit.fun),
+           "orders": res.metrics.get("orders")}
+    ident = sets.get("identification", {}).get("modeled")
+    if ident:
+        row.update(identification_mean_mm=ident["mean"], identification_max_mm=ident["max"])
+    val = sets.get("validation", {}).get("modeled")
+    if val:
+        row.update(validation_mean_mm=val["mean"], validation_max_mm=val["max"], validation_gamma99_mm=val.get("gamma99"))
+    return row
+
+
+def _write_results(run_dir: Path, result: SweepResult) -> None:
+    import pandas as pd
+
+    from ..io.rundir import write_json
+
+    df = pd.DataFrame([{k: (json.dumps(v) if isinstance(v, (list, tuple)) else v) for k, v in r.items()}
+                       for r in result.rows])
+    tmp = run_dir / "results.csv.tmp"
+    df.to_csv(tmp, index=False, float_format="%.6g")
+    tmp.replace(run_dir / "results.csv")
+    write_json(run_dir / "results.json", {"keys": result.keys, "time_s": result.time, "cells": result.rows})
+    try:
+        plot_sweep(result, run_dir / "plots" / "sweep.png")
+    except Exception as exc:  # a plot must never cost the results
+        log.warning(f"sweep plot not written: {exc}")
+
+
+def plot_sweep(result: SweepResult, path: Path) -> Path:
+    """Figure 11's layout: the held-out (else identification) mean residual against the first grid key,
+    one line per combination of the other keys."""
+    from ..io import plots  # noqa: F401  (selects matplotlib's file-only backend)
+    import matplotlib.pyplot as plt
+
+    rows = result.rows
+    metric = "validation_mean_mm" if all("validation_mean_mm" in r for r in rows) else "identification_mean_mm"
+    x_key, others = result.keys[0], result.keys[1:]
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    lines: dict[tuple, list] = {}
+    for r in rows:
+        lines.setdefault(tuple(r[k] for k in others), []).append(r)
+    numeric = all(_is_number(r[x_key]) for r in rows)
+    for label, rs in lines.items():
+        rs = sorted(rs, key=lambda r: float(r[x_key]) if numeric else str(r[x_key]))
+        xs = [float(r[x_key]) if numeric else str(r[x_key]) for r in rs]
+        ax.plot(xs, [r.get(metric, math.nan) for r in rs], marker="o",
+                label=", ".join(f"{k} {v}" for k, v in zip(others, label)) or None)
+    ax.set_xlabel(x_key)
+    ax.set_ylabel(("validation" if metric.startswith("validation") else "identification") + " mean residual (mm)")
+    ax.set_title("Sweep (Paper II, Figure 11 layout)")
+    ax.grid(alpha=0.3)
+    if others:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _is_number(v) -> bool:
+    try:
+        float(v)
+        return True
+    except (TypeError, ValueError):
+        return False

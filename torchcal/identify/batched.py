@@ -1,0 +1,427 @@
+"""Many models of one machine fitted in one solve: the model batch dimension of identification.
+
+A sweep (Figure 11: orders x data sets), a noise study, or a fleet of units
+fits M models that share their structure up to which terms they carry.
+:func:`fit_batch` stacks them along a leading model axis: one *superset*
+model carries every term; each model is a mask over its free entries (its own
+gauge pins included) and, optionally, a subset of the data rows and its own
+noise. Every Levenberg-Marquardt iteration linearizes all active models at
+once (``torch.func.vmap`` over the model axis of the closed-form Jacobians),
+eliminates each row's joint errors by the Schur complement batched over
+models, and accepts or rejects each model's step on its own: each model has
+its own damping and its own convergence, and a converged model leaves the
+active set, so it stops costing work.
+
+The algorithm per model is :func:`torchcal.identify.lm.levenberg_marquardt`'s
+(Nielsen's damping on Marquardt's scaling, the same stopping tests; every
+iteration makes one attempt per model and linearizes the trial point, so a
+rejected step costs an iteration instead of an inner loop).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import torch
+from torch.func import functional_call, vmap
+
+from ..measurements import Measurements
+from ..progress import task
+from ..threads import threads_for_work
+from .candidates import structure_mask
+from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
+from .layout import copy_overlap
+from .problem import CalibrationProblem, NoiseModel, Prior, _prefixed
+from .result import FitResult
+
+
+@dataclass
+class BatchedFitResult:
+    """Outcome of :func:`fit_batch`: one :class:`FitResult` per model (``results``) and the batch's totals.
+
+    x: (M, P) every model's free values in the superset's layout (entries a
+    model lacks are zero); keep: (M, P) which entries each model carries;
+    iterations: batched iterations run; time: seconds for the whole batch.
+    """
+
+    results: list[FitResult]
+    x: torch.Tensor
+    keep: torch.Tensor
+    iterations: int
+    time: float
+    names: list[str] = field(default_factory=list)
+
+    @property
+    def success(self) -> torch.Tensor:
+        return torch.tensor([r.success for r in self.results])
+
+    @property
+    def fun(self) -> torch.Tensor:
+        return torch.tensor([r.fun for r in self.results], dtype=torch.float64)
+
+
+class _Predict(torch.nn.Module):
+    """instrument.predict_jacobians(model, ...) as a module whose parameters are the model's (functional_call)."""
+
+    def __init__(self, model, instrument):
+        super().__init__()
+        self.model = model
+        self.instrument = instrument
+
+    def forward(self, q, tool, direction, v):
+        out = self.instrument.predict_jacobians(self.model, q, tool, direction, v)
+        if out is None:
+            raise ValueError(f"fit_batch needs closed-form Jacobians: {type(self.instrument).__name__} gives none "
+                             f"for {type(self.model).__name__}")
+        return out
+
+
+class BatchedProblem:
+    """The implicit-loop MLE of :class:`CalibrationProblem` for M models stacked on a leading axis.
+
+    superset: a model carrying every term of every model (its values are not
+    used); models: M models of the same factory (their current values start
+    the fit); data: the rows they share; rows: (M, R) bool, the rows each model
+    fits (None: all); noise: one :class:`NoiseModel` or M of them (sigma_m and
+    joint variances per model); prior, fixed, gauge: as for :func:`torchcal.fit`
+    (gauge pinned per model, judged at the zero-error model on its own rows).
+    """
+
+    def __init__(self, superset, models: Sequence[torch.nn.Module], data: Measurements, noise, prior: Prior | None = Prior(),
+                 rows: torch.Tensor | None = None, fixed=(), gauge: bool = True, instrument=None):
+        from .fit import resolve_noise
+
+        M = len(models)
+        if M == 0:
+            raise ValueError("fit_batch: no models")
+        noises = list(noise) if isinstance(noise, (list, tuple)) else [noise] * M
+        if len(noises) != M:
+            raise ValueError(f"fit_batch: {len(noises)} noise models for {M} models")
+        noises = [resolve_noise(models[m], nz) for m, nz in enumerate(noises)]
+        self.superset, self.models = superset, list(models)
+        self.problem = CalibrationProblem(superset, data, noises[0], prior, fixed, instrument)
+        p = self.problem
+        self.layout, self.instrument, self.data = p.layout, p.instrument, p.data
+        dev, dt = superset.device, torch.float64
+        R, n = self.data.q.shape
+        self.M, self.R, self.n, self.d = M, R, n, p.dim
+        rows = torch.ones(M, R, dtype=torch.bool, device=dev) if rows is None else torch.as_tensor(rows).to(dev)
+        if rows.shape != (M, R):
+            raise ValueError(f"fit_batch: rows must be an ({M}, {R}) bool mask, got {tuple(rows.shape)}")
+        self.rows = rows
+        # per-model whitening scale (the shared instrument whitens with the first model's sigma) and row mask
+        sig0 = noises[0].sigma_m
+        self.scale = torch.tensor([sig0 / nz.sigma_m for nz in noises], dtype=dt, device=dev)[:, None] * rows.to(dt)
+        w_v = torch.stack([1.0 / nz.joint_variance(self.data.direction) for nz in noises]).to(dev)  # (M, R, n)
+        if not bool(torch.isfinite(w_v).all()):
+            raise ValueError("fit_batch: every model needs positive joint variances (noise.joint_var_fwd / _bwd)")
+        self.w_v = w_v
+        self.w_v_cost = w_v * rows[..., None].to(dt)
+        self.lam = p.prior_precision.to(dev)
+        self.mean = p.prior_mean.to(dev)
+        keep = torch.stack([structure_mask(superset, m, self.layout) for m in models]).to(dev)
+        if gauge:
+            keep = keep & ~self._pins(keep)
+        self.keep = keep
+        self._f = self._kf = None
+
+    def _pins(self, keep: torch.Tensor) -> torch.Tensor:
+        """(M, P) entries each model's own cold fit would pin (fix_gauge on its rows, at the zero-error model)."""
+        x0 = torch.zeros(self.layout.size, dtype=torch.float64, device=self.keep_device)
+        _, A0, _ = self.problem.linearize(x0, torch.zeros_like(self.data.q))
+        order = gauge_priority(self.layout.roles())
+        pins = torch.zeros_like(keep)
+        for pattern in torch.unique(self.rows, dim=0):
+            members = (self.rows == pattern).all(1)
+            A = A0[pattern].reshape(-1, A0.shape[-1])
+            pins[members] = dependent_columns_masked(gauge_basis(A, order), keep[members])
+        return pins
+
+    @property
+    def keep_device(self):
+        return self.rows.device
+
+    def start(self) -> torch.Tensor:
+        """(M, P) each model's current values in the superset's layout (entries it lacks: zero). Reads the
+        models only (the superset may be one of them)."""
+        out = []
+        for m in self.models:
+            own = dict(m.named_parameters())
+            cols = []
+            for name, p, msk in self.layout.entries:
+                full = torch.zeros(p.shape, dtype=p.dtype, device=p.device)
+                q = own.get(name)
+                if q is not None and q.ndim == p.ndim:
+                    full[tuple(slice(0, min(a, b)) for a, b in zip(p.shape, q.shape))] = \
+                        q.detach()[tuple(slice(0, min(a, b)) for a, b in zip(p.shape, q.shape))]
+                cols.append(full[msk])
+            out.append(torch.cat(cols))
+        return torch.stack(out).to(self.lam) * self.keep.to(self.lam)
+
+    @torch.no_grad()
+    def write(self, X: torch.Tensor) -> None:
+        """Write row m of X (M, P) into model m: its free entries in the superset's layout (entries it lacks
+        are dropped; fixed groups keep their values). Reads nothing from the superset, which may be a model."""
+        Xc = X.detach().clone()
+        for m, model in enumerate(self.models):
+            own = dict(model.named_parameters())
+            i = 0
+            for name, p, msk in self.layout.entries:
+                k = int(msk.sum())
+                q = own.get(name)
+                if q is not None and q.ndim == p.ndim:
+                    sl = tuple(slice(0, min(a, b)) for a, b in zip(p.shape, q.shape))
+                    full = torch.zeros(p.shape, dtype=q.dtype, device=q.device)
+                    full[sl] = q.detach()[sl]
+                    full[msk] = Xc[m, i:i + k].to(q)
+                    q[sl] = full[sl]
+                i += k
+
+    # ------------------------------------------------------------------ linearization
+    def _params(self, X: torch.Tensor) -> dict:
+        """{name: (m, *shape)} the superset's parameters with the free entries of every model from X (m, P)."""
+        out, i = {}, 0
+        for (name, p, msk), idx in zip(self.layout.entries, self.layout._flat_index()):
+            k = int(msk.sum())
+            flat = p.detach().flatten().expand(X.shape[0], -1).clone()
+            cols = torch.arange(flat.shape[1], device=flat.device) if idx is None else idx.to(flat.device)
+            flat[:, cols] = X[:, i:i + k].to(flat)
+            out[name] = flat.reshape(X.shape[0], *p.shape)
+            i += k
+        return out
+
+    @torch.no_grad()
+    def linearize(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor):
+        """Whitened residual f (m, R, d), parameter Jacobian A (m, R, d, P) and joint-error Jacobian C
+        (m, R, d, n) of the models ``which`` (m,) at X (m, P), V (m, R, n); rows a model does not fit are zero."""
+        wrapper = _Predict(self.superset, self.instrument)
+        data, inst, layout, R = self.data, self.instrument, self.layout, self.R
+        direction = data.direction if data.has_direction else None
+
+        def one(params, v):
+            pred, J = functional_call(wrapper, _prefixed(params), (data.q, data.tool, direction, v))
+            f = inst.whiten(inst.residual(pred, inst.observed))
+            A = inst.whiten(layout.flatten_jacobian(J, R))
+            C = inst.whiten(J["v"])
+            return f, A, C
+
+        f, A, C = vmap(one)(self._params(X), V)
+        s = self.scale[which][:, :, None]
+        kf = self.keep[which].to(A)
+        return f * s, A * s[..., None] * kf[:, None, None, :], C * s[..., None]
+
+    def cost_from(self, f, X, V, which) -> torch.Tensor:
+        """(m,) V of each model from its whitened residual."""
+        dx = X - self.mean
+        return (f * f).sum((1, 2)) + (self.w_v_cost[which] * V * V).sum((1, 2)) + (self.lam * dx * dx * self.keep[which]).sum(1)
+
+
+def _schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
+    """Damped Gauss-Newton steps of m models at once (the batched :func:`~torchcal.identify.lm._schur_step`).
+
+    f (m, R, d), A (m, R, d, P), C (m, R, d, n), w_v (m, R, n), V (m, R, n), lam (P,), dx (m, P), mu (m,),
+    keep (m, P). -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d).
+    """
+    m, R, d, P = A.shape
+    n = C.shape[-1]
+    kf = keep.to(A)
+    Af = A.reshape(m, R * d, P)
+    lam_m = lam * kf
+    diag_bb = (A * A).sum((1, 2)) + lam_m
+    g_b = (Af.transpose(1, 2) @ f.reshape(m, -1, 1))[..., 0] + lam_m * dx
+    Ct = C.transpose(-1, -2)  # (m, R, n, d)
+    H_vv = Ct @ C + torch.diag_embed(w_v)
+    g_v = (Ct @ f[..., None])[..., 0] + w_v * V
+    H_vv_d = H_vv + mu[:, None, None, None] * torch.diag_embed(torch.diagonal(H_vv, dim1=-2, dim2=-1))
+    L = torch.linalg.cholesky(H_vv_d)
+    eye_n = torch.eye(n, dtype=A.dtype, device=A.device).expand(m, R, n, n)
+    Li = torch.linalg.solve_triangular(L, eye_n, upper=False)
+    W = Li @ Ct  # (m, R, n, d)
+    z = Li @ g_v[..., None]  # (m, R, n, 1)
+    Mm = torch.eye(d, dtype=A.dtype, device=A.device) - W.transpose(-1, -2) @ W  # (m, R, d, d)
+    S = Af.transpose(1, 2) @ (Mm @ A).reshape(m, R * d, P)
+    S = 0.5 * (S + S.transpose(1, 2))
+    # entries a model lacks: unit diagonal, zero right-hand side, so their step is zero
+    S = S + torch.diag_embed(lam_m + mu[:, None] * diag_bb + (1.0 - kf))
+    rhs = -(g_b - (Af.transpose(1, 2) @ (W.transpose(-1, -2) @ z).reshape(m, -1, 1))[..., 0]) * kf
+    Ls, info = torch.linalg.cholesky_ex(S)
+    db = torch.cholesky_solve(rhs[..., None], Ls)[..., 0]
+    bad = info != 0
+    if bool(bad.any()):
+        db[bad] = torch.linalg.lstsq(S[bad], rhs[bad][..., None]).solution[..., 0]
+    dv = -(Li.transpose(-1, -2) @ (z + W @ (A @ db[:, None, :, None])))[..., 0]
+    lin = f + (A @ db[:, None, :, None])[..., 0] + (C @ dv[..., None])[..., 0]
+    return db, dv, lin
+
+
+def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, noise: NoiseModel | Sequence | None = None,
+              prior: Prior | None = Prior(), rows: torch.Tensor | None = None, fixed=(), gauge: bool = True,
+              max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-10, mu0: float = 1e-4, chunk: int = 8) -> BatchedFitResult:
+    """Fit M models of one machine in one batched Levenberg-Marquardt solve; each model is updated in place.
+
+    superset: a model of the same factory carrying every term any model carries
+    (e.g. the largest orders); models: the M models, starting from their
+    current values (warm-start them with
+    :func:`~torchcal.identify.layout.copy_overlap`); data: the rows they share;
+    rows: (M, R) bool, the rows each model fits (data subsets; None: all);
+    noise: one :class:`NoiseModel` (None: the robot's) or M of them; prior,
+    fixed, gauge, max_iter, ftol, xtol, mu0: as for :func:`torchcal.fit` with
+    ``method='lm'`` (gauge pinned per model as its own fit would). chunk:
+    models linearized together (memory: chunk x R x d x P doubles).
+    -> :class:`BatchedFitResult` with one :class:`FitResult` per model.
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> tools = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161]], dtype=torch.float64)
+        >>> truth = torchcal.TruthRobot.fanuc_paper2(robot, tools, 0)
+        >>> q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 40, 0)
+        >>> data = torchcal.simulate(truth, q, [0, 1], torchcal.NoiseModel.from_robot(robot), 0)
+        >>> models = [torchcal.RobotModel(robot, tools, orders=o) for o in (1, 2, 3)]
+        >>> out = fit_batch(torchcal.RobotModel(robot, tools, orders=3), models, data)
+        >>> [bool(r.success) for r in out.results], bool(out.results[2].fun < out.results[0].fun)
+        ([True, True, True], True)
+    """
+    t0 = time.perf_counter()
+    bp = BatchedProblem(superset, models, data, noise, prior, rows, fixed, gauge)
+    M, R, n, P = bp.M, bp.R, bp.n, bp.layout.size
+    X = bp.start()
+    V = torch.zeros(M, R, n, dtype=X.dtype, device=X.device)
+    work = chunk * R * bp.d * P * P
+    mu = torch.full((M,), float(mu0), dtype=X.dtype, device=X.device)
+    nu = torch.full_like(mu, 2.0)
+    nit = torch.zeros(M, dtype=torch.long)
+    nfev = torch.ones(M, dtype=torch.long)
+    success = torch.zeros(M, dtype=torch.bool)
+    message = ["maximum number of iterations reached"] * M
+    history: list[list[float]] = [[] for _ in range(M)]
+    idx_all = torch.arange(M, device=X.device)
+
+    def lin_chunks(which, Xw, Vw):
+        out = [bp.linearize(Xw[c:c + chunk], Vw[c:c + chunk], which[c:c + chunk]) for c in range(0, which.numel(), chunk)]
+        return tuple(torch.cat(t) for t in zip(*out))
+
+    with threads_for_work(work), task("fitting models together", total=M) as bar:
+        f, A, C = lin_chunks(idx_all, X, V)
+        cost = bp.cost_from(f, X, V, idx_all)
+        for m in range(M):
+            history[m].append(float(cost[m]))
+        active = torch.ones(M, dtype=torch.bool, device=X.device)
+        first = torch.ones(M, dtype=torch.bool, device=X.device)
+        fresh = torch.ones(M, dtype=torch.bool, device=X.device)  # the last step was accepted
+        it = 0
+        while bool(active.any()) and it < max_iter:
+            it += 1
+            w = active.nonzero()[:, 0]
+            # steps of the active models, in chunks (memory)
+            steps = [_schur_steps(f[w[c:c + chunk]], A[w[c:c + chunk]], C[w[c:c + chunk]], bp.w_v[w[c:c + chunk]],
+                                  V[w[c:c + chunk]], bp.lam, X[w[c:c + chunk]] - bp.mean, mu[w[c:c + chunk]],
+                                  bp.keep[w[c:c + chunk]]) for c in range(0, w.numel(), chunk)]
+            db, dv, lin = (torch.cat(t) for t in zip(*steps))
+            Xn, Vn = X[w] + db, V[w] + dv
+            predicted = cost[w] - bp.cost_from(lin, Xn, Vn, w)
+            # the Gauss-Newton model at the current point sees less to gain than the stopping test accepts
+            # (judged only on a step right after an accepted one, as the single-model solver does: after a
+            # rejection the damping is raised and a small prediction says nothing)
+            flat = fresh[w] & (~first[w]) & (predicted >= 0) & (predicted <= 0.1 * ftol * cost[w])
+            fn, An, Cn = lin_chunks(w, Xn, Vn)
+            nfev[w.cpu()] += 1
+            new_cost = bp.cost_from(fn, Xn, Vn, w)
+            actual = cost[w] - new_cost
+            ok = (actual > 0) & (predicted > 0) & ~flat
+            rho = actual / predicted.clamp(min=1e-300)
+            mu_w = torch.where(ok, mu[w] * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu[w] * nu[w])
+            nu_w = torch.where(ok, torch.full_like(nu[w], 2.0), nu[w] * 2.0)
+            stalled = ~ok & (predicted <= 1e-14 * cost[w].clamp(min=1.0))
+            step_small = (db.abs() <= xtol * (X[w].abs() + xtol)).all(1)
+            # accept: the trial point and its linearization become the current ones
+            okw = w[ok]
+            X[okw], V[okw], cost[okw] = Xn[ok], Vn[ok], new_cost[ok]
+            f[okw], A[okw], C[okw] = fn[ok], An[ok], Cn[ok]
+            mu[w], nu[w] = mu_w, nu_w
+            fresh[w] = ok
+            nit[w.cpu()] += 1
+            first[w] = False
+            for j, m in enumerate(w.tolist()):
+                if bool(ok[j]):
+                    history[m].append(float(new_cost[j]))
+            conv_rel = ok & (actual <= ftol * new_cost) & (predicted <= ftol * new_cost * 10)
+            done = flat | stalled | conv_rel | (ok & step_small)
+            for j, m in enumerate(w.tolist()):
+                if bool(done[j]):
+                    success[m] = True
+                    message[m] = ("converged: the predicted cost reduction is below ftol" if bool(flat[j]) else
+                                  "converged: no step lowers the cost further" if bool(stalled[j]) else
+                                  "converged: relative cost reduction below ftol" if bool(conv_rel[j]) else
+                                  "converged: parameter step below xtol")
+            active[w] = ~done
+            bar.advance(int(done.sum()), note=f"iteration {it}, {int(active.sum())} models active")
+    elapsed = time.perf_counter() - t0
+    names = bp.layout.names()
+    results = []
+    bp.write(X)
+    for m, model in enumerate(models):
+        kn = [nm for nm, k in zip(names, bp.keep[m].tolist()) if k]
+        results.append(FitResult(x=X[m][bp.keep[m]].detach().clone(), v=V[m].detach().clone(), success=bool(success[m]),
+                                 message=message[m], nit=int(nit[m]), nfev=int(nfev[m]), fun=float(cost[m]), grad_norm=float("nan"),
+                                 time=elapsed / M, method="lm-batched", history=history[m], names=kn))
+    return BatchedFitResult(results=results, x=X.detach().clone(), keep=bp.keep.clone(), iterations=it, time=elapsed,
+                            names=names)
+
+
+def fit_structures(make, keys: Sequence, data: Measurements, noise: NoiseModel | None = None,
+                   prior: Prior | None = Prior(), center=None, **options) -> tuple[list[torch.nn.Module], BatchedFitResult]:
+    """Fit one model per structure key (e.g. per-joint order lists) of one factory on one data set, together.
+
+    make(key) -> a fresh model; keys: the structures; center: the key fitted
+    first (default: the middle one). The center is fitted exactly, every
+    other model starts from its one-step solve at the center's linearization
+    (:class:`~torchcal.identify.candidates.SharedLinearization`: already
+    within ~0.1 % of its optimum for neighbours), and then all are polished
+    together by :func:`fit_batch` (a few iterations each instead of tens from
+    zero). -> (the fitted models, in ``keys`` order, and the batch result).
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> tools = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161]], dtype=torch.float64)
+        >>> truth = torchcal.TruthRobot.fanuc_paper2(robot, tools, 0)
+        >>> q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 40, 0)
+        >>> data = torchcal.simulate(truth, q, [0, 1], torchcal.NoiseModel.from_robot(robot), 0)
+        >>> models, out = fit_structures(lambda o: torchcal.RobotModel(robot, tools, orders=o), [1, 2, 3], data)
+        >>> len(models), all(r.success for r in out.results)
+        (3, True)
+    """
+    from .candidates import SharedLinearization
+    from .fit import fit, resolve_noise
+
+    keys = list(keys)
+    models = [make(k) for k in keys]
+    noise = resolve_noise(models[0], noise)
+    center = keys[len(keys) // 2] if center is None else center
+    # the superset: every parameter at the largest shape any model has
+    shapes: dict[str, list[int]] = {}
+    for m in models:
+        for name, p in m.named_parameters():
+            s = shapes.setdefault(name, list(p.shape))
+            shapes[name] = [max(a, b) for a, b in zip(s, p.shape)]
+    superset = max(models, key=lambda m: sum(p.numel() for p in m.parameters()))
+    if any(list(p.shape) != shapes[n] for n, p in superset.named_parameters()):
+        raise ValueError("fit_structures: no model carries every term of the others; give keys whose largest "
+                         "model contains the rest (e.g. orders up to the largest)")
+    superset = make(keys[models.index(superset)])
+    fit_opts = {k: v for k, v in options.items() if k in ("fixed", "gauge", "ftol", "xtol", "max_iter", "mu0")}
+    c = make(center)
+    r = fit(c, data, noise, prior, **fit_opts)
+    copy_overlap(c, superset)
+    with task("one-step solves of every model", total=None):
+        lin = SharedLinearization(superset, data, noise, prior, v=r.v, fixed=fit_opts.get("fixed", ()),
+                                  gauge=fit_opts.get("gauge", True))
+        X = lin.solve(lin.masks(models))
+    for m, x in zip(models, X):
+        lin.layout.set(x)
+        copy_overlap(superset, m)
+    out = fit_batch(superset, models, data, noise, prior, **{k: v for k, v in options.items() if k != "center"})
+    return models, out

@@ -85,6 +85,7 @@ def select_backlash_orders(
     seed: int = 0,
     progress: Callable[[str], None] | None = None,
     warm: torch.nn.Module | None = None,
+    validation_instrument=None,
     **fit_options,
 ) -> OrderSelection:
     """Pick the backlash order of every joint for fixed joint orders.
@@ -121,7 +122,8 @@ def select_backlash_orders(
     top = max(candidates)
     with task("choosing backlash orders: first fit", total=None) as t:
         search = StructureSearch(lambda: make_model(orders, [top] * n), lambda k: make_model(orders, list(k)), data,
-                                 validation, noise, prior, fit_options, center=(int(start),) * n, warm=warm)
+                                 validation, noise, prior, fit_options, center=(int(start),) * n, warm=warm,
+                                 validation_instrument=validation_instrument)
         t.advance()
 
     def scores(keys, stage):

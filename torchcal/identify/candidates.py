@@ -43,6 +43,10 @@ from .problem import CalibrationProblem, NoiseModel, Prior
 CHUNK = 8
 """Candidates per batched PRESS evaluation (memory: CHUNK x P x R d doubles)."""
 
+SEARCH_FTOL = 1e-4
+"""Relative cost reduction at which :class:`StructureSearch`'s own fits stop (their points are where the
+candidates are linearized; the scores are solves from there, insensitive to the last iterations' creep)."""
+
 
 def structure_mask(superset: torch.nn.Module, candidate: torch.nn.Module, layout) -> torch.Tensor:
     """(P,) bool over ``layout``'s free entries (a layout of ``superset``): the entries ``candidate`` carries.
@@ -104,12 +108,15 @@ class SharedLinearization:
 
     def __init__(self, model, data: Measurements, noise: NoiseModel | None = None, prior: Prior | None = Prior(),
                  v: torch.Tensor | None = None, validation: Measurements | None = None, fixed=(), gauge: bool = True,
-                 refine: int = 0, pins: dict | None = None):
+                 refine: int = 0, pins: dict | None = None, instrument=None, validation_instrument=None):
         from .fit import resolve_noise
 
         self.model = model
         noise = resolve_noise(model, noise)
-        problem = CalibrationProblem(model, data, noise, prior, fixed)
+        problem = CalibrationProblem(model, data, noise, prior, fixed, instrument)
+        # held-out errors: |raw residual| (m) for point targets, as the order search always judged them; the
+        # whitened norm for any other instrument (position and angles on their own noise scales)
+        self.raw_scores = problem.instrument.dim == 3 and type(problem.instrument).__name__ == "PointTargets"
         # no gauge fixing of the superset: what a candidate must pin depends on the columns IT carries
         # (an entry redundant beside the superset's extra terms may be free without them); masks() pins per candidate
         self.gauge = bool(gauge)
@@ -143,12 +150,12 @@ class SharedLinearization:
         self.pose = problem.data.pose
         self.validation = None
         if validation is not None:
-            vp = CalibrationProblem(model, validation, noise, None, fixed)
+            vp = CalibrationProblem(model, validation, noise, None, fixed, validation_instrument)
             vp.layout = self.layout  # the same free entries, same order
             self.validation = vp
             if self.refine == 0:  # the validation rows linearized at the same point, consistent with the solve
                 fv, Av, _ = vp.linearize(x, vp.v_zero())
-                self._val_lin = (vp.instrument.unwhiten(fv), vp.instrument.unwhiten(Av))
+                self._val_lin = (vp.instrument.unwhiten(fv), vp.instrument.unwhiten(Av)) if self.raw_scores else (fv, Av)
                 self.layout.set(x)
         self._blocks = None
 
@@ -214,8 +221,9 @@ class SharedLinearization:
         if self.refine == 0:
             fv, Av = self._val_lin
             return (fv + torch.einsum("rdp,mp->mrd", Av, X - self.x)).norm(dim=-1)
+        back = vp.instrument.unwhiten if self.raw_scores else (lambda t: t)
         try:
-            return torch.stack([vp.instrument.unwhiten(vp.whitened_residual(x, v)).norm(dim=-1) for x in X])
+            return torch.stack([back(vp.whitened_residual(x, v)).norm(dim=-1) for x in X])
         finally:
             self.layout.set(self.x)
 
@@ -338,7 +346,8 @@ class _View:
         bad = (info != 0) | ~torch.isfinite(sol).all(-1)
         sol = torch.where(bad[..., None], torch.zeros_like(sol), sol)
         e_t = sol.reshape(M, N, k, d)[:, slot, pos]  # back to rows (M, R, d), whitened by L^-1
-        e = lin.problem.instrument.unwhiten((lin.L @ e_t[..., None])[..., 0]).norm(dim=-1)
+        e = (lin.L @ e_t[..., None])[..., 0]
+        e = (lin.problem.instrument.unwhiten(e) if lin.raw_scores else e).norm(dim=-1)
         return torch.where(bad[:, slot], torch.full_like(e, float("inf")), e)
 
 
@@ -358,17 +367,22 @@ class StructureSearch:
     """
 
     def __init__(self, make_superset, make, data: Measurements, validation: Measurements | None, noise, prior,
-                 fit_options: dict, center, warm: torch.nn.Module | None = None):
+                 fit_options: dict, center, warm: torch.nn.Module | None = None, validation_instrument=None):
         from .fit import fit
 
         self._fit = fit
         self.make, self.data, self.validation = make, data, validation
         self.noise, self.prior, self.fit_options = noise, prior, dict(fit_options)
         self.fit_options.pop("callback", None)
+        # the search's own fits only place a linearization point (each score is a solve from it): they stop
+        # where the last iterations would only creep along near-redundant directions
+        if self.fit_options.get("method", "lm") == "lm":
+            self.fit_options["ftol"] = max(float(self.fit_options.get("ftol", 0.0)), SEARCH_FTOL)
         self.superset = make_superset()
         self.fits = 0
         self.epoch = -1
         self.center = None
+        self.validation_instrument = validation_instrument
         self._pins: dict = {}
         if warm is not None:
             copy_overlap(warm, self.superset)
@@ -384,7 +398,9 @@ class StructureSearch:
         self.center = key
         self.lin = SharedLinearization(self.superset, self.data, self.noise, self.prior, v=r.v,
                                        validation=self.validation, fixed=self.fit_options.get("fixed", ()),
-                                       gauge=self.fit_options.get("gauge", True), pins=self._pins)
+                                       gauge=self.fit_options.get("gauge", True), pins=self._pins,
+                                       instrument=self.fit_options.get("instrument"),
+                                       validation_instrument=self.validation_instrument)
         self._cache: dict[tuple, torch.Tensor] = {}
         self.epoch += 1
 

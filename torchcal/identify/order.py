@@ -196,6 +196,7 @@ def select_orders(
     joint_window: int | None = None,
     margin: float = 1.0,
     progress: Callable[[str], None] | None = None,
+    validation_instrument=None,
     **fit_options,
 ) -> OrderSelection:
     """Pick the Chebyshev order of every joint by validation (Figure 11), then refine per joint.
@@ -221,6 +222,10 @@ def select_orders(
     (:class:`~torchcal.identify.candidates.StructureSearch`); the incumbent is
     refitted exactly after stage 1 and after every pass that changed it, and the
     candidates near it are scored from there. ``table`` records those scores.
+    An ``instrument`` in ``fit_options`` (a 6-DOF sensor, Paper III) is used
+    throughout, ``validation_instrument`` for the validation rows; held-out
+    errors are then whitened residual norms (position and angles on their
+    noise scales) instead of metres.
     """
     if folds and validation is None:
         return _select_orders_refit(make_model, data, validation, noise, prior, candidates, folds, seed, per_joint,
@@ -236,7 +241,7 @@ def select_orders(
     with task("choosing orders: first fit", total=None) as t:
         center = uniform[len(uniform) // 2]
         search = StructureSearch(lambda: make_model([candidates[-1]] * n), make_model, data, validation, noise, prior,
-                                 fit_options, center=center)
+                                 fit_options, center=center, validation_instrument=validation_instrument)
         t.advance()
 
     def scores(keys, stage):

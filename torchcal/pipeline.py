@@ -27,16 +27,19 @@ is one function of this module, and :func:`run_fit` calls them in turn:
    ``data.truth``: compensate the validation commands, "run" them on the
    simulated robot and compare with where the nominal model sends the tool
    (Table 7, Figure 16);
-9. plots (Figures 12-16).
+9. plots (Figures 12-16), drawn by a second process (:class:`torchcal.io.plots.PlotWorker`)
+   that gets each figure as soon as its data exist, while the stages above go on.
 
-Everything inside is SI; tables and files are mm and degrees.
+Every stage is a progress task (:mod:`torchcal.progress`): the CLI shows a bar on
+a terminal and plain lines elsewhere, and run.log gets the lines
+(:mod:`torchcal.io.progress_view`). Everything inside is SI; tables and files are mm and degrees.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -54,6 +57,7 @@ from .io.rundir import collect_versions, make_run_dir, run_log, save_model, writ
 from .kinematics import load_robot
 from .measurements import Measurements
 from .model import RobotModel
+from .progress import task as progress_task
 
 log = logging.getLogger("torchcal")
 
@@ -344,44 +348,68 @@ def compensation_check(model, truth, data: Measurements, noise: NoiseModel | Non
 
 # ------------------------------------------------------------------ reporting
 class _Progress:
-    """Log lines to the run log and, when a rich console is given, a live status line on it.
+    """Log lines to the run log and, when a rich console is given, to the console too; stages as progress tasks.
 
-    warnings: every :meth:`warn` text, in order (they also go to ``metrics.json`` and the CLI's summary).
+    Every :meth:`step` is a :func:`torchcal.progress.task`: the installed
+    :class:`torchcal.io.progress_view.ProgressView` shows it (a bar on a terminal,
+    plain lines with a heartbeat elsewhere and in run.log), together with the
+    library's own tasks inside it. warnings: every :meth:`warn` text, in order
+    (they also go to ``metrics.json`` and the CLI's summary).
     """
+
+    QUIET_STEP_S = 2.0
+    """A quiet step says 'done in' only when it took at least this long."""
 
     def __init__(self, console=None):
         self.console = console
-        self._status = None
+        self.task = None  # the innermost running step's progress.Task
         self.warnings: list[str] = []
+
+    def _show(self, text: str, markup: bool = True) -> None:
+        if self.console is None:
+            return
+        from .io.progress_view import current_view
+
+        view = current_view()
+        if view is not None and view.console is self.console:
+            view.message(text, markup=markup)  # never in the middle of a progress line
+        else:
+            self.console.log(text, markup=markup)
 
     def info(self, text: str) -> None:
         log.info(text)
-        if self.console is not None:
-            self.console.log(text)
+        self._show(text)
 
     def warn(self, text: str) -> None:
         self.warnings.append(text)
         log.warning(text)
-        if self.console is not None:
-            self.console.log(f"warning: {text}", markup=False)
+        self._show(f"warning: {text}", markup=False)
 
     def update(self, text: str) -> None:
+        """A note on the running step (its bar, its next progress line)."""
         log.debug(text)
-        if self._status is not None:
-            self._status.update(text)
+        if self.task is not None:
+            self.task.set_note(text)
 
     @contextmanager
-    def step(self, text: str):
-        log.info(text)
+    def step(self, text: str, total: int | None = None, quiet: bool = False):
+        """A stage: logged when it starts and with its duration when it ends, a progress task in between.
+
+        total: items, when the stage advances ``self.task`` itself; quiet: no start line, and the
+        'done in' line only when it took :data:`QUIET_STEP_S` or longer (short bookkeeping stages).
+        """
+        if not quiet:
+            log.info(text)
         t0 = time.perf_counter()
-        cm = self.console.status(text) if self.console is not None else nullcontext()
-        with cm as status:
-            self._status = status
+        with progress_task(text, total) as t:
+            outer, self.task = self.task, t
             try:
                 yield self
             finally:
-                self._status = None
-        self.info(f"{text} done in {time.perf_counter() - t0:.1f} s")
+                self.task = outer
+        dt = time.perf_counter() - t0
+        if not quiet or dt >= self.QUIET_STEP_S:
+            self.info(f"{text} done in {dt:.1f} s")
 
 
 @contextmanager
@@ -431,6 +459,17 @@ class FitInputs:
     notes: list[str] = field(default_factory=list)
 
 
+def first_poses(data: Measurements, count: int, label: str = "config") -> Measurements:
+    """The rows of the first ``count`` poses of ``data`` in file order (``data.n_poses``); a ConfigError if it has fewer."""
+    ids, slot = torch.unique(data.pose, return_inverse=True)
+    first_row = torch.full((ids.numel(),), len(data), dtype=torch.long, device=data.pose.device)
+    first_row = first_row.scatter_reduce(0, slot, torch.arange(len(data), device=data.pose.device), reduce="amin")
+    ranked = ids[torch.argsort(first_row)]  # pose ids in order of first appearance
+    if count > ranked.numel():
+        raise ConfigError(f"{label}: key 'data.n_poses': {count} poses asked for, {data.source} has {ranked.numel()}")
+    return data.poses_subset(ranked[:count])
+
+
 def load_inputs(cfg) -> FitInputs:
     """Stage 1, load: robot, config checks against it, noise, prior, solver options, the CSV files, the truth.
 
@@ -449,9 +488,12 @@ def load_inputs(cfg) -> FitInputs:
     with _collect_warnings(notes):
         ident = read_measurements(cfg.data.identification, robot, T).to(device)
         val = read_measurements(cfg.data.validation, robot, T).to(device) if cfg.data.validation else None
+    if cfg.data.get("n_poses") is not None:
+        ident = first_poses(ident, int(cfg.data.n_poses), label)
     if cfg.model.kind == "axis_perturbation":
-        for key, bad, why in (("model.order", isinstance(cfg.model.order, str), "give an int or one order per axis "
-                               "(the automatic order search is for model.kind=joint_dependent)"),
+        for key, bad, why in (("model.order", isinstance(cfg.model.order, str) and int(cfg.model.folds) > 0,
+                               "auto on a machine tool chooses by leave-one-pose-out or the validation set "
+                               "(model.folds: 0)"),
                               ("data.truth", bool(cfg.data.truth), "the compensation check simulates robots; run "
                                "experiments/paper1_machine_tool for machine tools"),
                               ("model.compliance", cfg.model.compliance not in (False, None),
@@ -518,7 +560,17 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress,
     """
     order = cfg.model.order
     if not isinstance(order, str):
-        return ([int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]), None
+        orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
+        if make.backlash is True and inp.ident.has_direction:
+            # backlash on without an order: its order follows the data (identifiable where directions do not
+            # follow positions), never eps_z's order blindly
+            from .identify.backlash import default_backlash_orders
+
+            make.backlash, r2 = default_backlash_orders(orders, inp.ident.q, inp.ident.direction,
+                                                        inp.robot.joint_map.limits.to(inp.ident.q))
+            progress.info(f"backlash orders {make.backlash}: direction explained by position R² "
+                          + ", ".join(f"{x:.2f}" for x in r2) + " (below 0.1: the joint's order, at most 3; else 2)")
+        return orders, None
     from .identify.order import select_orders  # "auto": check_config allows no other string
 
     folds = int(cfg.model.folds)
@@ -538,7 +590,8 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress,
 
         with progress.step("choosing the backlash orders") as p:
             bsel = select_backlash_orders(make, orders, inp.ident, inp.val, inp.noise, inp.prior, folds=folds,
-                                          margin=float(cfg.model.margin), seed=int(cfg.seed), progress=p.update, **inp.opts)
+                                          margin=float(cfg.model.margin), seed=int(cfg.seed), progress=p.update,
+                                          warm=selection.fitted, **inp.opts)
         make.backlash = [int(b) for b in bsel.orders]
         record["backlash_orders"] = make.backlash
         record["backlash_table"] = [{**r, "score_mm": units.m_to_mm(r["score"])} for r in bsel.table]
@@ -553,7 +606,7 @@ def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: 
     opts = inp.opts
     with progress.step(f"identifying the model (orders {orders}, {opts['method']})") as p:
         result = fit(model, inp.ident, inp.noise, inp.prior, callback=lambda it, cost: p.update(
-            f"identifying ({opts['method']}): iteration {it}, cost {cost:.6g}"), **opts)
+            f"iteration {it}, cost {cost:.6g}"), **opts)
     files["model"] = save_model(run_dir, model, orders=orders, config_file=cfg.config_file)
     files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
                                                       "orders": orders, "history": list(result.history)})
@@ -782,14 +835,18 @@ def run_fit(cfg, console=None) -> RunResult:
         >>> result.metrics["sets"]["validation"]["modeled"]["mean"]                  # doctest: +SKIP
         0.0123
     """
-    if cfg.threads is None:  # each stage picks its threads by work size (torchcal.threads)
-        return _run_fit(cfg, console)
-    old = threads.get_override()
-    threads.set_threads(int(cfg.threads))
-    try:
-        return _run_fit(cfg, console)
-    finally:
-        threads.set_threads(old)
+    from .io.progress_view import showing
+
+    # every stage is a progress task: a bar on a terminal, plain lines (and a heartbeat) elsewhere and in run.log
+    with showing(console):
+        if cfg.threads is None:  # each stage picks its threads by work size (torchcal.threads)
+            return _run_fit(cfg, console)
+        old = threads.get_override()
+        threads.set_threads(int(cfg.threads))
+        try:
+            return _run_fit(cfg, console)
+        finally:
+            threads.set_threads(old)
 
 
 def _run_fit(cfg, console=None) -> RunResult:
@@ -800,11 +857,27 @@ def _run_fit(cfg, console=None) -> RunResult:
         from .pipeline_sensor import run_sensor_fit
 
         return run_sensor_fit(cfg, console)
-    inp = load_inputs(cfg)
-    tools_m, base_nominal, alignment = align_inputs(cfg, inp)
+    from .io.plots import PlotWorker
+
+    # the figures are drawn by a second process (numpy + matplotlib) while the stages below compute
+    plotter = PlotWorker() if cfg.plots else None
+    try:
+        return _run_stages(cfg, console, plotter)
+    finally:
+        if plotter is not None:
+            plotter.cancel()  # done already, or a failed / interrupted run
+
+
+def _run_stages(cfg, console, plotter) -> RunResult:
+    """:func:`_run_fit`'s stages; ``plotter``: a :class:`torchcal.io.plots.PlotWorker` that gets each figure
+    as soon as its data exist, or None (plots: false)."""
+    progress = _Progress(console)
+    with progress.step("reading the robot and the data", quiet=True):
+        inp = load_inputs(cfg)
+    with progress.step("estimating the tool vectors / measurement frame", quiet=True):
+        tools_m, base_nominal, alignment = align_inputs(cfg, inp)
     run_dir = make_run_dir(cfg.out)
     files: dict[str, Path] = {}
-    progress = _Progress(console)
     try:
         with run_log(run_dir):
             write_preamble(run_dir, cfg, inp, alignment, progress, files)
@@ -819,21 +892,30 @@ def _run_fit(cfg, console=None) -> RunResult:
                 from .pipeline_constraint import identify_constrained
 
                 model, result, constraint = identify_constrained(cfg, inp, make, orders, run_dir, progress, files)
-            diagnostics = check_data(cfg, inp, model, make, orders, result, progress)
-            sets, evaluations, table = evaluate_sets(inp, model, progress)
+            plot_folder = run_dir / "plots"
+            if plotter is not None:
+                _submit_plots(plotter, plot_folder, model=model)
+            with progress.step("checking what the data determine", quiet=True):
+                diagnostics = check_data(cfg, inp, model, make, orders, result, progress)
+            with progress.step("evaluating the residuals", quiet=True):
+                sets, evaluations, table = evaluate_sets(inp, model, progress)
             metrics = fit_metrics(orders, selection, result, alignment, sets, evaluations, table)
             metrics["data_checks"] = diagnostics
             metrics["constraint"] = constraint
             metrics["warnings"] = progress.warnings
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
+            if plotter is not None:
+                _submit_plots(plotter, plot_folder, evaluations=evaluations)
             files["residuals"] = _write_residuals(run_dir / "residuals.csv", sets, evaluations)
             comp_table, comp = None, None
             if inp.truth is not None:
                 comp_table, comp = check_compensation(cfg, inp, model, evaluations, metrics, progress)
                 files["metrics"] = write_json(run_dir / "metrics.json", metrics)
-            if cfg.plots:
-                with progress.step("plotting"):
-                    files.update(_plots(run_dir / "plots", model, evaluations, comp))
+                if plotter is not None:
+                    _submit_plots(plotter, plot_folder, comp=comp)
+            if plotter is not None:
+                with progress.step("plotting") as p:  # waits for the figures drawn meanwhile
+                    files.update(plotter.finish(p.task))
             progress.info(f"done: {run_dir}")
     except KeyboardInterrupt as exc:
         exc.run_dir = run_dir  # the CLI names the partial run directory
@@ -850,14 +932,17 @@ def predict_file(run_dir, input, output, device=None) -> int:
     from .io.csv import points_to_file, read_table
     from .io.rundir import load_model
 
-    model = load_model(run_dir, device=device)
+    with progress_task(f"loading the run {run_dir}"):
+        model = load_model(run_dir, device=device)
     if hasattr(model, "sensor_pose"):  # a sensor run (Paper III): modeled x, y, z, r11..r33
         from .pipeline_sensor import predict_pose_file
 
-        return predict_pose_file(run_dir, input, output, model)
-    data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
+        with progress_task(f"predicting the sensor poses of {input}"):
+            return predict_pose_file(run_dir, input, output, model)
+    with progress_task(f"reading {input}"):
+        data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
     data = data.to(model.device)
-    with torch.no_grad():
+    with torch.no_grad(), progress_task(f"predicting {len(df)} rows"):
         p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
     mm = points_to_file(p)
     out = df.copy()
@@ -916,12 +1001,16 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     from .io.csv import joint_columns, joints_to_file, read_table, write_table
     from .io.rundir import load_model
 
-    model = load_model(run_dir, device=device)
+    with progress_task(f"loading the run {run_dir}"):
+        model = load_model(run_dir, device=device)
     robot = model.robot
-    data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
+    with progress_task(f"reading {input}"):
+        data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
     data = data.to(model.device)
-    res = compensate(model, data.q, data.direction if data.has_direction else None,
-                     **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic))
+    with progress_task(f"compensating {len(df)} commands"):
+        res = compensate(model, data.q, data.direction if data.has_direction else None,
+                         **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg,
+                                                    robot.joint_map.prismatic))
     q_file = joints_to_file(res.q, robot)
     out = df.copy()
     for i, c in enumerate(joint_columns(robot.joint_map.n)):
@@ -967,27 +1056,27 @@ def _write_residuals(path: Path, sets: dict, evaluations: dict) -> Path:
     return write_table(path, pd.concat(frames, ignore_index=True))
 
 
-def _plots(folder: Path, model, evaluations: dict, comp: dict | None) -> dict[str, Path]:
+def _submit_plots(plotter, folder: Path, model=None, evaluations: dict | None = None, comp: dict | None = None) -> None:
+    """Hand the figures whose data exist to ``plotter`` (:class:`torchcal.io.plots.PlotWorker`): Figure 12 with the
+    model, Figures 13-15 with the evaluations, Figure 16 with the compensation check."""
     from .io import plots
 
-    out = {}
     if isinstance(model, RobotModel):
-        out["plot_joint_errors"] = plots.plot_joint_errors(model, folder / "joint_errors.png")
-    fig = {"Identification": 14, "Validation": 15}
-    for name, ev in evaluations.items():
-        out[f"plot_residuals_{name.lower()}"] = plots.plot_residuals(
-            ev["nominal"], ev["modeled"], folder / f"residuals_{name.lower()}.png",
-            f"Nominal and modeled residuals, {name.lower()} set (Paper II, Fig. {fig[name]})")
-    last = "Validation" if "Validation" in evaluations else "Identification"
-    out["plot_distribution"] = plots.plot_residual_distribution(
-        evaluations[last]["modeled"], folder / f"distribution_{last.lower()}.png", evaluations[last]["modeled_stats"],
-        f"Modeled residuals, {last.lower()} set (Paper II, Fig. 13)")
+        plotter.submit("plot_joint_errors", "joint_errors", folder / "joint_errors.png", plots.joint_errors_figure(model))
+    if evaluations is not None:
+        fig = {"Identification": 14, "Validation": 15}
+        for name, ev in evaluations.items():
+            plotter.submit(f"plot_residuals_{name.lower()}", "pair", folder / f"residuals_{name.lower()}.png",
+                           plots.residuals_figure(ev["nominal"], ev["modeled"], f"Nominal and modeled residuals, "
+                                                  f"{name.lower()} set (Paper II, Fig. {fig[name]})"))
+        last = "Validation" if "Validation" in evaluations else "Identification"
+        plotter.submit("plot_distribution", "distribution", folder / f"distribution_{last.lower()}.png",
+                       plots.distribution_figure(evaluations[last]["modeled"], evaluations[last]["modeled_stats"],
+                                                 f"Modeled residuals, {last.lower()} set (Paper II, Fig. 13)"))
     if comp is not None:
-        out["plot_compensation"] = plots.plot_compensation(
-            comp["nominal"], comp["compensated"], folder / "compensation_validation.png",
-            "Nominal and compensated residuals, validation set (Paper II, Fig. 16)",
-            flagged=~(comp["result"].converged & comp["result"].within_limits))
-    return out
+        plotter.submit("plot_compensation", "pair", folder / "compensation_validation.png", plots.compensation_figure(
+            comp["nominal"], comp["compensated"], "Nominal and compensated residuals, validation set (Paper II, Fig. 16)",
+            flagged=~(comp["result"].converged & comp["result"].within_limits)))
 
 
 __all__ = [

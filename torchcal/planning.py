@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from .exceptions import TorchcalError
+from .progress import task as progress_task
 from .analysis.confounding import direction_position_dependence
 from .analysis.coverage import DirectionCoverage
 from .basis import chebyshev, normalize
@@ -159,25 +160,27 @@ def decorrelating_order(q: torch.Tensor, limits: torch.Tensor, seed: int = 0, st
     order = np.empty(N, dtype=np.int64)
     last = None if start is None else np.asarray(torch.as_tensor(start, dtype=torch.float64).cpu(), dtype=np.float64)
     s_last = np.ones(qn.shape[1])
-    for k in range(N):
-        idx = np.flatnonzero(remaining)
-        if last is None:
-            s = np.ones((idx.size, qn.shape[1]))
-        else:
-            step = np.sign(qn[idx] - last)
-            s = np.where(step == 0, s_last, step)
-        cost = ((M[None] + s[..., None] * phi[idx]) ** 2).sum((1, 2))
-        if k == 0 and last is None:
-            pick = int(rng.integers(idx.size))     # every first pose costs the same: start anywhere
-        else:
-            best = np.argsort(cost, kind="stable")[: max(1, int(candidates))]
-            pick = int(best[rng.integers(best.size)])
-        i = idx[pick]
-        order[k] = i
-        M = M + s[pick][:, None] * phi[i]
-        s_last = s[pick]
-        last = qn[i]
-        remaining[i] = False
+    with progress_task("planning poses: decorrelating visiting order", total=N) as t:
+        for k in range(N):
+            idx = np.flatnonzero(remaining)
+            if last is None:
+                s = np.ones((idx.size, qn.shape[1]))
+            else:
+                step = np.sign(qn[idx] - last)
+                s = np.where(step == 0, s_last, step)
+            cost = ((M[None] + s[..., None] * phi[idx]) ** 2).sum((1, 2))
+            if k == 0 and last is None:
+                pick = int(rng.integers(idx.size))     # every first pose costs the same: start anywhere
+            else:
+                best = np.argsort(cost, kind="stable")[: max(1, int(candidates))]
+                pick = int(best[rng.integers(best.size)])
+            i = idx[pick]
+            order[k] = i
+            M = M + s[pick][:, None] * phi[i]
+            s_last = s[pick]
+            last = qn[i]
+            remaining[i] = False
+            t.advance()
     return torch.from_numpy(order)
 
 
@@ -255,29 +258,31 @@ def plan_poses(
     chain = robot.chain
     dtype = chain.origins.dtype if hasattr(chain, "origins") else torch.float64
     device = chain.origins.device if hasattr(chain, "origins") else torch.device("cpu")
-    while kept < count and drawn < max_draws:
-        m = min(batch, max_draws - drawn)
-        qc = quasi_random_commands(box, m, seed, skip=drawn, shuffle=False)  # a prefix of one Sobol sequence
-        with torch.no_grad():
-            F = chain.fk(robot.joint_map.to_joint(qc.to(device, dtype))).to("cpu", torch.float64)
-        p, z_axis = F[:, :3, 3], F[:, :3, 2]
-        below = p[:, 2] < min_height
-        near = p.norm(dim=1) < min_tool_distance
-        ok = ~below & ~near
-        hidden = torch.zeros_like(ok)
-        if trk is not None:
-            los = trk - p
-            cos = (los * z_axis).sum(1) / los.norm(dim=1).clamp(min=1e-12)
-            hidden = cos < cos_max
-            ok &= ~hidden
-        rejected["below_plane"] += int(below.sum())
-        rejected["near_base"] += int((near & ~below).sum())
-        rejected["not_visible"] += int((hidden & ~below & ~near).sum())
-        kept_q.append(qc[ok])
-        kept_p.append(p[ok])
-        kept += int(ok.sum())
-        drawn += m
-        batch *= 2
+    with progress_task("planning poses: reachable and visible candidates", total=count) as t:
+        while kept < count and drawn < max_draws:
+            m = min(batch, max_draws - drawn)
+            qc = quasi_random_commands(box, m, seed, skip=drawn, shuffle=False)  # a prefix of one Sobol sequence
+            with torch.no_grad():
+                F = chain.fk(robot.joint_map.to_joint(qc.to(device, dtype))).to("cpu", torch.float64)
+            p, z_axis = F[:, :3, 3], F[:, :3, 2]
+            below = p[:, 2] < min_height
+            near = p.norm(dim=1) < min_tool_distance
+            ok = ~below & ~near
+            hidden = torch.zeros_like(ok)
+            if trk is not None:
+                los = trk - p
+                cos = (los * z_axis).sum(1) / los.norm(dim=1).clamp(min=1e-12)
+                hidden = cos < cos_max
+                ok &= ~hidden
+            rejected["below_plane"] += int(below.sum())
+            rejected["near_base"] += int((near & ~below).sum())
+            rejected["not_visible"] += int((hidden & ~below & ~near).sum())
+            kept_q.append(qc[ok])
+            kept_p.append(p[ok])
+            kept += int(ok.sum())
+            drawn += m
+            batch *= 2
+            t.advance(min(kept, count) - t.completed, note=f"{drawn} drawn")
     q = torch.cat(kept_q)[:count]
     flange = torch.cat(kept_p)[:count]
     if q.shape[0] < count:

@@ -276,8 +276,11 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
     old_override = threads.get_override()
     if count:
         threads.set_threads(int(count))
-    try:
-        return _run_update(parent, cfg, Path(new_data), Path(out), dev, strategy, console)
+    from .io.progress_view import showing
+
+    try:  # stages as progress tasks: a bar on a terminal, plain lines (and a heartbeat) elsewhere and in run.log
+        with showing(console):
+            return _run_update(parent, cfg, Path(new_data), Path(out), dev, strategy, console)
     finally:
         threads.set_threads(old_override)
 
@@ -285,13 +288,15 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console) -> UpdateResult:
     from .pipeline import _Progress
 
-    model = load_model(parent, device=dev)
     progress = _Progress(console)
-    noise = _noise_prior_options(cfg, model)[0]
-    new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written
-    new = new.to(dev)
+    with progress.step(f"reading the run {parent} and {new_path}", quiet=True):
+        model = load_model(parent, device=dev)
+        noise = _noise_prior_options(cfg, model)[0]
+        new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written
+        new = new.to(dev)
     notes: list[str] = []
-    online, history = load_online(parent, cfg, model, strategy, notes, progress)
+    with progress.step("loading the parent's online state (or rebuilding it from its data)", quiet=True):
+        online, history = load_online(parent, cfg, model, strategy, notes, progress)
     early = list(progress.warnings)  # said before the run log existed: repeated into it below
     run = make_run_dir(out)
     try:
@@ -336,7 +341,8 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
         lineage = _lineage(parent)
         update = {**meta, "lineage": lineage, "history": history, **step.summary()}
         files["update"] = write_json(run / UPDATE_FILE, update)
-        sets, table = _evaluate(cfg, model, new, progress)
+        with progress.step("evaluating the residuals", quiet=True):
+            sets, table = _evaluate(cfg, model, new, progress)
         metrics = {"units": "mm, deg, percent" if is_sensor_run(cfg) else "mm, percent", "parent": str(parent),
                    "lineage": lineage, "history": history, "update": step.summary(), "sets": sets, "table6": table,
                    "warnings": progress.warnings}

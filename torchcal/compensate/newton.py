@@ -45,6 +45,7 @@ import torch
 
 from ..kinematics.transforms import homogeneous
 from ..measurements import first_invalid_direction
+from ..progress import task as progress_task
 from ..threads import threads_for_work
 from .damped import damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
@@ -451,6 +452,14 @@ def compensate(
                            null_damping=null_damping)
 
 
+def _chunks(count: int, chunk_size: int, name: str):
+    """range(0, count, chunk_size), reported as a progress task (:mod:`torchcal.progress`) of one item per chunk."""
+    with progress_task(name, total=-(-count // chunk_size)) as t:
+        for c0 in range(0, count, chunk_size):
+            yield c0
+            t.advance()
+
+
 @torch.no_grad()
 def _compensate(
     model,
@@ -497,7 +506,7 @@ def _compensate(
     targets_R = torch.empty(3, 3, B, dtype=dtype, device=device)
     targets_p = torch.empty(3, B, dtype=dtype, device=device)
 
-    for c0 in range(0, B, chunk_size):
+    for c0 in _chunks(B, chunk_size, "fixed-Jacobian Newton (chunks)"):
         sl = slice(c0, min(c0 + chunk_size, B))
         qT = q_nom[sl].T.contiguous()
         sT = None if direction is None else direction[sl].T.contiguous()
@@ -538,7 +547,7 @@ def _compensate(
     if damped.any():
         k = damped.nonzero()[:, 0]
         target = homogeneous(targets_R[..., k].permute(2, 0, 1), targets_p[:, k].T)
-        for c0 in range(0, k.numel(), chunk_size):
+        for c0 in _chunks(k.numel(), chunk_size, f"damped least squares, {k.numel()} poses (chunks)"):
             kk = k[c0:c0 + chunk_size]
             tk = target[c0:c0 + chunk_size]
             dk = None if direction is None else direction[kk]

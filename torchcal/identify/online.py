@@ -58,6 +58,7 @@ import torch
 from ..measure import Instrument, PointTargets
 from ..measure.base import concat
 from ..measurements import Measurements
+from ..progress import task as progress_task
 from .fit import SOLVERS, fit, resolve_noise
 from .gauge import fix_gauge
 from .layout import ParameterLayout
@@ -353,10 +354,11 @@ class OnlineCalibration:
         instrument = (default_instrument(data, self.noise) if instrument is None else instrument).to(self.model.device)
         if len(instrument) != len(data):
             raise ValueError(f"{data.source}: the instrument has {len(instrument)} rows, the data {len(data)}")
-        if self.strategy == "literal":
-            result = self._update_literal(data, instrument)
-        else:
-            result = self._update_information(data, instrument)
+        with progress_task(f"online update ({self.strategy}): batch {self.batches + 1}, {len(data)} new rows"):
+            if self.strategy == "literal":
+                result = self._update_literal(data, instrument)
+            else:
+                result = self._update_information(data, instrument)
         self._count(data)
         return OnlineStep(result, self.batches - 1, self.rows, len(data), time.perf_counter() - t0, self.strategy,
                           list(result.pinned))
@@ -374,7 +376,8 @@ class OnlineCalibration:
         data = data.to(self.model.device)
         instrument = (default_instrument(data, self.noise) if instrument is None else instrument).to(self.model.device)
         if v is None:
-            v = solve_joint_errors(self.model, data, self.noise, instrument, self.fixed)
+            with progress_task(f"online: joint errors of {len(data)} earlier rows"):
+                v = solve_joint_errors(self.model, data, self.noise, instrument, self.fixed)
         v = v.to(data.q)
         if pinned is not None:
             self.pin(pinned)

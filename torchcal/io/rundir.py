@@ -5,7 +5,8 @@ Layout written by :func:`torchcal.pipeline.run_fit`::
     <run>/
       config.yaml      the fully resolved config (absolute paths, every default)
       versions.json    python, platform, torchcal + dependency versions, git commit, device
-      run.log          what happened, with timestamps (also when a step failed)
+      run.log          what happened, with timestamps (also when a step failed); long stages add a progress
+                       line (stage, k/N, elapsed, ETA) at least every 5 s (torchcal.io.progress_view)
       model.pt         RobotModel.spec() + state_dict; reload with load_model(<run>)
       fit.json         FitResult.summary(), pinned (gauge-fixed) parameter names, cost history
       orders.json      order selection table (model.order: auto only)

@@ -8,8 +8,11 @@ error transforms. pytorch-kinematics' chain stays a cross-check in the tests.
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import io
 import logging
+import sys
 from pathlib import Path
 
 import torch
@@ -21,6 +24,39 @@ from .transforms import homogeneous, rpy_to_matrix
 
 class URDFError(TorchcalError, ValueError):
     """A URDF that cannot be used; the message names the file and the joints at fault."""
+
+
+_PARSER_ALIAS = "torchcal.kinematics._pk_urdf_parser_py"
+_PARSER_MODULE = "pytorch_kinematics.urdf_parser_py.urdf"
+
+
+def urdf_parser():
+    """pytorch-kinematics' URDF parser (the module ``pytorch_kinematics.urdf_parser_py.urdf``), imported fast.
+
+    ``import pytorch_kinematics`` runs the package's ``__init__``, which loads the
+    whole library (chains, IK, arm_pytorch_utilities and with it matplotlib): about
+    1 s of every command, for a parser that needs only lxml and yaml. So the
+    parser's own files are loaded once under a private name; where pytorch_kinematics
+    is imported already, or its files are not laid out as expected, the regular
+    import serves. The code that parses is pytorch-kinematics' either way.
+    """
+    for name in (_PARSER_MODULE, _PARSER_ALIAS + ".urdf"):
+        if name in sys.modules:
+            return sys.modules[name]
+    if "pytorch_kinematics" not in sys.modules:
+        try:
+            spec = importlib.util.find_spec("pytorch_kinematics")  # finds the package without running its __init__
+            root = Path(next(iter(spec.submodule_search_locations))) / "urdf_parser_py"
+            pkg_spec = importlib.util.spec_from_file_location(_PARSER_ALIAS, root / "__init__.py",
+                                                              submodule_search_locations=[str(root)])
+            pkg = importlib.util.module_from_spec(pkg_spec)
+            sys.modules[_PARSER_ALIAS] = pkg
+            pkg_spec.loader.exec_module(pkg)
+            return sys.modules[_PARSER_ALIAS + ".urdf"]
+        except Exception:  # another layout: forget the partial copy, import the regular way
+            for name in [m for m in sys.modules if m == _PARSER_ALIAS or m.startswith(_PARSER_ALIAS + ".")]:
+                del sys.modules[name]
+    return importlib.import_module(_PARSER_MODULE)
 
 
 def _read(source: str | Path) -> tuple[str, str]:
@@ -90,7 +126,7 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
     ends at (default: the only leaf). root_link: default the tree's root.
     Raises URDFError naming the file and each faulty joint.
     """
-    from pytorch_kinematics.urdf_parser_py.urdf import URDF
+    URDF = urdf_parser().URDF
 
     xml, label = _read(source)
     problems = validate_urdf(xml, label)

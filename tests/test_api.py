@@ -67,10 +67,15 @@ def test_plan_poses_when_the_planner_exists():
 
 
 def test_import_is_light():
-    """`import torchcal` (what the console script does first) loads neither torch nor the submodules."""
-    code = "import sys, torchcal; print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torchcal')))"
+    """`import torchcal` (what the console script does first) loads neither torch nor the submodules,
+    except torchcal.threads, which must set the OpenMP wait policy before torch loads."""
+    code = ("import os; os.environ.pop('OMP_WAIT_POLICY', None); import sys, torchcal; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torchcal'))); "
+            "print(os.environ.get('OMP_WAIT_POLICY'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
-    assert eval(out) == ["torchcal", "torchcal.exceptions"]
+    modules, policy = out.splitlines()
+    assert eval(modules) == ["torchcal", "torchcal.exceptions", "torchcal.threads"]
+    assert policy == "PASSIVE"
 
 
 @pytest.mark.parametrize("module, cls", [("torchcal.kinematics.urdf", "URDFError"), ("torchcal.io.config", "ConfigError"),

@@ -104,7 +104,7 @@ class RobotModel(ChainBuffers, nn.Module):
         u = self.error_variables(qv)
         comp = None
         if self.compliance is not None:
-            comp = self.compliance.functions(self.joint_variables(q))  # (B, m, K)
+            comp = self._compliance_functions(q)  # (B, m, K)
             dtheta = self.compliance.deflection_from(comp)
             theta = theta + dtheta
             u = u + dtheta * self.error_follows_joint
@@ -113,6 +113,27 @@ class RobotModel(ChainBuffers, nn.Module):
             theta = theta + dfine
             u = u + dfine * self.error_follows_joint
         return theta, u, comp
+
+    def _compliance_functions(self, q: torch.Tensor) -> torch.Tensor:
+        """compliance.functions(θ(q)), remembered for the last few command tensors.
+
+        They depend on the commands and the URDF's inertials only (no parameter), and a fit evaluates them for
+        the same data commands at every residual and linearization: a second pass over the chain each time
+        (~10 s of a constrained IRB 120 fit). Keyed on the tensor object itself and its version counter (the
+        cache holds a reference, so its memory cannot be reused by another tensor while cached).
+        """
+        if q.requires_grad or torch._C._functorch.peek_interpreter_stack() is not None:
+            # differentiated, or inside a torch.func transform (vmap over models, jacfwd): never cached
+            return self.compliance.functions(self.joint_variables(q))
+        cache = self.__dict__.setdefault("_comp_cache", [])
+        for entry in cache:
+            if entry[0] is q and entry[1] == q._version:
+                return entry[2]
+        out = self.compliance.functions(self.joint_variables(q))
+        if not out.requires_grad:
+            cache.insert(0, (q, q._version, out))
+            del cache[4:]
+        return out
 
     def frames(self, q: torch.Tensor, direction: torch.Tensor | None = None, v: torch.Tensor | None = None, base: bool = True):
         """Joint frames and flange pose with all errors, see :func:`chain_frames`.

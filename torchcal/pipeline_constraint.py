@@ -24,6 +24,7 @@ import torch
 from . import units
 from .identify import FitResult
 from .identify.constrained import ConstraintError, auto_constraint, fit_constrained
+from .identify.slope import slope_model
 from .io.config import ConfigError
 from .io.rundir import save_model, write_json
 
@@ -59,35 +60,41 @@ def _solver_options(inp) -> dict:
     return opts
 
 
-def identify_constrained(cfg, inp, make, orders, run_dir: Path, progress, files: dict):
+def identify_constrained(cfg, inp, make, orders, run_dir: Path, progress, files: dict, data=None,
+                         fit_options: dict | None = None):
     """Stage 5 with ``constraint.c`` set: -> (model, FitResult of the final inner fit, summary dict).
 
+    data: the identification rows (default ``inp.ident``); fit_options: more keyword arguments of
+    :func:`~torchcal.identify.constrained.fit_constrained` (a sensor run's ``instrument`` and ``fixed``:
+    the bound is then on its robot model's error at the sensor origin).
     Writes model.pt, fit.json and constraint.json at once. A c whose constrained fit fails keeps the
     partial model (written, with the failure in constraint.json) and raises the ConstraintError.
     """
     c_cfg = cfg.constraint
-    opts = _solver_options(inp)
+    opts = {**_solver_options(inp), **(fit_options or {})}
+    data = inp.ident if data is None else data
     base_make = make
 
     def make(o):  # noqa: F811 (the factory with the slope's reference set)
         m = base_make(o)
         if c_cfg.reference != "nominal":
-            if not hasattr(m, "joint_errors"):
+            inner = slope_model(m)[0]
+            if not hasattr(inner, "joint_errors"):
                 raise ConfigError(f"{cfg.config_file or 'config'}: key 'constraint.reference': 'constant' is for robot "
                                   "models (model.kind: joint_dependent)")
-            m.slope_reference = c_cfg.reference
+            inner.slope_reference = c_cfg.reference
         return m
 
     common = dict(points=int(c_cfg.points), check_points=int(c_cfg.check_points), tol=float(c_cfg.tol),
                   seed=int(cfg.seed), **opts)
     summary: dict = {"units": "mm per half axis range", "c": None}
     if c_cfg.c == "auto":
-        axes = border_axes(cfg, inp.robot, inp.ident)
+        axes = border_axes(cfg, inp.robot, data)
         names = [inp.robot.joint_map.names[a] for a in axes]
         c_values = None if c_cfg.sweep is None else [units.mm_to_m(float(v)) for v in c_cfg.sweep]
         with progress.step(f"choosing c: BORDER in ({', '.join(names)}) space, k = {c_cfg.border_k}, "
                            f"{c_cfg.border_n} poses; constraint sweep"):
-            auto = auto_constraint(lambda: make(orders), inp.ident, border_axes=axes, border_k=int(c_cfg.border_k),
+            auto = auto_constraint(lambda: make(orders), data, border_axes=axes, border_k=int(c_cfg.border_k),
                                    border_n=int(c_cfg.border_n), c_values=c_values,
                                    tol_mm=float(c_cfg.knee_tol_mm), noise=inp.noise, prior=inp.prior, **common)
         model, res = auto.model, auto.result
@@ -103,9 +110,9 @@ def identify_constrained(cfg, inp, make, orders, run_dir: Path, progress, files:
         c = units.mm_to_m(float(c_cfg.c))
         model = make(orders)
         summary["mode"] = "given"
-        with progress.step(f"identifying with the slope bound c = {c_cfg.c} mm (augmented Lagrangian)"):
+        with progress.step(f"identifying with the slope bound c = {c_cfg.c} mm (constrained Levenberg-Marquardt)"):
             try:
-                res = fit_constrained(model, inp.ident, c, inp.noise, inp.prior, **common)
+                res = fit_constrained(model, data, c, inp.noise, inp.prior, **common)
             except ConstraintError as exc:
                 summary.update(error=str(exc), result=None if exc.result is None else exc.result.summary())
                 files["model"] = save_model(run_dir, model, orders=orders, config_file=cfg.config_file, constraint=summary)

@@ -89,11 +89,12 @@ def load_sensor_inputs(cfg) -> SensorInputs:
     with _collect_warnings(notes):
         robot = load_robot(cfg.robot)
     check_config(cfg, label, robot.joint_map.n)
-    if isinstance(cfg.model.order, str):
-        raise ConfigError(f"{label}: key 'model.order': give an int or a per-joint list for sensor runs "
-                          "(the automatic order search works on point targets)")
-    if cfg.constraint.c is not None:
-        raise ConfigError(f"{label}: key 'constraint.c': the slope bound is not available for sensor runs yet")
+    if isinstance(cfg.model.order, str) and (int(cfg.model.folds) > 0 or cfg.model.fine is not None):
+        raise ConfigError(f"{label}: key 'model.order': auto on a sensor run chooses by leave-one-pose-out or the "
+                          "validation set (model.folds: 0) and without fine tables (model.fine: null)")
+    if cfg.constraint.c is not None and cfg.model.fine is not None:
+        raise ConfigError(f"{label}: key 'constraint.c': the slope bound is not available with model.fine (fine tables) "
+                          "for sensor runs")
     if cfg.data.truth:
         raise ConfigError(f"{label}: key 'data.truth': the compensation check is for point-target runs")
     device = torch.device(cfg.device)
@@ -244,6 +245,36 @@ def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[di
     return out, table
 
 
+def choose_sensor_orders(cfg, inp: SensorInputs, make, ident: Measurements, instrument, fixed, run_dir: Path,
+                         progress, files: dict) -> list[int]:
+    """``model.order: auto`` for a sensor run: the order search of point-target runs on the sensor's own residuals
+    (leave-one-pose-out, or the validation set), then the backlash orders; writes orders.json."""
+    from .identify.backlash import select_backlash_orders
+    from .identify.order import select_orders
+
+    val, val_instrument = inp.val, None
+    if val is not None:
+        val_instrument, val, _ = sensor_instrument(cfg, val, inp.noise)
+    how = "validation set" if val is not None else "leave-one-pose-out residuals"
+    opts = dict(inp.opts, instrument=instrument, fixed=fixed)
+    with progress.step(f"choosing Chebyshev orders by {how} ({type(instrument).__name__})"):
+        sel = select_orders(make, ident, val, inp.noise, inp.prior, candidates=list(cfg.model.candidates),
+                            margin=float(cfg.model.margin), joint_window=2, validation_instrument=val_instrument, **opts)
+    orders = [int(o) for o in sel.orders]
+    record = {"orders": orders, "criterion": sel.criterion, "score": sel.score,
+              "units": "whitened residual norm (position and angles on their noise scales)", "table": sel.table}
+    if make.backlash is True and ident.has_direction:
+        with progress.step("choosing the backlash orders"):
+            bsel = select_backlash_orders(make, orders, ident, val, inp.noise, inp.prior, margin=float(cfg.model.margin),
+                                          warm=sel.fitted, validation_instrument=val_instrument, **opts)
+        make.backlash = [int(b) for b in bsel.orders]
+        record.update(backlash_orders=make.backlash, backlash_table=bsel.table)
+        progress.info(f"backlash orders {make.backlash} ({bsel.criterion}; -1: off)")
+    files["orders"] = write_json(run_dir / "orders.json", record)
+    progress.info(f"orders {orders} ({sel.criterion})")
+    return orders
+
+
 def run_sensor_fit(cfg, console=None):
     """``torchcal fit`` for a sensor config: the stages of this module, written to a run directory."""
     from .pipeline import (
@@ -255,11 +286,13 @@ def run_sensor_fit(cfg, console=None):
         write_preamble_files,
     )
 
-    inp = load_sensor_inputs(cfg)
-    X, M, frames = initial_frames(cfg, inp.robot, inp.ident, int(cfg.seed))
+    progress = _Progress(console)
+    with progress.step("reading the robot and the sensor data", quiet=True):
+        inp = load_sensor_inputs(cfg)
+    with progress.step("estimating the measurement frame and the sensor mount", quiet=True):
+        X, M, frames = initial_frames(cfg, inp.robot, inp.ident, int(cfg.seed))
     run_dir = make_run_dir(cfg.out)
     files: dict[str, Path] = {}
-    progress = _Progress(console)
     try:
         with run_log(run_dir):
             write_preamble_files(run_dir, cfg, inp.device, files)
@@ -283,8 +316,11 @@ def run_sensor_fit(cfg, console=None):
             make = SensorRigFactory(inp.robot, backlash, inp.device, X, M, up_vector(cfg), config_compliance(cfg),
                                     config_error_variable(cfg), cfg.sensor.kind == "sts", fine)
             order = cfg.model.order
-            orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
             fixed = () if cfg.sensor.kind == "sts" and not cfg.sensor.position_only else ("gravity",)
+            if isinstance(order, str):
+                orders = choose_sensor_orders(cfg, inp, make, ident, instrument, fixed, run_dir, progress, files)
+            else:
+                orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
             rig = make(orders)
             blocks = []
             if fine is not None:
@@ -294,22 +330,33 @@ def run_sensor_fit(cfg, console=None):
                     blocks.append(SmoothnessPenalty(rig.model.fine, smooth.to(inp.device)))
                 if warm:  # the tables last: first the model without them, then everything from there
                     first = make(orders, fine=False)
-                    with progress.step(f"identifying the model without the fine tables (orders {orders})"):
-                        fit(first, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed, **inp.opts)
+                    with progress.step(f"identifying the model without the fine tables (orders {orders})") as p:
+                        fit(first, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed,
+                            callback=lambda it, cost: p.update(f"iteration {it}, cost {cost:.6g}"), **inp.opts)
                     rig.load_state_dict(first.state_dict(), strict=False)
-            with progress.step(f"identifying the model (orders {orders}{', fine tables' if fine is not None else ''}, "
-                               f"{inp.opts['method']}, {type(instrument).__name__})"):
-                result = fit(rig, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed, blocks=blocks,
-                             **inp.opts)
-            files["model"] = save_model(run_dir, rig, orders=orders, config_file=cfg.config_file)
-            files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
-                                                              "orders": orders, "history": list(result.history)})
+            constraint = None
+            if cfg.constraint.c is not None:  # Paper I's slope bound on the robot's modeled error at the sensor origin
+                from .pipeline_constraint import identify_constrained
+
+                rig, result, constraint = identify_constrained(cfg, inp, make, orders, run_dir, progress, files, data=ident,
+                                                               fit_options={"instrument": instrument, "fixed": fixed})
+            else:
+                with progress.step(f"identifying the model (orders {orders}{', fine tables' if fine is not None else ''}, "
+                                   f"{inp.opts['method']}, {type(instrument).__name__})") as p:
+                    result = fit(rig, ident, inp.noise, inp.prior, instrument=instrument, fixed=fixed, blocks=blocks,
+                                 callback=lambda it, cost: p.update(f"iteration {it}, cost {cost:.6g}"), **inp.opts)
+                files["model"] = save_model(run_dir, rig, orders=orders, config_file=cfg.config_file)
+                files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
+                                                                  "orders": orders, "history": list(result.history)})
             progress.info(f"fit: {result.message} after {result.nit} iterations, cost {result.fun:.6g}")
             sets = {"identification": inp.ident} | ({"validation": inp.val} if inp.val is not None else {})
-            evaluations, table = evaluate_pose_sets(rig, sets, progress)
+            with progress.step("evaluating the residuals", quiet=True):
+                evaluations, table = evaluate_pose_sets(rig, sets, progress)
             metrics = {"units": "mm, deg, percent", "orders": orders, "sensor": cfg.sensor.kind,
                        "fit": {"converged": bool(result.success), "iterations": int(result.nit), "cost": float(result.fun)},
                        "frames": frames, "excluded_rows": excluded, "sets": evaluations, "table6": table, "warnings": progress.warnings}
+            if constraint is not None:
+                metrics["constraint"] = constraint
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
             progress.info(f"done: {run_dir}")
     except KeyboardInterrupt as exc:

@@ -30,6 +30,7 @@ import sys
 import time
 from pathlib import Path
 
+import torchcal  # noqa: F401  (before torch: OpenMP threads that wait sleep, torchcal.threads)
 import torch
 from rich.console import Console
 from rich.table import Table

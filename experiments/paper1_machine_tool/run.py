@@ -29,6 +29,7 @@ import time
 import warnings
 from pathlib import Path
 
+import torchcal  # noqa: F401  (before torch: OpenMP threads that wait sleep, torchcal.threads)
 import torch
 
 from torchcal import units

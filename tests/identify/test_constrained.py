@@ -165,3 +165,82 @@ def test_robot_constrained_fit(fanuc, tools_m, one_thread):
     res = fit_constrained(model, data, c, points=pts, check_points=slope_points(fanuc.joint_map.limits, 16, 9, face_count=2,
                                                                              corners=False), tools=[0])
     assert res.success and res.max_slope <= c * 1.01
+
+
+def test_solve_qp_working_set_equals_one_nnls_over_every_constraint():
+    """The working-set QP (constraint generation, warm starts) is exact: the same step as Lawson & Hanson's LDP
+    over all k constraints at once, with many near-duplicate rows (neighbouring slope points) among them."""
+    from torchcal.identify.constrained import _ldp_nnls
+
+    g = torch.Generator().manual_seed(3)
+    P, k = 12, 600
+    L = torch.randn(P, P, generator=g, dtype=torch.float64)
+    S = L @ L.T + torch.eye(P, dtype=torch.float64)
+    rhs = torch.randn(P, generator=g, dtype=torch.float64) * 10
+    base = torch.randn(40, P, generator=g, dtype=torch.float64)
+    G = base.repeat(15, 1) + 1e-3 * torch.randn(k, P, generator=g, dtype=torch.float64)  # clusters of near-twins
+    h = torch.rand(k, generator=g, dtype=torch.float64)
+    Lc = torch.linalg.cholesky(S)
+    db0 = torch.cholesky_solve(rhs[:, None], Lc)[:, 0]
+    z, _ = _ldp_nnls(-torch.linalg.solve_triangular(Lc, G.T, upper=False).T, G @ db0 - h)
+    ref = db0 + torch.linalg.solve_triangular(Lc.T, z[:, None], upper=True)[:, 0]
+    db, active = solve_qp(S, rhs, G, h, chunk=4, return_active=True)
+    assert float((G @ db - h).max()) <= 1e-10
+    assert torch.allclose(db, ref, rtol=1e-9, atol=1e-12)
+    assert 0 < int(active.sum()) <= P and float((G[active] @ db - h[active]).abs().max()) < 1e-9  # active: on the bound
+    warm = solve_qp(S * 1.01, rhs, G, h, start=active)  # a nearby QP from the last active set
+    cold = solve_qp(S * 1.01, rhs, G, h)
+    assert torch.allclose(warm, cold, rtol=1e-9, atol=1e-12)
+    assert not torch.allclose(warm, db, rtol=1e-6)
+
+
+def test_sqp_stops_on_its_own_tolerance_with_a_least_squares_ftol(machine, dataset, one_thread, monkeypatch):
+    """The pipeline passes the LM's ftol (1e-8): the constrained solver stops at SQP_FTOL_FLOOR instead of going
+    on over changes of V the l1 merit cannot resolve, and loses nothing by it (the longer run trades V against
+    round-off violations of the bound: measured 1.5e-5 V higher)."""
+    import torchcal.identify.constrained as constrained
+
+    truth, data = dataset
+    noise = NoiseModel.from_robot(machine)
+    free = MachineModel(machine, TOOLS, orders=3)
+    c = 0.5 * fit_constrained(free, data, math.inf, noise, points=64).max_slope_check
+    floored = fit_constrained(MachineModel(machine, TOOLS, orders=3), data, c, noise, points=64, ftol=1e-8)
+    monkeypatch.setattr(constrained, "SQP_FTOL_FLOOR", 0.0)
+    exact = fit_constrained(MachineModel(machine, TOOLS, orders=3), data, c, noise, points=64, ftol=1e-8)
+    assert floored.success and exact.success
+    assert floored.fit.nit < exact.fit.nit
+    assert floored.fit.fun <= exact.fit.fun * (1 + 1e-6)
+
+
+def test_sweep_is_warm_started_and_reports_progress(machine, dataset, one_thread):
+    """Each c of the sweep starts from the previous c's model: the same fit (residuals, cost) as a cold fit from
+    the zero model with the same penalty points; the sweep advances one progress task per c."""
+    from torchcal import progress
+
+    truth, data = dataset
+    noise = NoiseModel.from_robot(machine)
+    boundary = torch.isin(data.pose, torch.argsort(data.q[:60, 2])[:6])
+
+    class Keep(progress.Reporter):
+        def __init__(self):
+            self.seen = []
+
+        def update(self, task):
+            self.seen.append((task.name, task.completed, task.total, task.parent.name if task.parent else None))
+
+    keep = Keep()
+    with progress.reporting(keep):
+        sweep = constraint_sweep(lambda: MachineModel(machine, TOOLS, orders=3), data, boundary, [8e-4, 4e-4], noise,
+                                 points=32)
+    rows = [s for s in keep.seen if s[0] == "constraint sweep"]
+    assert [r[1] for r in rows] == [1, 2, 3] and rows[-1][2] == 3
+    inner = [s for s in keep.seen if s[0].startswith("constrained fit")]
+    assert inner and all(s[3] == "constraint sweep" for s in inner)  # the fits' iterations, nested in the sweep
+    sub = data.subset(~boundary)
+    cold = MachineModel(machine, TOOLS, orders=3)
+    res = fit_constrained(cold, sub, 4e-4, noise, points=32, seed=2000)
+    assert res.success
+    from torchcal.identify.problem import row_errors
+
+    assert float(row_errors(cold, sub).mean()) == pytest.approx(float(sweep.sub_mean[-1]), rel=1e-2)  # 0.1 um
+    assert float(sweep.max_slope[-1]) <= 4e-4 * 1.05

@@ -7,7 +7,9 @@ import torch
 import torchcal
 import torchcal.sim
 from conftest import XYZCB_TOOLS, random_commands, randomize
-from torchcal.identify.slope import (machine_slope_norm_jacobian, model_slopes, modeled_error, robot_slope_terms,
+from torchcal.identify.slope import (cat_contexts, context_rows, machine_slope_context, machine_slope_norm_jacobian,
+                                     machine_slope_terms, model_slopes, modeled_error, robot_context_rows,
+                                     robot_slope_context, robot_slope_terms, robot_slopes, robot_slopes_differentiable,
                                      slope_norms, slope_points, tool_vectors, worst_points)
 from torchcal.machine import MachineModel
 from torchcal.model import RobotModel
@@ -129,6 +131,7 @@ def test_robot_slopes_match_finite_differences(fanuc, tools_m):
     assert float(model_slopes(nominal, q).detach().abs().max()) == 0.0
 
 
+@pytest.mark.slow  # nested autograd over a robot with compliance: ~20 s (the closed form's check below is fast)
 def test_robot_fast_path_matches_autograd(monkeypatch):
     """Robots: hbar and the penalty's parameter Jacobian by central differences of the closed-form chain
     (what fits use) against nested autograd, with compliance (gravity torques) and backlash in the model."""
@@ -143,19 +146,22 @@ def test_robot_fast_path_matches_autograd(monkeypatch):
         for p in model.parameters():
             p.copy_(torch.randn(p.shape, generator=g, dtype=p.dtype) * 1e-3)
         model.compliance.coef.mul_(1e-2)  # rad per N·m
-    q = slope_points(model.command_limits, 24, seed=1)
+    q = slope_points(model.command_limits, 8, seed=1)
     P = tool_vectors(model)
     with torch.no_grad():
         h_fast = robot_slope_terms(model, q, P)[0]
-        assert torch.equal(slope_norms(model, q), h_fast.norm(dim=-1))  # no_grad routes robots to the fast path
+        h_closed = robot_slopes(model, q, P)
+        assert torch.equal(slope_norms(model, q), h_closed.norm(dim=-1))  # no_grad routes robots to the closed form
     h_ad = model_slopes(model, q, 0).detach()  # grad enabled: nested autograd
     assert float((h_fast[0] - h_ad).abs().max()) < 1e-8 * float(h_ad.abs().max())  # measured 2e-9
+    assert float((h_closed[0] - h_ad).abs().max()) < 1e-12 * float(h_ad.abs().max())  # measured 2e-14
     layout = ParameterLayout(model)
     x = layout.get()
     pen = SlopePenalty(model, q, c=1e-4)
     with torch.no_grad():
         active = (pen.norms(x, layout) > pen.c).nonzero()
     assert active.shape[0] > 50
+    active = active[torch.randperm(active.shape[0], generator=g)[:60]]  # autograd's Jacobian costs ~0.3 s an entry
     J_fast = pen._jacobian(x, layout, active)
     import torchcal.identify.constrained as constrained
 
@@ -243,3 +249,101 @@ def test_robot_constant_reference_bounds_only_the_joint_dependent_terms():
     assert model_slopes(m, q, 0).detach().norm(dim=-1).max() > 1e-3  # constants move the tool with the joints
     m.slope_reference = "constant"
     assert model_slopes(m, q, 0).detach().norm(dim=-1).max() < 1e-12
+
+
+def _irb120(compliance=True, orders=3, seed=0):
+    robot = torchcal.load_robot("abb_irb120")
+    tools = torch.tensor([[0.05, 0.0, 0.1], [0.0, 0.04, 0.12]], dtype=torch.float64)
+    model = RobotModel(robot, tools, orders=orders, backlash=True,
+                       compliance={"mode": "gravity", "joints": [1, 2, 4]} if compliance else False)
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(torch.randn(p.shape, generator=g, dtype=p.dtype) * 1e-3)
+        if compliance:
+            model.compliance.coef.mul_(1e-2)  # rad per N·m
+    return model
+
+
+@pytest.mark.parametrize("compliance", [True, False])
+def test_robot_closed_form_slope_matches_autograd(compliance):
+    """robot_slopes (joint axes, error-series velocities, the gravity deflection's configuration slope) against
+    nested autograd of the modeled error, at points over the whole box, corners included."""
+    model = _irb120(compliance)
+    q = slope_points(model.command_limits, 16, seed=3)
+    P = tool_vectors(model)
+    with torch.no_grad():
+        h = robot_slopes(model, q, P)
+    for t in range(P.shape[0]):
+        h_ad = model_slopes(model, q, t).detach()
+        assert float((h[t] - h_ad).abs().max()) < 1e-12 * float(h_ad.abs().max())
+
+
+def test_slope_contexts_change_nothing(machine):
+    """The parameter-free parts cached per point set (contexts), their rows and their concatenation give the
+    values computed from scratch: bitwise for whole sets, to round-off for rows."""
+    g = torch.Generator().manual_seed(7)
+    mm = machine_model(machine, lambda s: torch.randn(s, generator=g) * 1e-4)
+    q = slope_points(machine.joint_map.limits, 16, seed=2)
+    P = tool_vectors(mm)
+    with torch.no_grad():
+        ctx = machine_slope_context(mm, q, P)
+        assert torch.equal(machine_slope_terms(mm, q, P, context=ctx)["hbar"], machine_slope_terms(mm, q, P)["hbar"])
+        both = cat_contexts(machine_slope_context(mm, q[:10], P), machine_slope_context(mm, q[10:], P))
+        assert torch.equal(machine_slope_terms(mm, q, P, context=both)["hbar"], machine_slope_terms(mm, q, P)["hbar"])
+        rows = torch.tensor([1, 7, 30])
+        sub = machine_slope_terms(mm, q[rows], P[1:], context=context_rows(ctx, rows, slice(1, 2)))["hbar"]
+        assert torch.allclose(sub, machine_slope_terms(mm, q[rows], P[1:])["hbar"], rtol=1e-13, atol=1e-20)
+    robot = _irb120()
+    from torchcal.identify.layout import ParameterLayout
+
+    layout = ParameterLayout(robot)
+    q = slope_points(robot.command_limits, 8, seed=2)
+    P = tool_vectors(robot)
+    with torch.no_grad():
+        ctx = robot_slope_context(robot, q, P)
+        h0, d0 = robot_slope_terms(robot, q, P, layout)
+        h1, d1 = robot_slope_terms(robot, q, P, layout, context=ctx)
+        assert torch.equal(h0, h1) and torch.equal(d0, d1)  # the same operations as RobotModel._parts
+        assert torch.equal(robot_slopes(robot, q, P, ctx), robot_slopes(robot, q, P))
+        both = cat_contexts(robot_slope_context(robot, q[:20], P), robot_slope_context(robot, q[20:], P))
+        assert torch.equal(robot_slope_terms(robot, q, P, context=both)[0], h0)
+        assert torch.equal(robot_slopes(robot, q, P, both), robot_slopes(robot, q, P))
+        rows = torch.tensor([0, 5, 40])
+        h2, d2 = robot_slope_terms(robot, q[rows], P, layout, context=robot_context_rows(ctx, rows))
+        assert torch.allclose(h2, h0[:, rows], rtol=1e-12, atol=1e-18)
+        assert torch.allclose(d2, d0[:, rows], rtol=1e-12, atol=1e-18)
+
+
+def test_worst_points_climb_on_a_robot():
+    """Robots climb the central-difference slope with first-order autograd (not nested): the points reached
+    have a larger slope, by the closed form too."""
+    model = _irb120(orders=4, seed=3)
+    q0 = slope_points(model.command_limits, 8, seed=9)[:8]
+    with torch.no_grad():
+        before = slope_norms(model, q0).amax(dim=(0, 2))
+    h = robot_slopes_differentiable(model, q0, tool_vectors(model)).detach()
+    assert torch.allclose(h.norm(dim=-1), slope_norms(model, q0), rtol=1e-7)
+    q1 = worst_points(model, q0, steps=10)
+    with torch.no_grad():
+        after = slope_norms(model, q1).amax(dim=(0, 2))
+    assert bool((after >= before - 1e-12).all()) and float((after - before).max()) > 0
+
+
+def test_sensor_rig_slope_is_its_robots_at_the_sensor_origin(fanuc):
+    """A sensor rig (Paper III): the bound is on its robot model's error, the tool point the sensor origin."""
+    from torchcal.measure.rig import SensorRig
+
+    mount = torch.eye(4, dtype=torch.float64)
+    mount[:3, 3] = torch.tensor([0.02, -0.01, 0.15], dtype=torch.float64)
+    rig = SensorRig.for_robot(fanuc, orders=2, mount=mount)
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():
+        for p in rig.parameters():
+            p.copy_(torch.randn(p.shape, generator=g, dtype=p.dtype) * 1e-3)
+    assert torch.equal(tool_vectors(rig), mount[:3, 3][None])
+    q = slope_points(rig.command_limits, 8, seed=4)
+    with torch.no_grad():
+        assert torch.equal(slope_norms(rig, q), slope_norms(rig.model, q, mount[:3, 3]))
+    h_ad = model_slopes(rig.model, q, mount[:3, 3]).detach()
+    assert torch.allclose(slope_norms(rig, q)[0], h_ad.norm(dim=-1), rtol=1e-10)

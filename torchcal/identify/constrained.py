@@ -46,19 +46,24 @@ import logging
 import math
 import time
 import warnings
+import weakref
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import nn
 
+from .. import progress
 from ..exceptions import TorchcalError
 from ..measurements import Measurements
+from ..threads import threads_for_work
 from .fit import fit, resolve_noise
 from .layout import ParameterLayout
 from .problem import NoiseModel, Prior, row_errors
 from .result import FitResult
-from .slope import (_is_machine, functional_slope_norms, machine_slope_norm_jacobian, robot_fast_path, robot_slope_terms,
-                    slope_norms, slope_points, tool_vectors, worst_points)
+from .slope import (_is_machine, cat_contexts, context_rows, functional_slope_norms, machine_slope_norm_jacobian,
+                    robot_fast_path, robot_pair_terms, robot_slope_terms, slope_context, slope_model, slope_norms,
+                    slope_points, tool_vectors, worst_points)
 
 log = logging.getLogger("torchcal")
 
@@ -138,11 +143,22 @@ class SlopePenalty:
         self.shift = torch.zeros(T, M, model.n, dtype=model.dtype, device=model.device) if shift is None else shift
         if self.shift.shape != (T, M, model.n):
             raise ValueError(f"SlopePenalty: shift must have shape ({T}, {M}, {model.n}), got {tuple(self.shift.shape)}")
-        self._cache = None
+        self._cache = self._norms_cache = None
+        # the slope at fixed points: what does not depend on the parameters (nominal chain, Chebyshev values,
+        # difference stencil, gravity torques) once, not per evaluation
+        self._context = _CONTEXTS.get(model, self.points, self.tools)
 
     def norms(self, x: torch.Tensor, layout: ParameterLayout) -> torch.Tensor:
-        """|hbar| (T, M, n) at the free values x (differentiable in x)."""
-        return functional_slope_norms(self.model, layout.as_dict(x), self.points, self.tools)
+        """|hbar| (T, M, n) at the free values x (differentiable in x). The last value for an x without
+        gradient is kept: a solver that tries x + d and then steps there evaluates once."""
+        if x.requires_grad:
+            return functional_slope_norms(self.model, layout.as_dict(x), self.points, self.tools, self._context)
+        last = self._norms_cache
+        if last is not None and last[1] is layout and last[0].shape == x.shape and torch.equal(last[0], x):
+            return last[2]
+        out = functional_slope_norms(self.model, layout.as_dict(x), self.points, self.tools, self._context)
+        self._norms_cache = (x.detach().clone(), layout, out.detach())
+        return out
 
     def linearize(self, x: torch.Tensor, layout: ParameterLayout):
         grad = x.requires_grad
@@ -194,9 +210,11 @@ class SlopePenalty:
                 sel = (active[:, 0] == t).nonzero()[:, 0]
                 if sel.numel() == 0:
                     continue
+                rows = active[sel, 1]
                 with torch.no_grad():
                     _, Jc = functional_call(wrapper, {f"model.{n}": v for n, v in params.items()},
-                                            (self.points[active[sel, 1]], self.tools[t], active[sel, 2]))
+                                            (self.points[rows], self.tools[t], active[sel, 2],
+                                             context_rows(self._context, rows, slice(t, t + 1))))
                 groups = {name: x.new_zeros((sel.numel(), 1) + tuple(p.shape)) for name, p, _ in layout.entries}
                 groups["axis_errors.coef"] = Jc[:, None]
                 J[sel] = layout.flatten_jacobian(groups, sel.numel())[:, 0, :]
@@ -206,11 +224,18 @@ class SlopePenalty:
         if robot_fast_path(self.model):
             from torch.func import functional_call
 
-            wrapper = _RobotSlopeTerms(self.model, layout)
-            with torch.no_grad():
-                h, dh = functional_call(wrapper, {f"model.{n}": v for n, v in layout.as_dict(x).items()}, (pts, self.tools))
-            h = h[active[:, 0], inv, active[:, 2]]  # (k, 3)
-            dh = dh[active[:, 0], inv, active[:, 2]]  # (k, 3, P)
+            params = {f"model.{n}": v for n, v in layout.as_dict(x).items()}
+            if self._context is not None:  # the two difference rows of each (point, axis) pair, not all 2 n
+                pairs, inv = torch.unique(active[:, 1:], dim=0, return_inverse=True)
+                with torch.no_grad():
+                    h, dh = functional_call(_RobotPairTerms(self.model, layout), params,
+                                            (self._context, pairs[:, 0], pairs[:, 1], self.tools))
+                h, dh = h[active[:, 0], inv], dh[active[:, 0], inv]  # (k, 3), (k, 3, P)
+            else:
+                with torch.no_grad():
+                    h, dh = functional_call(_RobotSlopeTerms(self.model, layout), params, (pts, self.tools))
+                h = h[active[:, 0], inv, active[:, 2]]  # (k, 3)
+                dh = dh[active[:, 0], inv, active[:, 2]]  # (k, 3, P)
             unit = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-300)
             return torch.einsum("kc,kcp->kp", unit, dh)
         from torch.func import jacfwd
@@ -224,14 +249,55 @@ class SlopePenalty:
             return jacfwd(f)(x)
 
 
+class _ContextCache:
+    """The slope context (:func:`~torchcal.identify.slope.slope_context`) of the last point set.
+
+    A fit evaluates the slope at the same points in every iteration and the sweep at the same points,
+    grown by refinements, for every c: the context of a set that extends the last one is the last
+    context plus that of the new points.
+    """
+
+    def __init__(self):
+        self.entry = None  # (model weakref, slope reference, points, tools, context)
+
+    def get(self, model, points: torch.Tensor, tools: torch.Tensor):
+        e, ref = self.entry, getattr(slope_model(model)[0], "slope_reference", "nominal")
+        ctx = None
+        if (e is not None and e[0]() is model and e[1] == ref and e[3].shape == tools.shape and torch.equal(e[3], tools)
+                and e[2].shape[0] <= points.shape[0] and e[2].device == points.device
+                and torch.equal(points[: e[2].shape[0]], e[2])):
+            m0 = points.shape[0] - e[2].shape[0]
+            if m0 == 0:
+                return e[4]
+            if e[4] is not None:
+                ctx = cat_contexts(e[4], slope_context(model, points[e[2].shape[0]:], tools))
+        else:
+            ctx = slope_context(model, points, tools)
+        self.entry = (weakref.ref(model), ref, points, tools, ctx)
+        return ctx
+
+
+_CONTEXTS = _ContextCache()
+
+
 class _RobotSlopeTerms(nn.Module):
     def __init__(self, model, layout):
         super().__init__()
         self.model = model
         self.layout = layout
 
-    def forward(self, q, P):
-        return robot_slope_terms(self.model, q, P, self.layout)
+    def forward(self, q, P, context=None):
+        return robot_slope_terms(self.model, q, P, self.layout, context=context)
+
+
+class _RobotPairTerms(nn.Module):
+    def __init__(self, model, layout):
+        super().__init__()
+        self.model = model
+        self.layout = layout
+
+    def forward(self, context, point, axis, P):
+        return robot_pair_terms(self.model, context, point, axis, P, self.layout)
 
 
 class _MachineNormJacobian(nn.Module):
@@ -239,8 +305,8 @@ class _MachineNormJacobian(nn.Module):
         super().__init__()
         self.model = model
 
-    def forward(self, q, p, axis):
-        return machine_slope_norm_jacobian(self.model, q, p, axis)
+    def forward(self, q, p, axis, context=None):
+        return machine_slope_norm_jacobian(self.model, q, p, axis, context)
 
 
 # ------------------------------------------------------------------ the constrained fit
@@ -320,66 +386,117 @@ def _reduced_system(f, A, C, w_v, v, lam_b, dx, mu, H_blk, g_blk, v_free):
     return S, rhs, back
 
 
+SQP_FTOL_FLOOR = 1e-5
+"""The smallest relative change of V the constrained solver stops on. Near the bound every step trades V
+against second-order violations of the linearized constraints that the l1 merit then rejects (the Maratos
+effect): V moves by ~1e-6 V per step for tens of steps (Paper I, c = 0.4 mm: 3990.82 -> 3990.81 over 25
+steps), statistically nothing. An LM tolerance (``solver.ftol``, 1e-8) passed on would run every fit to
+``max_iter``."""
+
+
 class _QPNotConverged(TorchcalError, RuntimeError):
     """NNLS stopped at its iteration limit (degenerate constraints); the caller damps or stops."""
 
 
-def solve_qp(S: torch.Tensor, rhs: torch.Tensor, G: torch.Tensor, h: torch.Tensor) -> torch.Tensor | None:
-    """min ½ dbᵀ S db - rhsᵀ db  s.t.  G db <= h, S positive definite.  -> db (P,), or None when infeasible.
+def _ldp_nnls(E: torch.Tensor, f: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """min |z| s.t. E z >= f (Lawson & Hanson ch. 23) by one NNLS of size (P + 1) x k.
 
-    Least-distance programming (Lawson & Hanson, ch. 23): with S = L Lᵀ and
-    db = S^-1 rhs + L^-T z the problem is min |z| s.t. E z >= f, solved by one
-    non-negative least-squares problem (scipy.optimize.nnls) of size
-    (P + 1) x k, k constraints. Exact: the solution meets G db <= h to round-off.
+    -> (z (P,) or None when infeasible, (k,) bool: the constraints with a positive multiplier).
     """
     from scipy.optimize import nnls
 
-    L = torch.linalg.cholesky(S)
-    db0 = torch.cholesky_solve(rhs[:, None], L)[:, 0]
-    if G.shape[0] == 0:
-        return db0
-    GLt = torch.linalg.solve_triangular(L, G.T, upper=False).T  # G L^-T  (k, P)
-    fvec = G @ db0 - h  # E z >= f with E = -G L^-T
-    if bool((fvec <= 0).all()):
-        return db0
-    P = S.shape[0]
-    # identical constraints (a linear table has the same slope everywhere) make NNLS cycle: keep one of each
-    rows = torch.cat([-GLt, fvec[:, None]], 1)
+    P = E.shape[1]
+    rows = torch.cat([E, f[:, None]], 1)  # (k, P + 1); the dual: min |rows^T u - e_{P+1}|, u >= 0
     scale = rows.norm(dim=1, keepdim=True).clamp(min=1e-300)
+    # identical constraints (a linear table has the same slope everywhere) make NNLS cycle: keep one of each
     _, first = torch.unique(torch.round(rows / scale * 1e9), dim=0, return_inverse=True)
     keep = torch.zeros(first.max() + 1, dtype=torch.long, device=rows.device).scatter_(
         0, first, torch.arange(first.numel(), device=rows.device))
-    Mt = rows[keep].T
-    Mt = Mt / Mt.norm(dim=0).clamp(min=1e-300)  # column scaling (u >= 0 is invariant to it): NNLS tolerances are absolute
-    Mm = Mt.cpu().numpy()
-    e = torch.zeros(P + 1, dtype=torch.float64).numpy()
+    Mm = (rows[keep] / scale[keep]).T.cpu().numpy()  # column scaling (u >= 0 is invariant): NNLS tolerances are absolute
+    e = np.zeros(P + 1)
     e[-1] = 1.0
     try:
         u, _ = nnls(Mm, e, maxiter=100 * (P + 1))
     except RuntimeError as exc:  # not converged: not a proof of infeasibility
         raise _QPNotConverged(str(exc)) from None
-    r = torch.from_numpy(Mm @ u - e).to(S)
+    active = torch.zeros(E.shape[0], dtype=torch.bool, device=E.device)
+    active[keep[torch.from_numpy(u > 0).to(keep.device)]] = True
+    r = torch.from_numpy(Mm @ u - e).to(E)
     if float(r.norm()) < 1e-12 or float(r[-1]) >= -1e-14:
-        return None
-    zz = -r[:P] / r[P]
-    return db0 + torch.linalg.solve_triangular(L.T, zz[:, None], upper=True)[:, 0]
+        return None, active
+    return -r[:P] / r[P], active
+
+
+def solve_qp(S: torch.Tensor, rhs: torch.Tensor, G: torch.Tensor, h: torch.Tensor, start: torch.Tensor | None = None,
+             chunk: int | None = None, return_active: bool = False):
+    """min ½ dbᵀ S db - rhsᵀ db  s.t.  G db <= h, S positive definite.  -> db (P,), or None when infeasible.
+
+    Least-distance programming (Lawson & Hanson, ch. 23): with S = L Lᵀ and
+    db = S^-1 rhs + L^-T z the problem is min |z| s.t. E z >= f, solved by
+    non-negative least squares (scipy.optimize.nnls) on a working set of the
+    constraints: the most violated ones first (``chunk`` at a time, default
+    P // 4), then every constraint the solution still violates, until it
+    violates none (constraint generation: the working-set problem is a
+    relaxation, so its solution, once feasible for all k rows, is the QP's
+    solution). ``start``: (k,) bool, constraints to begin with (e.g. those
+    active at the previous step). Exact: the solution meets G db <= h to
+    round-off. return_active: also return the (k,) bool mask of the
+    constraints with a positive multiplier (None when infeasible or
+    unconstrained).
+    """
+    L = torch.linalg.cholesky(S)
+    db0 = torch.cholesky_solve(rhs[:, None], L)[:, 0]
+    k, P = G.shape
+    none = (db0, None) if return_active else db0
+    if k == 0:
+        return none
+    fvec = G @ db0 - h  # G db <= h  <=>  E z >= f with E = -G L^-T, f = G db0 - h, db = db0 + L^-T z
+    if bool((fvec <= 0).all()):
+        return none
+    gn, hn = G.norm(dim=1), h.abs()
+    chunk = max(8, P // 4) if chunk is None else int(chunk)
+    W = torch.zeros(k, dtype=torch.bool, device=G.device) if start is None else start.clone().to(G.device)
+    db, active, solved = db0, W, False
+    while True:  # at most k rounds: each adds a constraint or ends
+        viol = (G @ db - h) / (gn * float(db.norm()) + hn).clamp(min=1e-300)  # relative; > 0: violated
+        bad = (viol > 1e-10) & ~W
+        nb = int(bad.sum())
+        if solved and nb == 0:
+            break
+        if nb == 0 and not bool(W.any()):  # violated by round-off only
+            return none
+        if nb:
+            W[torch.where(bad, viol, viol.new_tensor(-math.inf)).topk(min(nb, chunk)).indices] = True
+        idx = W.nonzero()[:, 0]
+        E = -torch.linalg.solve_triangular(L, G[idx].T, upper=False).T  # (|W|, P)
+        z, act = _ldp_nnls(E, fvec[idx])
+        if z is None:  # the working set alone admits no step: neither do all constraints
+            return (None, None) if return_active else None
+        db = db0 + torch.linalg.solve_triangular(L.T, z[:, None], upper=True)[:, 0]
+        solved = True
+        active = torch.zeros_like(W)
+        active[idx[act]] = True
+    return (db, active) if return_active else db
 
 
 def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float = 1e-5, mu0: float = 1e-4,
          margin: float = 0.3, v_start=None, max_tries: int = 12, damp_tries: int = 3, inner_margin: float = 0.02,
-         max_candidates: int | None = None) -> FitResult:
+         max_candidates: int | None = None, callback=None) -> FitResult:
     """Minimize V of ``problem`` subject to |hbar| <= c at ``pen``'s points: Levenberg-Marquardt steps whose
     linearized constraints are met exactly (a QP per step, :func:`solve_qp`), accepted on the merit
     V + rho sum max(0, |hbar| / c_in - 1) (l1 exact penalty), rho = 1e3 V_0 (feasibility first), c_in = c (1 - inner_margin)
     (imposed slightly inside, so that the bound also holds between the points). Candidates: entries above
     (1 - margin) c at the first step, (1 - margin / 10) c later, at most ``max_candidates`` (default max(2500, 4 P))
     of the largest (cutting planes). Stops when a step changes V by less than ftol V (1e-5: ~0.02 for Paper I's 590 rows,
-    statistically nothing) with the bound met to tol, or when no damped step lowers the merit."""
+    statistically nothing; never below :data:`SQP_FTOL_FLOOR`) with the bound met to tol, or when no damped step
+    lowers the merit. Each QP starts from the entries active at the last one (:func:`solve_qp`'s ``start``).
+    callback(it, V, violation): called after every accepted step."""
     from .blocks import block_normal_equations
 
     t0 = time.perf_counter()
     layout = problem.layout
     c = pen.c
+    ftol = max(float(ftol), SQP_FTOL_FLOOR)
     max_cand = max(2500, 4 * layout.size) if max_candidates is None else int(max_candidates)
     # imposed slightly inside c: the bound then also holds between the points (checked at fresh ones)
     target = c * (1.0 - inner_margin)
@@ -406,13 +523,23 @@ def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float
     phi = V + rho * excess(nrm)
     history, mu, nu, nfev = [V], mu0, 2.0, 1
     success, message, it = False, "maximum number of iterations reached", 0
+    M_pts, n_ax = pen.points.shape
+
+    def keys(entries):  # (k, 3) tool, point, axis -> (k,) one integer per entry
+        return (entries[:, 0] * M_pts + entries[:, 1]) * n_ax + entries[:, 2]
+
+    act_keys = None
+    # as in the LM solver: while steps pass at once, a trial point is linearized directly (its Jacobians are the
+    # next iteration's), one kinematics pass per iteration instead of a residual and a linearization
+    trial_linearize, lin_next = True, None
     for it in range(1, max_iter + 1):
-        f, A, C = problem.linearize(x, v)
+        f, A, C = lin_next if lin_next is not None else problem.linearize(x, v)
+        lin_next = None
         H_blk = g_blk = None
         if others:
             H_blk, g_blk, _ = block_normal_equations(others, x, layout)
         # wide at the first step (the unconstrained start moves far), narrow once near the bound
-        cand = (nrm > (1.0 - (margin if it == 1 else 0.1 * margin)) * c).nonzero()
+        cand = (nrm > (1.0 - margin) * c if it == 1 else nrm > (1.0 - 0.1 * margin) * target).nonzero()
         if cand.shape[0] > max_cand:
             # cutting planes: the most loaded entries now, the others when a step overloads them
             cand = cand[nrm[cand[:, 0], cand[:, 1], cand[:, 2]].topk(max_cand).indices]
@@ -420,6 +547,16 @@ def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float
         hc = target - nrm[cand[:, 0], cand[:, 1], cand[:, 2]]
         accepted = False
         d_full = None
+
+        def qp(S_, rhs_):
+            # the QP starts from the entries active at the last solve (the active set changes little from one
+            # damping or step to the next): a few NNLS rounds instead of a cold working set
+            nonlocal act_keys
+            start = torch.isin(keys(cand), act_keys) if act_keys is not None else None
+            d, act = solve_qp(S_, rhs_, Gc, hc, start=start, return_active=True)
+            if act is not None:
+                act_keys = keys(cand[act])
+            return d
         for attempt in range(max_tries):
             # first damp (Levenberg-Marquardt), then shorten the last direction: damping alone cannot shrink a
             # step whose linearized constraints must be met in full
@@ -427,7 +564,7 @@ def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float
                 S, rhs, back = _reduced_system(f, A, C, w_v, v, lam_b, x - problem.prior_mean, mu, H_blk, g_blk,
                                                v_free)
                 try:
-                    d_full = solve_qp(S, rhs, Gc, hc)
+                    d_full = qp(S, rhs)
                 except _QPNotConverged:
                     break
                 for _ in range(3):  # entries the step would overload join the QP (linearized at x), re-solve
@@ -444,7 +581,7 @@ def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float
                     Gc = torch.cat([Gc, pen._jacobian(x, layout, extra)])
                     hc = torch.cat([hc, target - nrm[extra[:, 0], extra[:, 1], extra[:, 2]]])
                     try:
-                        d_full = solve_qp(S, rhs, Gc, hc)
+                        d_full = qp(S, rhs)
                     except _QPNotConverged:
                         d_full = None
                         break
@@ -460,7 +597,8 @@ def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float
             db = alpha * d_full
             dv = back(db)
             x_new, v_new = x + db, v + dv
-            f_new = problem.residual(x_new, v_new)
+            lin_new = problem.linearize(x_new, v_new) if trial_linearize and attempt == 0 else None
+            f_new = lin_new[0] if lin_new is not None else problem.residual(x_new, v_new)
             nfev += 1
             V_new, nrm_new = merit_parts(f_new, x_new, v_new)
             viol_new = violation(nrm_new)
@@ -471,6 +609,7 @@ def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float
                 accepted = True
                 if attempt == 0:
                     mu, nu = max(mu / 3.0, 1e-12), 2.0
+                lin_next, trial_linearize = lin_new, attempt == 0
                 break
             if attempt < damp_tries - 1:
                 mu *= nu
@@ -484,6 +623,8 @@ def _sqp(problem, pen: SlopePenalty, tol: float, max_iter: int = 40, ftol: float
         dV = abs(V_new - V)
         x, v, V, nrm, viol, phi = x_new, v_new, V_new, nrm_new, viol_new, phi_new
         history.append(V)
+        if callback is not None:
+            callback(it, V, viol)
         if dV <= ftol * V and viol <= tol:
             success, message = True, "converged: relative cost change below ftol, bound met"
             break
@@ -507,7 +648,8 @@ def _points(model, points, seed: int) -> torch.Tensor:
 def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | None = None, prior: Prior | None = Prior(),
                     points=None, tol: float = 1e-2, check_tol: float = 5e-2, tools=None, check_points=None,
                     seed: int = 0, solver: str = "sqp", refine: int = 3, blocks=(), raise_on_failure: bool = True,
-                    weight: float | None = None, max_outer: int = 30, worst: int = 32, **fit_options) -> ConstrainedFitResult:
+                    weight: float | None = None, max_outer: int = 30, worst: int = 32, give_up=None,
+                    **fit_options) -> ConstrainedFitResult:
     """The constrained MLE of Paper I: (11)-(12) subject to |hbar_i(q)| <= c (31) over the whole axis space.
 
     model: MachineModel or RobotModel, updated in place from its current values
@@ -523,7 +665,11 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
     fresh points join the penalty set, together with the local maxima of the
     slope climbed from the ``worst`` worst fresh and penalty points
     (:func:`~torchcal.identify.slope.worst_points`), and a new fresh set is
-    drawn, at most ``refine`` times).
+    drawn, at most ``refine`` times). give_up: optional callable(model) ->
+    bool, asked when the bound holds at the penalty points but not at the
+    fresh ones: True ends the fit there without refining (the constraint
+    sweep's past-the-knee test: more points only add constraints, so a fit
+    already past the knee stays past it).
 
     solver: 'sqp' (default): Levenberg-Marquardt whose every step solves the
     damped Gauss-Newton model (axis errors eliminated per row, as in
@@ -559,7 +705,31 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
         >>> res.success, res.max_slope_check <= 2e-4 * 1.05
         (True, True)
     """
+    # small solves run on one thread (torchcal.threads): the slope evaluations and QPs are many small steps
+    c_text = "inf" if c is None or math.isinf(float(c)) else f"{float(c) * 1e3:.4g} mm"
+    with threads_for_work(_work(model, data, fit_options.get("instrument"))), \
+            progress.task(f"constrained fit (c = {c_text})") as task:
+        return _fit_constrained(model, data, c, noise, prior, points, tol, check_tol, tools, check_points, seed, solver,
+                                refine, blocks, raise_on_failure, weight, max_outer, worst, task, give_up, **fit_options)
+
+
+def _work(model, data: Measurements, instrument=None) -> float:
+    """Flops of one Gauss-Newton iteration, as :func:`torchcal.identify.fit.problem_work` (parameters counted
+    before masking and gauge fixing: an upper bound)."""
+    P = sum(p.numel() for p in model.parameters())
+    return float(len(data) * int(getattr(instrument, "dim", 3)) * P * P)
+
+
+def _fit_constrained(model, data, c, noise, prior, points, tol, check_tol, tools, check_points, seed, solver, refine,
+                     blocks, raise_on_failure, weight, max_outer, worst, task, give_up=None,
+                     **fit_options) -> ConstrainedFitResult:
     t0 = time.perf_counter()
+
+    def on_step(label):  # the solver's iterations as progress (a front end shows one line per few seconds)
+        def callback(it, V, viol):
+            task.advance(note=f"{label}: iteration {it}, cost {V:.6g}, bound exceeded by {100 * viol:.2g} %")
+        return callback
+
     if solver not in ("sqp", "penalty"):
         raise ValueError(f"fit_constrained: solver must be 'sqp' or 'penalty', got {solver!r}")
     noise = resolve_noise(model, noise)
@@ -568,6 +738,7 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
     chk_seed = seed + 1
     chk = _points(model, chk_count if check_points is None else check_points, chk_seed)
     if c is None or math.isinf(float(c)) and float(c) > 0:
+        task.set_note("unconstrained fit")
         res = fit(model, data, noise, prior, blocks=blocks, **fit_options)
         return ConstrainedFitResult(res.x, res.v, res.success, "unconstrained (c = inf): " + res.message, 0, math.inf,
                                     max_slope_of(model, pts, tools), max_slope_of(model, chk, tools), res,
@@ -602,24 +773,27 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
             raise TypeError(f"fit_constrained(solver='sqp'): unknown options {sorted(fit_options)}")
         pinned = fix_gauge(problem) if gauge else []
         max_outer = refine + 1
-        if max_slope_of(model, pts, P) < 0.5 * c:
+        cur = max_slope_of(model, pts, P, context=_CONTEXTS.get(model, pts, P))
+        if cur < 0.5 * c:
             # far inside the bound (e.g. a fresh, all-zero model): the norms' linearization means little there, so
             # start from the unconstrained optimum, whose slopes the bound then pulls down
             from .lm import levenberg_marquardt
 
+            task.set_note("unconstrained start")
             res = levenberg_marquardt(problem, **{k: v for k, v in sqp_opts.items() if k in ("ftol", "mu0")})
+            cur = max_slope_of(model, pts, P, context=_CONTEXTS.get(model, pts, P))
         # continuation: a bound far below the current slopes is approached through intermediate bounds (one
         # linearization cannot pull thousands of entries down by a factor of 10 at once)
-        cur = max_slope_of(model, pts, P)
         while cur > 3.0 * c:
             c_mid = max(c, cur / 2.5)
             try:
                 step = _sqp(problem, SlopePenalty(model, pts, c_mid, 1.0, P), tol,
-                            v_start=None if res is None else res.v, **sqp_opts)
+                            v_start=None if res is None else res.v, callback=on_step(f"on the way, c = {c_mid * 1e3:.4g} mm"),
+                            **sqp_opts)
             except ConstraintError:
                 break
             res = step
-            new = max_slope_of(model, pts, P)
+            new = max_slope_of(model, pts, P, context=_CONTEXTS.get(model, pts, P))
             log.debug("fit_constrained: continuation bound %.4g mm -> max slope %.4g mm", c_mid * 1e3, new * 1e3)
             if new > 0.9 * cur:
                 break
@@ -629,7 +803,9 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
         if solver == "sqp":
             pen = SlopePenalty(model, pts, c, 1.0, P)
             try:
-                res = _sqp(problem, pen, tol, v_start=None if res is None else res.v, **sqp_opts)
+                res = _sqp(problem, pen, tol, v_start=None if res is None else res.v,
+                           callback=on_step(f"{pts.shape[0]} points" + (f", refinement {refinements}" if refinements else "")),
+                           **sqp_opts)
             except ConstraintError as exc:
                 message = str(exc)
                 break
@@ -639,13 +815,14 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
             res = fit(model, data, noise, prior, blocks=[pen, *blocks], v0=v0, **fit_options)
             v0 = res.v
         with torch.no_grad():
-            nrm = slope_norms(model, pts, P)  # (T, M, n)
+            nrm = slope_norms(model, pts, P, context=_CONTEXTS.get(model, pts, P))  # (T, M, n)
         m_pen = float(nrm.max())
         viol = m_pen / c - 1.0
         history.append(m_pen / c)
         log.debug("fit_constrained c=%.4g mm: outer %d, max slope %.5g mm, %d points, inner: %d iterations, %.2f s, %s",
                   c * 1e3, it, m_pen * 1e3, pts.shape[0], res.nit, res.time, res.message)
         if viol <= tol:
+            task.set_note(f"checking the bound at {chk.shape[0]} fresh points")
             with torch.no_grad():
                 nchk = slope_norms(model, chk, P)
             m_chk = float(nchk.max())
@@ -657,11 +834,16 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
                 message = (f"bound met at the penalty points but not at fresh points ({m_chk / c:.4f} c) after "
                            f"{refinements} refinements of the point set")
                 break
+            if give_up is not None and give_up(model):
+                success, message = True, (f"bound met at {pts.shape[0]} penalty points ({m_pen / c:.4f} c), not refined "
+                                          f"at the fresh points ({m_chk / c:.4f} c): past the constraint sweep's knee")
+                break
             # the fresh points where the bound fails join the penalty set, with the local maxima of the slope
             # climbed from the worst of them and of the penalty points; a new fresh set checks again
             bad = (nchk > c).any(0).any(-1)
             top = torch.cat([chk[nchk.amax(dim=(0, 2)).topk(min(worst, chk.shape[0])).indices],
                              pts[nrm.amax(dim=(0, 2)).topk(min(worst, pts.shape[0])).indices]])
+            task.set_note(f"{int(bad.sum())} fresh points exceed c: climbing to the slope's local maxima")
             new = torch.cat([chk[bad], worst_points(model, top, P)]) if worst > 0 else chk[bad]
             pts = torch.cat([pts, new])
             shift = torch.cat([shift, torch.zeros(T, new.shape[0], model.n, dtype=shift.dtype, device=shift.device)], 1)
@@ -696,10 +878,11 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
     return out
 
 
-def max_slope_of(model, points: torch.Tensor, tools=None) -> float:
-    """max |hbar| (m per half axis motion) over points (M, n), axes and tools."""
+def max_slope_of(model, points: torch.Tensor, tools=None, context: dict | None = None) -> float:
+    """max |hbar| (m per half axis motion) over points (M, n), axes and tools (context: see
+    :func:`~torchcal.identify.slope.slope_norms`)."""
     with torch.no_grad():
-        return float(slope_norms(model, points, tools).max())
+        return float(slope_norms(model, points, tools, context).max())
 
 
 # ------------------------------------------------------------------ Paper I 3.4: the constraint sweep
@@ -709,7 +892,8 @@ class SweepResult:
 
     c: (K,) bounds, m per half axis motion, descending, c[0] = inf (unconstrained);
     sub_mean, sub_max, boundary_mean, boundary_max: (K,) residual statistics, m
-    (row norms of model minus measurement, axis errors zero); max_slope: (K,)
+    (row norms of model minus measurement, axis errors zero; a sensor rig's: of
+    the sensor origin's position); max_slope: (K,)
     max |hbar| at fresh points, m; success: per c, whether the bound was met;
     time: seconds per c.
     """
@@ -722,6 +906,8 @@ class SweepResult:
     max_slope: torch.Tensor
     success: list[bool]
     time: list[float]
+    states: list = field(default_factory=list, repr=False)
+    """Per c: (the model's state dict, its penalty points) after that fit: a warm start for the final fit."""
 
     def table(self) -> list[dict]:
         """Rows in mm (c, residuals, max slope), for printing or JSON."""
@@ -774,7 +960,7 @@ def constraint_sweep(make_model, data: Measurements, boundary_index, c_values=No
     fit warm-started from the previous; None: ``n_values`` values spaced
     geometrically from the unconstrained model's max slope down by ``span``.
     The unconstrained fit (c = inf) always comes first. ``options`` go to
-    :func:`fit_constrained` (points, tools, tol, method, ...). A c whose fit
+    :func:`fit_constrained` (points, tools, tol, method, instrument, ...). A c whose fit
     fails to meet the bound is recorded with success False (its model is still
     scored) and the sweep goes on. stop_tol_mm, stop_mean_tol_mm: stop once a c
     fails the knee test of :func:`pick_knee` with these tolerances (the smaller,
@@ -787,8 +973,12 @@ def constraint_sweep(make_model, data: Measurements, boundary_index, c_values=No
     if not mask.any() or mask.all():
         raise ValueError("constraint_sweep: the boundary set must be a proper, non-empty subset of the rows")
     sub, bnd = data.subset(~mask), data.subset(mask)
+    if options.get("instrument") is not None:  # an instrument holds its rows: the fits see the sub set's
+        options = {**options, "instrument": options["instrument"].subset(~mask)}
     noise = resolve_noise(model, noise)
     rows = {k: [] for k in ("c", "sub_mean", "sub_max", "boundary_mean", "boundary_max", "max_slope", "success", "time")}
+
+    states: list = []
 
     def record(cv, res, t):
         sm, sx = _stats(model, sub)
@@ -796,39 +986,54 @@ def constraint_sweep(make_model, data: Measurements, boundary_index, c_values=No
         for key, val in (("c", cv), ("sub_mean", sm), ("sub_max", sx), ("boundary_mean", bm), ("boundary_max", bx),
                          ("max_slope", res.max_slope_check), ("success", res.success), ("time", t)):
             rows[key].append(val)
+        states.append(({k: t.detach().clone() for k, t in model.state_dict().items()}, res.penalty_points))
 
     seed = int(options.pop("seed", 0))
-    t = time.perf_counter()
-    res = fit_constrained(model, sub, math.inf, noise, prior, seed=seed, **options)
-    record(math.inf, res, time.perf_counter() - t)
-    if c_values is None:
-        top = res.max_slope_check
-        c_values = [top * span ** (-(k + 1) / n_values) for k in range(n_values)]
-    # each c starts from the previous c's parameters and penalty points (they include the fresh points that
-    # failed a check there); each gets its own fresh check points (seed)
-    carry = dict(options)
-    for k, cv in enumerate(sorted((float(c) for c in c_values), reverse=True)):
+    with progress.task("constraint sweep", total=None if c_values is None else len(c_values) + 1) as task:
         t = time.perf_counter()
-        try:
-            res = fit_constrained(model, sub, cv, noise, prior, seed=seed + 1000 * (k + 1), **carry)
-        except ConstraintError as exc:
-            res = exc.result
-            log.warning("constraint sweep: c = %.4g mm: %s", cv * 1e3, exc)
-        if res is None:
-            raise ConstraintError(f"constraint sweep: c = {cv * 1e3:.4g} mm: no fit at all", None)
-        record(cv, res, time.perf_counter() - t)
-        if res.penalty_points is not None and not isinstance(options.get("points"), torch.Tensor):
-            carry["points"] = res.penalty_points
-        if stop_tol_mm is not None and res.success:
-            tt = lambda k: torch.tensor(rows[k], dtype=torch.float64)  # noqa: E731
-            part = SweepResult(tt("c"), tt("sub_mean"), tt("sub_max"), tt("boundary_mean"), tt("boundary_max"),
-                               tt("max_slope"), rows["success"], rows["time"])
-            if pick_knee(part, stop_tol_mm, stop_mean_tol_mm) > cv:
-                log.info("constraint sweep: c = %.4g mm is past the knee; smaller c values skipped", cv * 1e3)
-                break
+        res = fit_constrained(model, sub, math.inf, noise, prior, seed=seed, **options)
+        record(math.inf, res, time.perf_counter() - t)
+        if c_values is None:
+            top = res.max_slope_check
+            c_values = [top * span ** (-(k + 1) / n_values) for k in range(n_values)]
+            task.set_total(len(c_values) + 1)
+        task.advance(note="c = inf (unconstrained)")
+        # each c starts from the previous c's parameters and penalty points (they include the fresh points that
+        # failed a check there); each gets its own fresh check points (seed)
+        carry = dict(options)
+        give_up = None
+        if stop_tol_mm is not None:
+            # a c whose sub-identification mean already rose past the knee test's tolerance is past the knee: its
+            # fresh-point refinements (the costliest part of the sweep's slowest fit) could only raise it further
+            limit = rows["sub_mean"][0] + (stop_tol_mm / 2 if stop_mean_tol_mm is None else stop_mean_tol_mm) * 1e-3
+
+            def give_up(m):
+                return _stats(m, sub)[0] > limit
+        for k, cv in enumerate(sorted((float(c) for c in c_values), reverse=True)):
+            t = time.perf_counter()
+            try:
+                res = fit_constrained(model, sub, cv, noise, prior, seed=seed + 1000 * (k + 1), give_up=give_up, **carry)
+            except ConstraintError as exc:
+                res = exc.result
+                log.warning("constraint sweep: c = %.4g mm: %s", cv * 1e3, exc)
+            if res is None:
+                raise ConstraintError(f"constraint sweep: c = {cv * 1e3:.4g} mm: no fit at all", None)
+            record(cv, res, time.perf_counter() - t)
+            task.advance(note=f"c = {cv * 1e3:.4g} mm: boundary max {rows['boundary_max'][-1] * 1e3:.4f} mm, "
+                              f"sub-identification mean {rows['sub_mean'][-1] * 1e3:.4f} mm")
+            if res.penalty_points is not None and not isinstance(options.get("points"), torch.Tensor):
+                carry["points"] = res.penalty_points
+            if stop_tol_mm is not None and res.success:
+                tt = lambda k: torch.tensor(rows[k], dtype=torch.float64)  # noqa: E731
+                part = SweepResult(tt("c"), tt("sub_mean"), tt("sub_max"), tt("boundary_mean"), tt("boundary_max"),
+                                   tt("max_slope"), rows["success"], rows["time"], states)
+                if pick_knee(part, stop_tol_mm, stop_mean_tol_mm) > cv:
+                    log.info("constraint sweep: c = %.4g mm is past the knee; smaller c values skipped", cv * 1e3)
+                    task.set_total(task.completed)  # done: the rest cannot be the knee
+                    break
     tt = lambda k: torch.tensor(rows[k], dtype=torch.float64)  # noqa: E731
     return SweepResult(tt("c"), tt("sub_mean"), tt("sub_max"), tt("boundary_mean"), tt("boundary_max"), tt("max_slope"),
-                       rows["success"], rows["time"])
+                       rows["success"], rows["time"], states)
 
 
 def pick_knee(sweep: SweepResult, tol_mm: float = 0.01, mean_tol_mm: float | None = None) -> float:
@@ -918,14 +1123,19 @@ def auto_constraint(make_model, data: Measurements, boundary_index=None, border_
     ``border_n`` poses; c_values, n_values (in options): see
     :func:`constraint_sweep`; tol_mm, mean_tol_mm: see :func:`pick_knee`.
     The final model is fitted on ALL rows with the chosen c (unconstrained when
-    the knee is at inf) and is ``result``'s model: ``make_model`` is called
-    once more for it; it is ``AutoConstraintResult.model``.
+    the knee is at inf) and is ``result``'s model, ``AutoConstraintResult.model``
+    (``make_model`` is called once; the sweep and the final fit take copies).
     """
-    factory = _factory(make_model)
+    # one fresh model, copied for the sweep and the final fit (a robot with gravity compliance reads its URDF's
+    # inertials per construction: seconds)
+    probe = _factory(make_model)()
+
+    def factory():
+        return copy.deepcopy(probe)
+
     if boundary_index is None:
         if border_axes is None:
             raise ValueError("auto_constraint: give boundary_index or border_axes (the two axes BORDER works in)")
-        probe = factory()
         boundary_index = border_rows(data, border_axes, probe.command_limits, border_k, border_n)
     mask = _row_mask(boundary_index, len(data), data.q.device)
     sweep = constraint_sweep(factory, data, mask, c_values, noise, prior, stop_tol_mm=tol_mm,
@@ -934,5 +1144,13 @@ def auto_constraint(make_model, data: Measurements, boundary_index=None, border_
     model = factory()
     options.pop("n_values", None)
     options.pop("span", None)
+    # the final fit on all rows starts where the sweep's fit at the knee ended (the boundary rows move it a
+    # little), with that fit's refined penalty points: no unconstrained start, fewer refinements
+    k = next((i for i, cv in enumerate(sweep.c.tolist()) if cv == c), None)
+    if k is not None and k < len(sweep.states):
+        state, points = sweep.states[k]
+        model.load_state_dict(state)
+        if points is not None and not isinstance(options.get("points"), torch.Tensor):
+            options = {**options, "points": points}
     result = fit_constrained(model, data, c, noise, prior, **options)
     return AutoConstraintResult(c, sweep, result, mask, model)

@@ -16,62 +16,90 @@ from __future__ import annotations
 import torch
 
 
-def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: float = 1e-7) -> torch.Tensor:
-    """Columns of A (rows, P) that lie in the span of columns earlier in ``order``.
+def _greedy_dependent(B: torch.Tensor, keep: torch.Tensor, rtol: float) -> torch.Tensor:
+    """The greedy test on unit columns B (n, P), already in priority order, for M column subsets at once.
 
-    On unit-normalized columns taken in ``order``, the diagonal of the R factor
-    of a QR decomposition (no pivoting) is the norm of what each column adds
-    to the span of the columns before it: a column is dependent when that is
-    below ``rtol`` (the greedy Gram-Schmidt test, done by one Householder QR
-    instead of P projections). -> (P,) bool, True for dependent columns.
+    keep: (M, P) bool. Column j of subset m is dependent when less than
+    ``rtol`` of it is new against the kept, independent columns before it
+    (classical Gram-Schmidt twice, for stability). A plain Householder QR
+    cannot stand in: a dependent column's rounding noise still builds a
+    reflector that eats a dimension, and later columns lose their component
+    along it (on 126 x 99 it pinned 7 independent columns). -> (M, P) bool.
     """
-    P = A.shape[1]
-    order = torch.arange(P) if order is None else order.cpu()
-    norms = A.norm(dim=0)
-    dependent = torch.zeros(P, dtype=torch.bool)
-    dependent[(norms == 0).cpu()] = True
-    if P == 0:
-        return dependent
-    An = (A / norms.clamp(min=1e-300))[:, order.to(A.device)]
-    if An.shape[0] < P:  # more columns than rows: pad with zero rows (R stays P x P)
-        An = torch.cat([An, An.new_zeros(P - An.shape[0], P)])
-    r = torch.linalg.qr(An, mode="r")[1].diagonal().abs().cpu()
-    dependent[order] |= r < rtol
+    n, P = B.shape
+    M = keep.shape[0]
+    Q = B.new_zeros(M, n, P)  # column j: the new direction of column j, zero where dependent / not kept
+    dependent = torch.zeros(M, P, dtype=torch.bool, device=B.device)
+    for j in range(P):
+        a = B[:, j].expand(M, n)
+        Qj = Q[:, :, :j]
+        r = a - (Qj @ (Qj.transpose(1, 2) @ a[..., None]))[..., 0]
+        r = r - (Qj @ (Qj.transpose(1, 2) @ r[..., None]))[..., 0]
+        nr = r.norm(dim=1)
+        dep = nr < rtol
+        take = keep[:, j] & ~dep
+        dependent[:, j] = keep[:, j] & dep
+        Q[:, :, j] = torch.where(take[:, None], r / nr.clamp(min=1e-300)[:, None], 0.0)
     return dependent
 
 
-def gauge_basis(A: torch.Tensor, order: torch.Tensor | None = None):
-    """What :func:`dependent_columns_masked` needs of A (rows, P), computed once: its unit-normalized columns
-    in ``order`` reduced to their R factor (P, P) (A = Q R with Q orthonormal, so any subset of A's columns
-    has the same dependences as that subset of R's: the per-subset QRs then run on P rows, not rows).
-    -> (R, order, zero columns (P,) bool)."""
+def _unit_columns_in_order(A: torch.Tensor, order: torch.Tensor):
+    """A's columns in ``order``, unit-normalized and reduced to at most P rows by one QR (A = Q R with Q
+    orthonormal keeps every inner product, so the greedy test gives the same answer on R)."""
     P = A.shape[1]
-    order = torch.arange(P) if order is None else order.cpu()
     norms = A.norm(dim=0)
     An = (A / norms.clamp(min=1e-300))[:, order.to(A.device)]
-    if An.shape[0] < P:
-        An = torch.cat([An, An.new_zeros(P - An.shape[0], P)])
-    return torch.linalg.qr(An, mode="r")[1], order, norms == 0
+    if An.shape[0] > P:
+        An = torch.linalg.qr(An, mode="r")[1]
+    return An, norms == 0
 
 
-def dependent_columns_masked(basis, keep: torch.Tensor, rtol: float = 1e-7, chunk: int = 16) -> torch.Tensor:
+def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: float = 1e-7) -> torch.Tensor:
+    """Columns of A (rows, P) that lie in the span of columns earlier in ``order``.
+
+    Greedy Gram-Schmidt on unit-normalized columns taken in ``order``: a
+    column is dependent when less than ``rtol`` of its norm is new against
+    the independent columns before it. -> (P,) bool, True for dependent columns.
+    """
+    P = A.shape[1]
+    order = torch.arange(P) if order is None else order.cpu()
+    dependent = torch.zeros(P, dtype=torch.bool)
+    if P == 0:
+        return dependent
+    B, zero = _unit_columns_in_order(A, order)
+    dependent[order] = _greedy_dependent(B, torch.ones(1, P, dtype=torch.bool, device=B.device), rtol)[0].cpu()
+    return dependent | zero.cpu()
+
+
+def gauge_basis(A: torch.Tensor, order: torch.Tensor | None = None):
+    """What :func:`dependent_columns_masked` needs of A (rows, P), computed once: its unit-normalized
+    columns in ``order``, reduced to P rows (the per-subset tests then run on P rows, not rows).
+    -> (B, order, zero columns (P,) bool)."""
+    P = A.shape[1]
+    order = torch.arange(P) if order is None else order.cpu()
+    B, zero = _unit_columns_in_order(A, order)
+    return B, order, zero
+
+
+def dependent_columns_masked(basis, keep: torch.Tensor, rtol: float = 1e-7, chunk: int = 64) -> torch.Tensor:
     """:func:`dependent_columns` for many column subsets of one matrix at once.
 
     basis: :func:`gauge_basis` of the matrix; keep: (M, P) bool, the columns of
     each subset. -> (M, P) bool: the kept columns that lie in the span of the
-    kept columns earlier in the order (one batched QR per ``chunk`` subsets). A
-    column the full matrix pins may be free in a subset (its partners are
-    missing), never the other way.
+    kept columns earlier in the order. A column the full matrix pins may be
+    free in a subset (its partners are missing), never the other way.
     """
-    Rb, order, zero = basis
+    B, order, zero = basis
     M, P = keep.shape
-    kp = keep[:, order.to(keep.device)].to(Rb)
+    kp = keep[:, order.to(keep.device)].to(B.device)
     out = torch.zeros(M, P, dtype=torch.bool)
     for c0 in range(0, M, chunk):
-        r = torch.linalg.qr(Rb[None] * kp[c0:c0 + chunk, None, :], mode="r")[1].diagonal(dim1=-2, dim2=-1).abs().cpu()
-        out[c0:c0 + chunk, order] = r < rtol
+        out[c0:c0 + chunk, order] = _greedy_dependent(B, kp[c0:c0 + chunk], rtol).cpu()
     return (out.to(keep.device) & keep) | (keep & zero[None, :].to(keep.device))
 
+
+_ERROR_ROLES = ("joint", "backlash", "axis", "fine", "compliance")
+"""Roles whose all-zero value is the nominal machine (the gauge is judged there)."""
 
 _ROLE_RANK = {"frame": 0, "tool": 1, "compliance": 3}
 
@@ -91,11 +119,19 @@ def fix_gauge(problem, rtol: float = 1e-7):
     """Replace ``problem.layout`` by one with the redundant parameters pinned; returns their names.
 
     The redundancy is judged on the measurement Jacobian at the current
-    parameters with the joint errors at zero.
+    frames and tools with every error term (joint, backlash, axis, fine,
+    compliance) at zero, where the families above are exactly redundant: at a
+    warm start, joint 1's fitted eps_x / eps_y tilt its constant eps_z off the
+    base's, the pair is then only nearly redundant (relative 1e-4), and left
+    free it makes the solver crawl.
     """
     layout = problem.layout
     x = layout.get().to(problem.model.device)
-    _, A, _ = problem.linearize(x, problem.v_zero())
+    errors = torch.tensor([r in _ERROR_ROLES for r in layout.roles()], dtype=torch.bool, device=x.device)
+    try:
+        _, A, _ = problem.linearize(torch.where(errors, torch.zeros_like(x), x), problem.v_zero())
+    finally:
+        layout.set(x)  # linearize wrote the judging point into the model
     Af = A.reshape(-1, A.shape[-1])
     drop = dependent_columns(Af, gauge_priority(layout.roles()), rtol).to(x.device)
     names = [n for n, d in zip(layout.names(), drop.tolist()) if d]

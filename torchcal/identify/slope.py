@@ -52,6 +52,19 @@ def _is_robot(model) -> bool:
     return hasattr(model, "joint_errors") and callable(getattr(model, "_variables", None))
 
 
+def slope_model(model):
+    """-> (the model whose slope is taken, the prefix of its parameter names in ``model``).
+
+    A MachineModel or RobotModel is itself (prefix ''); a sensor rig (Paper III,
+    :class:`~torchcal.measure.rig.SensorRig`: a RobotModel carrying a 6-DOF sensor) is its robot
+    model ('model.'), whose error terms are what the bound is on.
+    """
+    inner = getattr(model, "model", None)
+    if not _is_machine(model) and not _is_robot(model) and inner is not None and _is_robot(inner):
+        return inner, "model."
+    return model, ""
+
+
 def modeled_flange(model, q: torch.Tensor) -> torch.Tensor:
     """Modeled last-frame pose (B, 4, 4) in the machine's nominal base frame, without the measurement frame.
 
@@ -107,8 +120,12 @@ def tool_vectors(model, tool=None) -> torch.Tensor:
 
     tool: None (every nominal tool of the model), an index or list of indices
     into ``model.tools.nominal``, or vectors (3,) / (T, 3) in m in the last frame.
+    A sensor rig's one nominal tool is the sensor origin (the nominal mount's translation).
     """
-    nominal = model.tools.nominal
+    if slope_model(model)[1]:
+        nominal = model.mount.nominal[:3, 3].reshape(1, 3)
+    else:
+        nominal = model.tools.nominal
     if tool is None:
         return nominal
     t = torch.as_tensor(tool)
@@ -126,14 +143,16 @@ def half_ranges(model) -> torch.Tensor:
     return 0.5 * (lim[:, 1] - lim[:, 0])
 
 
-def _slopes(model, q: torch.Tensor, P: torch.Tensor, method: str = "auto") -> torch.Tensor:
-    """hbar (T, B, n, 3) for tool vectors P (T, 3)."""
+def _slopes(model, q: torch.Tensor, P: torch.Tensor, method: str = "auto", context: dict | None = None) -> torch.Tensor:
+    """hbar (T, B, n, 3) for tool vectors P (T, 3); context: :func:`machine_slope_context` or
+    :func:`robot_slope_context` of (q, P) (only where q needs no gradient), or None."""
     if method not in ("auto", "autograd"):
         raise ValueError(f"slope method must be 'auto' or 'autograd', got {method!r}")
+    model = slope_model(model)[0]
     if method == "auto" and _is_machine(model):
-        return machine_slope_terms(model, q, P)["hbar"]
+        return machine_slope_terms(model, q, P, context=context)["hbar"]
     if method == "auto" and robot_fast_path(model) and not torch.is_grad_enabled():
-        return robot_slope_terms(model, q, P)[0]
+        return robot_slopes(model, q, P, context=context)
     half = half_ranges(model).to(q)
     out = []
     for p in P:
@@ -153,12 +172,197 @@ to autograd on an IRB 120 with order-3 errors (1e-6: 4e-8, 3e-7)."""
 
 
 def robot_fast_path(model) -> bool:
-    """A RobotModel whose slope reference is the nominal chain: :func:`robot_slope_terms` applies."""
+    """A RobotModel (or sensor rig) whose slope reference is the nominal chain: :func:`robot_slope_terms` applies."""
+    model = slope_model(model)[0]
     return (_is_robot(model) and callable(getattr(model, "chain_jacobians", None))
             and getattr(model, "slope_reference", "nominal") == "nominal")
 
 
-def robot_slope_terms(model, q: torch.Tensor, P: torch.Tensor, layout=None, step: float = ROBOT_FD_STEP):
+def _stencil(q: torch.Tensor, step: float) -> torch.Tensor:
+    """(M, n) -> (2 M n, n): q ± step along each axis, rows ordered [sign, point, axis]."""
+    M, n = q.shape
+    d = step * torch.eye(n, dtype=q.dtype, device=q.device)
+    return torch.stack([q[:, None, :] + d, q[:, None, :] - d]).reshape(-1, n)
+
+
+def robot_slope_context(model, q: torch.Tensor, P: torch.Tensor, step: float = ROBOT_FD_STEP) -> dict:
+    """The parts of :func:`robot_slope_terms` that depend on the points and tools only, not on the parameters.
+
+    q: (M, n) commands; P: (T, 3) tool vectors. -> dict: 'qq' (2 M n, n) the difference stencil,
+    'theta', 'u' (2 M n, n) its joint and error variables, 'comp' the compliance's configuration
+    functions there (gravity torques: a second forward pass of the chain, None without compliance),
+    'Np' (T, 2 M n, 3) the nominal tool points, 'step'. A fit evaluates the slope at the same points
+    hundreds of times: computed once, these are half of each evaluation. Rows: :func:`robot_context_rows`.
+    """
+    model = slope_model(model)[0]
+    with torch.no_grad():
+        qq = _stencil(q, step)
+        theta = model.joint_variables(qq)
+        comp = model.compliance.functions(theta) if model.compliance is not None else None
+        N = model.nominal_flange(qq)
+        Np = torch.stack([N[:, :3, :3] @ p + N[:, :3, 3] for p in P.to(q)])
+        return {"qq": qq, "theta": theta, "u": model.error_variables(qq), "comp": comp, "Np": Np, "step": step,
+                **_robot_point_context(model, q, P)}
+
+
+def _robot_point_context(model, q: torch.Tensor, P: torch.Tensor) -> dict:
+    """The parameter-free parts of :func:`robot_slopes` at the points q (M, n): commanded joint and error
+    variables, the compliance's configuration functions and their joint derivatives, and the nominal tool
+    points' Jacobians J_n (T, M, 3, n) w.r.t. the commands."""
+    theta = model.joint_variables(q)
+    comp = dcomp = None
+    if model.compliance is not None:
+        comp, dcomp = model.compliance.functions(theta, derivative=True)
+    nR, np_, N = chain_frames(model.origins, model.axes, model.prismatic, theta, None, model.tip)
+    A = model.coupling.to(q)
+    Jn = torch.stack([_axis_jacobian(nR, np_, model.axes, model.prismatic, N[:, :3, :3] @ p + N[:, :3, 3]) @ A
+                      for p in P.to(q)])
+    return {"m_theta": theta, "m_u": model.error_variables(q), "m_comp": comp, "m_dcomp": dcomp, "Jn": Jn}
+
+
+def _axis_jacobian(jR, jp, axes, prismatic, point):
+    """d point / d theta (B, 3, n) through the joints' own motion (the linear rows of
+    :func:`torchcal.jacobian.joint_axis_jacobian`)."""
+    z = (jR @ axes.to(point)[:, :, None])[..., 0]  # (B, n, 3)
+    lin = torch.where(prismatic[None, :, None], z, torch.linalg.cross(z, point[:, None, :] - jp, dim=-1))
+    return lin.transpose(1, 2)
+
+
+def robot_slopes(model, q: torch.Tensor, P: torch.Tensor, context: dict | None = None) -> torch.Tensor:
+    """hbar (T, M, n, 3) of a RobotModel (or sensor rig) in closed form, m per half axis motion.
+
+    d e_t / d q = J_p(q) - J_n(q): the modeled tool point's Jacobian w.r.t. the commands, each joint
+    turning the point about its axis (z_i x (p - o_i)) and moving it through its error series
+    (w_i x (p - o_i) + v_i, the twist E_i's velocity along its series' slope), the gravity
+    deflection's dependence on the configuration included; J_n the nominal chain's. The same values
+    as autograd to round-off (the central differences of :func:`robot_slope_terms`: ~1e-9 relative),
+    for one forward pass of M rows instead of 2 n M. Fine joint-angle tables (piecewise linear) take the
+    central differences. context: :func:`robot_slope_context` of (q, P) or None.
+    """
+    from ..jacobian import chebyshev_design, so3_right_jacobian
+    from ..kinematics.transforms import so3_exp, twist_to_transform
+
+    model = slope_model(model)[0]
+    if model.fine is not None:
+        return robot_slope_terms(model, q, P, context=context)[0]
+    half = half_ranges(model).to(q)
+    # without a context, differentiable (first-order autograd) where grad is enabled: what worst_points climbs
+    with torch.set_grad_enabled(torch.is_grad_enabled() and context is None):
+        ctx = context if context is not None and "Jn" in context else _robot_point_context(model, q, P)
+        theta, u, comp = ctx["m_theta"], ctx["m_u"], ctx["m_comp"]
+        A, Au = model.coupling.to(q), model.error_coupling.to(q)
+        follows = model.error_follows_joint.to(q)
+        dDA = None
+        if comp is not None:
+            c = model.compliance
+            dtheta = c.deflection_from(comp)
+            theta = theta + dtheta
+            u = u + dtheta * follows
+            d = torch.einsum("bmkn,mk->bmn", ctx["m_dcomp"], c.coef * c.mask)  # d deflection / d theta_c
+            dD = torch.zeros(q.shape[0], c.n, c.n, dtype=q.dtype, device=q.device).index_add(1, c.joints, d)
+            dDA = dD @ A
+        je = model.joint_errors
+        K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
+        basis, dbasis = chebyshev_design(je.normalized(u), max(K, Kb), 2.0 / (je.ranges[:, 1] - je.ranges[:, 0]))
+        coef = je.coef * je.mask
+        e = torch.einsum("bnk,ntk->bnt", basis[..., :K], coef)
+        de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
+        jR, jp, F = chain_frames(model.origins, model.axes, model.prismatic, theta, twist_to_transform(e), model.tip, None)
+        # E_i's velocity along its series: angular w_i, linear v_i (the rows of torchcal.jacobian.twist_jacobian)
+        w = (jR @ (so3_right_jacobian(e[..., :3]) @ de[..., :3, None]))[..., 0]  # (M, n, 3)
+        v = (jR @ (so3_exp(e[..., :3]).transpose(-1, -2) @ de[..., 3:, None]))[..., 0]
+        out = []
+        for t, p in enumerate(P.to(q)):
+            pt = F[:, :3, :3] @ p + F[:, :3, 3]
+            Jax = _axis_jacobian(jR, jp, model.axes, model.prismatic, pt)  # (M, 3, n) per theta_i
+            slope = (torch.linalg.cross(w, pt[:, None, :] - jp, dim=-1) + v).transpose(1, 2)  # (M, 3, n) per u_i
+            dp = Jax @ A + slope @ Au
+            if dDA is not None:
+                dp = dp + (Jax + slope * follows) @ dDA
+            out.append(((dp - ctx["Jn"][t]) * half).transpose(1, 2))
+        return torch.stack(out)
+
+
+def robot_context_rows(context: dict, rows: torch.Tensor, tools=None) -> dict:
+    """A :func:`robot_slope_context` for the points ``rows`` (and tools ``tools``, a slice or indices) only."""
+    n = context["qq"].shape[1]
+    M = context["qq"].shape[0] // (2 * n)
+
+    def pick(t, lead: int = 0):  # rows [sign, point, axis] of the points ``rows``, after ``lead`` leading dims
+        if t is None:
+            return None
+        head, tail = tuple(t.shape[:lead]), tuple(t.shape[lead + 1:])
+        return t.reshape(head + (2, M, n) + tail)[(slice(None),) * (lead + 1) + (rows,)].reshape(head + (-1,) + tail)
+
+    Np = context["Np"] if tools is None else context["Np"][tools]
+    Jn = context["Jn"] if tools is None else context["Jn"][tools]
+    m = {k: None if context[k] is None else context[k][rows] for k in ("m_theta", "m_u", "m_comp", "m_dcomp")}
+    return {"qq": pick(context["qq"]), "theta": pick(context["theta"]), "u": pick(context["u"]),
+            "comp": pick(context["comp"]), "Np": pick(Np, 1), "step": context["step"], **m, "Jn": Jn[:, rows]}
+
+
+def slope_context(model, q: torch.Tensor, P: torch.Tensor) -> dict | None:
+    """:func:`machine_slope_context` or :func:`robot_slope_context` of (q, P), whichever applies (None: neither)."""
+    if _is_machine(model):
+        return machine_slope_context(model, q, P)
+    if robot_fast_path(model):
+        return robot_slope_context(model, q, P)
+    return None
+
+
+def cat_contexts(a: dict, b: dict) -> dict:
+    """The context of the points of ``a`` followed by those of ``b`` (same model and tools)."""
+    if "JqA" in a:
+        return {"design": torch.cat([a["design"], b["design"]]), "ddesign": torch.cat([a["ddesign"], b["ddesign"]]),
+                "JqA": torch.cat([a["JqA"], b["JqA"]], 1)}
+    n = a["qq"].shape[1]
+
+    def cat(x, y, lead: int = 0):  # stencil rows [sign, point, axis]: the points of y after those of x
+        if x is None:
+            return None
+        head = tuple(x.shape[:lead])
+        xs = x.reshape(head + (2, -1, n) + tuple(x.shape[lead + 1:]))
+        ys = y.reshape(head + (2, -1, n) + tuple(y.shape[lead + 1:]))
+        return torch.cat([xs, ys], lead + 1).reshape(head + (-1,) + tuple(x.shape[lead + 1:]))
+
+    m = {k: None if a[k] is None else torch.cat([a[k], b[k]]) for k in ("m_theta", "m_u", "m_comp", "m_dcomp")}
+    return {"qq": cat(a["qq"], b["qq"]), "theta": cat(a["theta"], b["theta"]), "u": cat(a["u"], b["u"]),
+            "comp": cat(a["comp"], b["comp"]), "Np": cat(a["Np"], b["Np"], 1), "step": a["step"], **m,
+            "Jn": torch.cat([a["Jn"], b["Jn"]], 1)}
+
+
+def _robot_parts(model, context: dict) -> dict:
+    """``model._parts(qq, None, None, base=None)`` at the context's stencil, its parameter-free parts reused.
+
+    The same operations in the same order as :meth:`RobotModel._variables` and :meth:`RobotModel._parts`
+    (tests hold the two to bitwise equality); no backlash (direction unknown), no base frame.
+    """
+    from ..jacobian import chebyshev_design
+    from ..kinematics.transforms import twist_to_transform
+
+    theta, u, comp = context["theta"], context["u"], context["comp"]
+    if comp is not None:
+        dtheta = model.compliance.deflection_from(comp)
+        theta = theta + dtheta
+        u = u + dtheta * model.error_follows_joint
+    if model.fine is not None:
+        dfine = model.fine(context["theta"])
+        theta = theta + dfine
+        u = u + dfine * model.error_follows_joint
+    je = model.joint_errors
+    lam = je.normalized(u)
+    K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
+    scale = 2.0 / (je.ranges[:, 1] - je.ranges[:, 0])
+    basis, dbasis = chebyshev_design(lam, max(K, Kb), scale)
+    coef = je.coef * je.mask
+    e = torch.einsum("bnk,ntk->bnt", basis[..., :K], coef)
+    de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
+    jR, jp, F = chain_frames(model.origins, model.axes, model.prismatic, theta, twist_to_transform(e), model.tip, None)
+    return dict(theta=theta, basis=basis, e=e, de=de, s=None, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp)
+
+
+def robot_slope_terms(model, q: torch.Tensor, P: torch.Tensor, layout=None, step: float = ROBOT_FD_STEP,
+                      context: dict | None = None):
     """hbar of a RobotModel, and its Jacobian w.r.t. the free parameters, without nested autograd.
 
     The modeled error e_t(q) and its parameter Jacobian are closed form (the chain's forward pass and
@@ -169,33 +373,85 @@ def robot_slope_terms(model, q: torch.Tensor, P: torch.Tensor, layout=None, step
     tests hold it to the autograd values.
 
     q: (M, n) commands; P: (T, 3) tool vectors in the last frame; layout: a
-    :class:`~torchcal.identify.layout.ParameterLayout` of the model for the Jacobian (None: none).
+    :class:`~torchcal.identify.layout.ParameterLayout` of the model for the Jacobian (None: none);
+    context: :func:`robot_slope_context` of (q, P, step), or None (computed here).
     -> hbar (T, M, n, 3) m per half axis motion, and dhbar/dx (T, M, n, 3, P) or None.
+    A sensor rig's layout: the robot model's entries (prefix 'model.') move e_t, the mount and gravity do not.
     """
     M, n = q.shape
+    model, prefix = slope_model(model)
     half = half_ranges(model).to(q)
-    d = step * torch.eye(n, dtype=q.dtype, device=q.device)
-    qq = torch.stack([q[:, None, :] + d, q[:, None, :] - d]).reshape(-1, n)  # (2 M n, n): [sign, point, axis]
     with torch.no_grad():
-        parts = model._parts(qq, None, None, base=None)
-        F, N = parts["F"], model.nominal_flange(qq)
-        scale = half[None, :, None] / (2 * step)
-        hbar, dhbar = [], []
-        for p in P.to(q):
-            pt = F[:, :3, :3] @ p + F[:, :3, 3]
-            e = (pt - (N[:, :3, :3] @ p + N[:, :3, 3])).reshape(2, M, n, 3)
-            hbar.append((e[0] - e[1]) * scale)
-            if layout is None:
-                continue
-            J = model.chain_jacobians(parts, qq, pt, rows=3)
-            groups = {}
-            for name, prm, _ in layout.entries:
-                # e_t leaves the base frame and the tool corrections out: they do not move it
-                g = J.get(name) if name not in ("base.twist", "tools.delta") else None
-                groups[name] = g if g is not None else q.new_zeros((qq.shape[0], 3) + tuple(prm.shape))
-            Jx = layout.flatten_jacobian(groups, qq.shape[0]).reshape(2, M, n, 3, -1)
-            dhbar.append((Jx[0] - Jx[1]) * scale[..., None])
+        if context is None:
+            qq = _stencil(q, step)  # (2 M n, n): [sign, point, axis]
+            parts = model._parts(qq, None, None, base=None)
+            N = model.nominal_flange(qq)
+            Np = [N[:, :3, :3] @ p + N[:, :3, 3] for p in P.to(q)]
+        else:
+            qq, step, Np = context["qq"], context["step"], context["Np"]
+            parts = _robot_parts(model, context)
+        return _central_differences(model, prefix, parts, qq, Np, P.to(q), layout, (M, n), half[None, :, None] / (2 * step))
+
+
+def _central_differences(model, prefix: str, parts: dict, qq, Np, P, layout, lead: tuple, scale):
+    """hbar (T, *lead, 3) and d hbar / dx (T, *lead, 3, P) or None from a forward pass at stencil rows
+    [sign, *lead]: Np[t] the nominal points of tool t there, scale (*lead, 1) half range / (2 step)."""
+    F = parts["F"]
+    hbar, dhbar = [], []
+    for t, p in enumerate(P):
+        pt = F[:, :3, :3] @ p + F[:, :3, 3]
+        e = (pt - Np[t]).reshape((2,) + lead + (3,))
+        hbar.append((e[0] - e[1]) * scale)
+        if layout is None:
+            continue
+        J = model.chain_jacobians(parts, qq, pt, rows=3)
+        groups = {}
+        for name, prm, _ in layout.entries:
+            # e_t leaves the base frame and the tool corrections out: they do not move it
+            key = name[len(prefix):] if name.startswith(prefix) else None
+            g = J.get(key) if key not in (None, "base.twist", "tools.delta") else None
+            groups[name] = g if g is not None else qq.new_zeros((qq.shape[0], 3) + tuple(prm.shape))
+        Jx = layout.flatten_jacobian(groups, qq.shape[0]).reshape((2,) + lead + (3, -1))
+        dhbar.append((Jx[0] - Jx[1]) * scale[..., None])
     return torch.stack(hbar), (torch.stack(dhbar) if layout is not None else None)
+
+
+def robot_pair_terms(model, context: dict, point: torch.Tensor, axis: torch.Tensor, P: torch.Tensor, layout):
+    """hbar and its parameter Jacobian as :func:`robot_slope_terms`, at (point, axis) pairs only.
+
+    context: :func:`robot_slope_context` of all the points; point, axis: (A,) long. Only the two stencil
+    rows of each pair are evaluated (the others of a point are not needed where one axis is bounded).
+    -> hbar (T, A, 3), dhbar/dx (T, A, 3, P).
+    """
+    model, prefix = slope_model(model)
+    n = context["qq"].shape[1]
+    M = context["qq"].shape[0] // (2 * n)
+    rows = torch.stack([point * n + axis, (M + point) * n + axis]).reshape(-1)  # [sign, pair]
+    sub = {k: None if context[k] is None else context[k][rows] for k in ("qq", "theta", "u", "comp")}
+    sub["Np"] = context["Np"][:, rows]
+    half = half_ranges(model).to(context["qq"])
+    with torch.no_grad():
+        parts = _robot_parts(model, sub)
+        return _central_differences(model, prefix, parts, sub["qq"], sub["Np"], P.to(sub["qq"]), layout,
+                                    (point.shape[0],), (half[axis] / (2 * context["step"]))[:, None])
+
+
+def robot_slopes_differentiable(model, q: torch.Tensor, P: torch.Tensor, step: float = ROBOT_FD_STEP) -> torch.Tensor:
+    """hbar (T, M, n, 3) of a RobotModel by the central differences of :func:`robot_slope_terms`, differentiable
+    in q by plain (first-order) autograd: what :func:`worst_points` climbs (nested autograd costs ~10x more)."""
+    M, n = q.shape
+    model = slope_model(model)[0]
+    qq = _stencil(q, step)
+    theta, u, _ = model._variables(qq, None)
+    E = model.joint_errors(u, None)
+    F = chain_frames(model.origins, model.axes, model.prismatic, theta, E, model.tip)[2]
+    N = model.nominal_flange(qq)
+    scale = half_ranges(model).to(q)[None, :, None] / (2 * step)
+    out = []
+    for p in P.to(q):
+        e = ((F[:, :3, :3] - N[:, :3, :3]) @ p + F[:, :3, 3] - N[:, :3, 3]).reshape(2, M, n, 3)
+        out.append((e[0] - e[1]) * scale)
+    return torch.stack(out)
 
 
 # ------------------------------------------------------------------ closed form for machines
@@ -228,12 +484,41 @@ def point_jacobian_and_hessian(origins, axes, prismatic, tip, theta, points, hes
     return Jr.transpose(-1, -2), H.permute(0, 1, 4, 2, 3)
 
 
-def machine_slope_terms(model, q: torch.Tensor, P: torch.Tensor, hessian: bool = False) -> dict:
+def machine_slope_context(model, q: torch.Tensor, P: torch.Tensor) -> dict:
+    """The parts of :func:`machine_slope_terms` that depend on the points and tools only, not on the tables.
+
+    q: (B, n); P: (T, 3). -> dict: 'design', 'ddesign' (B, n, K) (Chebyshev values and
+    d/dq_j), 'JqA' (T, B, 3, n) = J_G(q), the nominal tool point's Jacobian. A fit
+    evaluates the slope at the same points hundreds of times: computed once, these are
+    half of each evaluation. Index a context with :func:`context_rows`.
+    """
+    from ..basis import chebyshev_with_derivative
+
+    with torch.no_grad():
+        ae = model.axis_errors
+        A = model.coupling.to(q)
+        design, dl = chebyshev_with_derivative(ae.normalized(q), ae.coef.shape[-1] - 1)
+        lim = ae.limits.to(q)
+        ddesign = dl * (2.0 / (lim[:, 1] - lim[:, 0]))[:, None]
+        theta_q = q @ A.T + model.offset.to(q)
+        Jq, _ = point_jacobian_and_hessian(model.origins, model.axes, model.prismatic, model.tip, theta_q, P, False)
+        return {"design": design, "ddesign": ddesign, "JqA": Jq @ A}
+
+
+def context_rows(context: dict, rows: torch.Tensor, tools=None) -> dict:
+    """A :func:`machine_slope_context` for the points ``rows`` (and the tools ``tools``, a slice or indices) only."""
+    JqA = context["JqA"] if tools is None else context["JqA"][tools]
+    return {"design": context["design"][rows], "ddesign": context["ddesign"][rows], "JqA": JqA[:, rows]}
+
+
+def machine_slope_terms(model, q: torch.Tensor, P: torch.Tensor, hessian: bool = False, context: dict | None = None) -> dict:
     """hbar (30) of a MachineModel in closed form, with what its coefficient Jacobian needs.
 
     e_t(q) = G(q + dq(q)) - G(q), G the nominal tool point: d e_t / d q =
     J_G(a) (I + D(q)) - J_G(q), a = q + dq(q), D = d dq / d q (the table slopes).
-    q: (B, n); P: (T, 3) tool vectors. -> dict with 'hbar' (T, B, n, 3) and the
+    q: (B, n); P: (T, 3) tool vectors; context: :func:`machine_slope_context` of
+    (q, P) (None: computed here; a context must not be used where q needs a gradient).
+    -> dict with 'hbar' (T, B, n, 3) and the
     pieces: 'JG' (T, B, 3, n) = J_G(a), 'HG' (T, B, 3, n, n) = d J_G(a)[..., m] / d a_i
     (with ``hessian``), 'ID' (B, n, n) = I + D, 'design', 'ddesign' (B, n, K):
     Chebyshev values and their derivative w.r.t. q_j per input axis.
@@ -242,19 +527,23 @@ def machine_slope_terms(model, q: torch.Tensor, P: torch.Tensor, hessian: bool =
 
     ae = model.axis_errors
     A = model.coupling.to(q)
-    a = q + ae.delta(q)
+    coef = ae.masked_coef()
+    if context is None:
+        design, dl = chebyshev_with_derivative(ae.normalized(q), ae.coef.shape[-1] - 1)
+        lim = ae.limits.to(q)
+        ddesign = dl * (2.0 / (lim[:, 1] - lim[:, 0]))[:, None]
+        theta_q = q @ A.T + model.offset.to(q)
+        Jq, _ = point_jacobian_and_hessian(model.origins, model.axes, model.prismatic, model.tip, theta_q, P, False)
+        JqA = Jq @ A
+    else:
+        design, ddesign, JqA = context["design"], context["ddesign"], context["JqA"]
+    a = q + torch.einsum("bjk,ijk->bi", design, coef)  # q + dq(q), as AxisPerturbation.delta
     theta_a = a @ A.T + model.offset.to(q)
-    theta_q = q @ A.T + model.offset.to(q)
     Ja, Ha = point_jacobian_and_hessian(model.origins, model.axes, model.prismatic, model.tip, theta_a, P, hessian)
-    Jq, _ = point_jacobian_and_hessian(model.origins, model.axes, model.prismatic, model.tip, theta_q, P, False)
     JG = Ja @ A
-    lam = ae.normalized(q)
-    design, dl = chebyshev_with_derivative(lam, ae.coef.shape[-1] - 1)
-    lim = ae.limits.to(q)
-    ddesign = dl * (2.0 / (lim[:, 1] - lim[:, 0]))[:, None]
-    D = torch.einsum("bjk,ijk->bij", ddesign, ae.masked_coef())
+    D = torch.einsum("bjk,ijk->bij", ddesign, coef)
     ID = torch.eye(q.shape[1], dtype=q.dtype, device=q.device) + D
-    dedq = JG @ ID - Jq @ A
+    dedq = JG @ ID - JqA
     out = {"hbar": (dedq * half_ranges(model).to(q)).transpose(-1, -2), "JG": JG, "ID": ID, "design": design,
            "ddesign": ddesign}
     if hessian:
@@ -262,15 +551,16 @@ def machine_slope_terms(model, q: torch.Tensor, P: torch.Tensor, hessian: bool =
     return out
 
 
-def machine_slope_norm_jacobian(model, q: torch.Tensor, p: torch.Tensor, axis: torch.Tensor):
+def machine_slope_norm_jacobian(model, q: torch.Tensor, p: torch.Tensor, axis: torch.Tensor, context: dict | None = None):
     """|hbar_m| at (q_b, m = axis_b) and its Jacobian w.r.t. ``axis_errors.coef``, closed form.
 
-    q: (A, n) points; p: (3,) tool; axis: (A,) long, the axis m of each entry.
+    q: (A, n) points; p: (3,) tool; axis: (A,) long, the axis m of each entry; context:
+    :func:`machine_slope_context` of (q, p) or None.
     -> norms (A,), d norm / d coef (A, n, n, K) (masked entries zero).
 
     d hbar_m / d a_kij = half_m [HG[:, m, i] . (I + D)[:, m] design_jk + J_G[:, i] delta_jm ddesign_jk]
     """
-    t = machine_slope_terms(model, q, p.reshape(1, 3), hessian=True)
+    t = machine_slope_terms(model, q, p.reshape(1, 3), hessian=True, context=context)
     ar = torch.arange(q.shape[0], device=q.device)
     h = t["hbar"][0, ar, axis]  # (A, 3)
     nrm = h.norm(dim=-1)
@@ -318,9 +608,10 @@ def model_slopes(model, q: torch.Tensor, tool=None, method: str = "auto") -> tor
     return _slopes(model, q, p[None], method)[0]
 
 
-def slope_norms(model, q: torch.Tensor, tools=None) -> torch.Tensor:
-    """|hbar_i|_2 for several tools: (T, B, n), m per half axis motion; tools as in :func:`tool_vectors`."""
-    return _slopes(model, q, tool_vectors(model, tools)).norm(dim=-1)
+def slope_norms(model, q: torch.Tensor, tools=None, context: dict | None = None) -> torch.Tensor:
+    """|hbar_i|_2 for several tools: (T, B, n), m per half axis motion; tools as in :func:`tool_vectors`;
+    context: :func:`slope_context` of (q, those tools) or None."""
+    return _slopes(model, q, tool_vectors(model, tools), context=context).norm(dim=-1)
 
 
 def max_slope(model, q: torch.Tensor, tools=None) -> float:
@@ -336,14 +627,15 @@ class _SlopeNorms(nn.Module):
         super().__init__()
         self.model = model
 
-    def forward(self, q, P):
-        return _slopes(self.model, q, P).norm(dim=-1)
+    def forward(self, q, P, context=None):
+        return _slopes(self.model, q, P, context=context).norm(dim=-1)
 
 
-def functional_slope_norms(model, params: dict, q: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
-    """slope_norms with the model's parameters replaced by ``params`` {name: tensor} (differentiable in them)."""
+def functional_slope_norms(model, params: dict, q: torch.Tensor, P: torch.Tensor, context: dict | None = None) -> torch.Tensor:
+    """slope_norms with the model's parameters replaced by ``params`` {name: tensor} (differentiable in them);
+    context: :func:`machine_slope_context` / :func:`robot_slope_context` of (q, P), or None."""
     wrapper = _SlopeNorms(model)
-    return functional_call(wrapper, {f"model.{k}": t for k, t in params.items()}, (q, P))
+    return functional_call(wrapper, {f"model.{k}": t for k, t in params.items()}, (q, P, context))
 
 
 # ------------------------------------------------------------------ where the bound is imposed
@@ -404,12 +696,25 @@ def worst_points(model, q0: torch.Tensor, tools=None, steps: int = 30, lr: float
     lo, span = lim[:, 0], lim[:, 1] - lim[:, 0]
     P = tool_vectors(model, tools)
     u = ((q0 - lo) / span).detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam([u], lr=lr)
-    for _ in range(steps):
-        opt.zero_grad()
-        nrm = _slopes(model, lo + u * span, P).norm(dim=-1)  # (T, K, n)
-        (-nrm.amax(dim=(0, 2)).sum()).backward()
-        opt.step()
+    # Adam (torch.optim.Adam's single-tensor update, written out: constructing the optimizer imports
+    # torch._dynamo, seconds on a cold process)
+    beta1, beta2, eps = 0.9, 0.999, 1e-8
+    m1, m2 = torch.zeros_like(u), torch.zeros_like(u)
+    fast = robot_fast_path(model)
+    closed = fast and slope_model(model)[0].fine is None
+    for step in range(1, steps + 1):
+        qs = lo + u * span
+        # robots: the closed form (or the central differences), first-order autograd (nested: ~10x the time)
+        if closed:
+            h = robot_slopes(model, qs, P)
+        else:
+            h = robot_slopes_differentiable(model, qs, P) if fast else _slopes(model, qs, P)
+        nrm = h.norm(dim=-1)  # (T, K, n)
+        g, = torch.autograd.grad(-nrm.amax(dim=(0, 2)).sum(), u)  # u only: the model's .grad stay untouched
         with torch.no_grad():
+            m1.lerp_(g, 1 - beta1)
+            m2.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+            denom = (m2.sqrt() / (1 - beta2 ** step) ** 0.5).add_(eps)
+            u.addcdiv_(m1, denom, value=-lr / (1 - beta1 ** step))
             u.clamp_(0.0, 1.0)
     return (lo + u.detach() * span).detach()

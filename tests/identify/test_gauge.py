@@ -42,7 +42,7 @@ def _matrix(seed, rows, rank, P):
     return A[:, torch.randperm(P, generator=g)]
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=10, deadline=None)
 @given(seed=st.integers(0, 10_000), extra_rows=st.integers(0, 30), deficit=st.integers(1, 12))
 def test_greedy_matches_rank_reference_when_rows_barely_exceed_columns(seed, extra_rows, deficit):
     """Rows close to P is where a Householder QR's noise reflectors pinned independent columns."""
@@ -54,7 +54,7 @@ def test_greedy_matches_rank_reference_when_rows_barely_exceed_columns(seed, ext
     assert int(got.sum()) == P - int(torch.linalg.matrix_rank(A))
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=6, deadline=None)
 @given(seed=st.integers(0, 10_000))
 def test_masked_subsets_match_each_subset_alone(seed):
     P = 30

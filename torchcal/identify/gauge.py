@@ -16,42 +16,88 @@ from __future__ import annotations
 import torch
 
 
-def _greedy_dependent(B: torch.Tensor, keep: torch.Tensor, rtol: float) -> torch.Tensor:
-    """The greedy test on unit columns B (n, P), already in priority order, for M column subsets at once.
+def _project_out(r: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
+    """r (M, k, n) less its components along the orthonormal (or zero) rows of Q (M, K, n), twice (CGS2)."""
+    if Q.shape[1] == 0:
+        return r
+    for _ in range(2):
+        r = r - (r @ Q.transpose(1, 2)) @ Q
+    return r
 
-    keep: (M, P) bool. Column j of subset m is dependent when less than
-    ``rtol`` of it is new against the kept, independent columns before it
-    (classical Gram-Schmidt twice, for stability). A plain Householder QR
-    cannot stand in: a dependent column's rounding noise still builds a
-    reflector that eats a dimension, and later columns lose their component
-    along it (on 126 x 99 it pinned 7 independent columns). -> (M, P) bool.
+
+def _greedy_columns(Bt: torch.Tensor, keep: torch.Tensor, rtol: float) -> torch.Tensor:
+    """The greedy test column by column: Bt (P, n) unit columns of B as rows, in priority order; keep (M, P).
+
+    Column j of subset m is dependent when less than ``rtol`` of it is new
+    against the kept, independent columns before it (classical Gram-Schmidt
+    twice). A plain Householder QR cannot stand in: a dependent (or masked
+    out, zero) column still takes a reflector that uses up a dimension, and
+    later columns lose their component along it (on 126 x 99 it pinned 7
+    independent columns). -> (M, P) bool.
     """
-    n, P = B.shape
+    P, n = Bt.shape
     M = keep.shape[0]
-    Q = B.new_zeros(M, n, P)  # column j: the new direction of column j, zero where dependent / not kept
-    dependent = torch.zeros(M, P, dtype=torch.bool, device=B.device)
+    Q = Bt.new_zeros(M, P, n)  # row j: the new direction of column j, zero where dependent / not kept
+    dependent = torch.zeros(M, P, dtype=torch.bool, device=Bt.device)
     for j in range(P):
-        a = B[:, j].expand(M, n)
-        Qj = Q[:, :, :j]
-        r = a - (Qj @ (Qj.transpose(1, 2) @ a[..., None]))[..., 0]
-        r = r - (Qj @ (Qj.transpose(1, 2) @ r[..., None]))[..., 0]
+        r = _project_out(Bt[j].expand(M, 1, n), Q[:, :j])[:, 0]
         nr = r.norm(dim=1)
         dep = nr < rtol
-        take = keep[:, j] & ~dep
         dependent[:, j] = keep[:, j] & dep
-        Q[:, :, j] = torch.where(take[:, None], r / nr.clamp(min=1e-300)[:, None], 0.0)
+        Q[:, j] = torch.where((keep[:, j] & ~dep)[:, None], r / nr.clamp(min=1e-300)[:, None], 0.0)
+    return dependent
+
+
+def _greedy_subsets(Bt: torch.Tensor, keep: torch.Tensor, rtol: float, candidates: torch.Tensor) -> torch.Tensor:
+    """:func:`_greedy_columns` for subsets of a column set whose own dependent columns are ``candidates`` (P,).
+
+    Dropping columns only shrinks the span before any column, so a column
+    independent in the full set is independent in every subset: only the
+    candidates need a test. The runs of columns between them go through one
+    batched QR each (compacted per subset, so that no zero column takes a
+    reflector before a real one), each candidate through Gram-Schmidt
+    against everything kept before it. -> (M, P) bool.
+    """
+    P, n = Bt.shape
+    M = keep.shape[0]
+    dependent = torch.zeros(M, P, dtype=torch.bool, device=Bt.device)
+    Q = Bt.new_zeros(M, P, n)  # filled up to K rows: the directions kept so far (zero rows where none)
+    K = 0
+    marks = candidates.nonzero()[:, 0].tolist() + [P]
+    s = 0
+    for c in marks:
+        if c > s:  # columns s..c-1: independent wherever kept
+            k = keep[:, s:c]
+            if bool(k.any()):
+                W = _project_out(Bt[s:c].expand(M, c - s, n), Q[:, :K])
+                perm = torch.argsort((~k).to(torch.int8), dim=1, stable=True)  # kept first, in order
+                count = k.sum(1)
+                W = torch.gather(W, 1, perm[..., None].expand(M, c - s, n))
+                real = torch.arange(c - s, device=Bt.device)[None, :] < count[:, None]  # (M, L)
+                W = W * real[..., None]
+                Qr = torch.linalg.qr(W.transpose(1, 2), mode="reduced")[0].transpose(1, 2)  # (M, L, n)
+                Q[:, K:K + c - s] = Qr * real[..., None]
+                K += c - s
+        if c < P:
+            r = _project_out(Bt[c].expand(M, 1, n), Q[:, :K])[:, 0]
+            nr = r.norm(dim=1)
+            dep = nr < rtol
+            dependent[:, c] = keep[:, c] & dep
+            Q[:, K] = torch.where((keep[:, c] & ~dep)[:, None], r / nr.clamp(min=1e-300)[:, None], 0.0)
+            K += 1
+        s = c + 1
     return dependent
 
 
 def _unit_columns_in_order(A: torch.Tensor, order: torch.Tensor):
-    """A's columns in ``order``, unit-normalized and reduced to at most P rows by one QR (A = Q R with Q
-    orthonormal keeps every inner product, so the greedy test gives the same answer on R)."""
+    """A's columns in ``order``, unit-normalized, as rows (P, n), reduced to at most P coordinates by one QR
+    (A = Q R with Q orthonormal keeps every inner product, so the greedy test gives the same answer on R)."""
     P = A.shape[1]
     norms = A.norm(dim=0)
     An = (A / norms.clamp(min=1e-300))[:, order.to(A.device)]
     if An.shape[0] > P:
         An = torch.linalg.qr(An, mode="r")[1]
-    return An, norms == 0
+    return An.T.contiguous(), norms == 0
 
 
 def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: float = 1e-7) -> torch.Tensor:
@@ -66,35 +112,37 @@ def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: 
     dependent = torch.zeros(P, dtype=torch.bool)
     if P == 0:
         return dependent
-    B, zero = _unit_columns_in_order(A, order)
-    dependent[order] = _greedy_dependent(B, torch.ones(1, P, dtype=torch.bool, device=B.device), rtol)[0].cpu()
+    Bt, zero = _unit_columns_in_order(A, order)
+    dependent[order] = _greedy_columns(Bt, torch.ones(1, P, dtype=torch.bool, device=Bt.device), rtol)[0].cpu()
     return dependent | zero.cpu()
 
 
-def gauge_basis(A: torch.Tensor, order: torch.Tensor | None = None):
+def gauge_basis(A: torch.Tensor, order: torch.Tensor | None = None, rtol: float = 1e-7):
     """What :func:`dependent_columns_masked` needs of A (rows, P), computed once: its unit-normalized
-    columns in ``order``, reduced to P rows (the per-subset tests then run on P rows, not rows).
-    -> (B, order, zero columns (P,) bool)."""
+    columns in ``order`` reduced to P coordinates, and which of them the full set pins (only those can be
+    pinned in a subset). -> (Bt, order, zero columns (P,) bool, full-set dependent columns in order (P,) bool)."""
     P = A.shape[1]
     order = torch.arange(P) if order is None else order.cpu()
-    B, zero = _unit_columns_in_order(A, order)
-    return B, order, zero
+    Bt, zero = _unit_columns_in_order(A, order)
+    full = _greedy_columns(Bt, torch.ones(1, P, dtype=torch.bool, device=Bt.device), rtol)[0]
+    return Bt, order, zero, full
 
 
 def dependent_columns_masked(basis, keep: torch.Tensor, rtol: float = 1e-7, chunk: int = 64) -> torch.Tensor:
     """:func:`dependent_columns` for many column subsets of one matrix at once.
 
-    basis: :func:`gauge_basis` of the matrix; keep: (M, P) bool, the columns of
-    each subset. -> (M, P) bool: the kept columns that lie in the span of the
-    kept columns earlier in the order. A column the full matrix pins may be
-    free in a subset (its partners are missing), never the other way.
+    basis: :func:`gauge_basis` of the matrix (same ``rtol``); keep: (M, P)
+    bool, the columns of each subset. -> (M, P) bool: the kept columns that
+    lie in the span of the kept columns earlier in the order. A column the
+    full matrix pins may be free in a subset (its partners are missing),
+    never the other way.
     """
-    B, order, zero = basis
+    Bt, order, zero, full = basis
     M, P = keep.shape
-    kp = keep[:, order.to(keep.device)].to(B.device)
+    kp = keep[:, order.to(keep.device)].to(Bt.device)
     out = torch.zeros(M, P, dtype=torch.bool)
     for c0 in range(0, M, chunk):
-        out[c0:c0 + chunk, order] = _greedy_dependent(B, kp[c0:c0 + chunk], rtol).cpu()
+        out[c0:c0 + chunk, order] = _greedy_subsets(Bt, kp[c0:c0 + chunk], rtol, full).cpu()
     return (out.to(keep.device) & keep) | (keep & zero[None, :].to(keep.device))
 
 

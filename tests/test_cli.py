@@ -408,10 +408,29 @@ def test_ctrl_c_during_a_fit_names_the_partial_run(e2e, tmp_path, monkeypatch):
     out = tmp_path / "run"
     r = invoke("fit", e2e["sim"] / "fit.yaml", *_quick(f"out={out}"), "-q")
     assert r.exit_code == 130, r.output
-    assert r.output.strip() == f"interrupted; the partial run directory is {out}"
+    assert r.output.strip() == f"interrupted; the partial run directory is {out} (marked by its PARTIAL file)"
     log = (out / "run.log").read_text()
     assert "interrupted" in log and "Traceback" not in log
-    assert (out / "config.yaml").is_file()
+    assert (out / "config.yaml").is_file() and (out / "PARTIAL").is_file()
+
+
+def test_a_failed_fit_names_and_marks_its_partial_run(e2e, tmp_path, monkeypatch):
+    from torchcal.io.config import ConfigError
+
+    def fails(*args, **kwargs):
+        raise ConfigError("fit.yaml: key 'model.order': cannot be fitted")
+
+    monkeypatch.setattr(pipeline, "identify_model", fails)
+    out = tmp_path / "run"
+    r = invoke("fit", e2e["sim"] / "fit.yaml", *_quick(f"out={out}"), "-q")
+    assert r.exit_code == 2, r.output
+    assert r.output.strip() == ("error: fit.yaml: key 'model.order': cannot be fitted; the partial run directory is "
+                                f"{out} (marked by its PARTIAL file)")
+    assert (out / "PARTIAL").is_file() and (out / "config.yaml").is_file()  # what was computed stays
+    monkeypatch.undo()
+    r = invoke("fit", e2e["sim"] / "fit.yaml", *_quick(f"out={out}"), "-q")
+    assert r.exit_code == 0, r.output
+    assert not (tmp_path / "run-2" / "PARTIAL").exists()  # a finished run is not marked
 
 
 @pytest.fixture
@@ -463,7 +482,7 @@ def test_ctrl_c_while_progress_is_shown_is_one_line_and_130(e2e, tmp_path, monke
     assert r.exit_code == 130, r.output
     lines = r.output.strip().splitlines()
     assert any(re.search(r"a long fit: elapsed \d+\.\d s", l) for l in lines), r.output
-    assert lines[-1] == f"interrupted; the partial run directory is {out}"
+    assert lines[-1] == f"interrupted; the partial run directory is {out} (marked by its PARTIAL file)"
     assert sum("interrupted" in l for l in lines) == 1 and "Traceback" not in r.output
     assert not _heartbeat_alive()
 

@@ -12,7 +12,8 @@ on this side is in mm and degrees (see :mod:`torchcal.io.csv`).
 Bad inputs (data, robot, config, run directory) print one message naming the
 file, row / key and column, and exit with status 2. Ctrl-C prints one line
 ("interrupted", and for a fit where the partial run directory is) and exits
-with status 130.
+with status 130. Output files are written atomically (:mod:`torchcal.io.atomic`);
+an existing one is replaced only with ``--force``, an input never.
 
 Long stages report their progress on stderr (:mod:`torchcal.io.progress_view`):
 a bar per task on a terminal; elsewhere (CI, nohup, a log file) plain lines
@@ -43,10 +44,15 @@ INTERRUPTED = 130
 """Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
 
 
+def _partial_note(run_dir) -> str:
+    """Where a failed or interrupted run left its files (the folder holds a PARTIAL file saying so)."""
+    return f"; the partial run directory is {run_dir} (marked by its PARTIAL file)" if run_dir is not None else ""
+
+
 def _interrupted(exc: BaseException) -> None:
     """One line on stderr for Ctrl-C; imports nothing (the interrupt may have hit an import half done)."""
     run_dir = getattr(exc, "run_dir", None)
-    where = f"; the partial run directory is {run_dir}" if run_dir is not None else ""
+    where = _partial_note(run_dir)
     try:
         sys.stderr.write(f"\ninterrupted{where}\n")
         sys.stderr.flush()
@@ -133,8 +139,10 @@ def _user_errors():
     except Exception as exc:
         if not isinstance(exc, _user_error_types()):
             raise
-        # markup=False: messages quote file contents and lists, which must not be read as rich markup
-        _console(stderr=True).print(f"error: {exc}", markup=False)
+        # markup=False: messages quote file contents and lists, which must not be read as rich markup;
+        # soft_wrap: one line however long the paths in it (scripts grep it)
+        _console(stderr=True).print(f"error: {exc}{_partial_note(getattr(exc, 'run_dir', None))}", markup=False,
+                                    soft_wrap=True)
         raise typer.Exit(USER_ERROR) from None
 
 
@@ -151,6 +159,37 @@ def _device(name: str):
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"--device '{name}': CUDA is not available here (use --device cpu)")
     return dev
+
+
+FORCE_HELP = "Overwrite the output if it exists (it is never the input)."
+
+
+def _check_output(output: Path, force: bool, *inputs) -> None:
+    """The overwrite policy, before any work: never over an input, over an existing output only with --force."""
+    from .io.atomic import check_output
+
+    check_output(output, force, [p for p in inputs if p is not None])
+
+
+def _run_files(run_dir: Path) -> list[Path]:
+    """What a command reads from a run directory (or a model.pt given directly): an output must not replace it."""
+    return [run_dir, run_dir / "model.pt", run_dir / "config.yaml"]
+
+
+def _robot_file(robot: str | None) -> Path | None:
+    """The robot option when it names a file (a bundled name is not one)."""
+    return Path(robot) if robot and Path(robot).suffix else None
+
+
+def _positive_option(value, option: str, unit: str):
+    """None, or a positive finite number; else a ConfigError naming the option and the value in its unit."""
+    import math
+
+    from .io.config import ConfigError
+
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"{option} {value:g}: must be a positive number of {unit}")
+    return value
 
 
 def _version_callback(value: bool):
@@ -263,11 +302,13 @@ def predict_cmd(
     input: Annotated[Path, typer.Argument(help="CSV with tool, q1..qN [, dir1..dirN] (deg / mm); other columns are kept.")],
     output: Annotated[Path, typer.Argument(help="CSV to write: the same rows with x, y, z predicted (mm, measurement frame).")],
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """Predict measured points x, y, z (mm) for joint commands with an identified model."""
     with _user_errors():
         from .pipeline import predict_file
 
+        _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
             rows = predict_file(run_dir, input, output, _device(device))
     typer.echo(f"predicted {rows} rows -> {output}")
@@ -313,6 +354,7 @@ def compensate_cmd(
         help="Largest correction |q_new - q_nom| of any joint (deg, mm for prismatic joints; also the step bound); "
              "rows that need more are flagged, not converged. Default 5.")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).
 
@@ -327,6 +369,12 @@ def compensate_cmd(
     with _user_errors():
         from .pipeline import compensate_file
 
+        # the library reads these in radians: a bad value is named here, in the unit the user typed
+        _positive_option(max_correction_deg, "--max-correction-deg", "degrees (mm for prismatic joints)")
+        _positive_option(tol_deg, "--tol-deg", "degrees")
+        if max_iter is not None and max_iter < 1:
+            _positive_option(float(max_iter), "--max-iter", "iterations")
+        _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
             out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg)
     typer.echo(f"compensated {out.rows} commands -> {output}")
@@ -380,6 +428,7 @@ def import_tracker_cmd(
     drift_threshold_mm: Annotated[float, typer.Option(help="Largest per-pose base drift (mm) accepted without --correct-drift.")] = 0.1,
     correct_drift: Annotated[bool, typer.Option("--correct-drift", help="Map each pose's target points through its rigid base-drift correction.")] = False,
     outlier_mm: Annotated[float, typer.Option(help="A single base reading this far (mm) off its median is a wrong-target outlier.")] = 1.0,
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """Convert laser-tracker exports (whitespace / comma separated, one row per pose) into the measurement CSV.
 
@@ -392,6 +441,7 @@ def import_tracker_cmd(
     from .kinematics import load_robot
 
     with _user_errors(), _progress(_console(stderr=True), f"importing the tracker exports -> {output}"):
+        _check_output(output, force, joints, *target, *(base or []), _robot_file(robot))
         rob = load_robot(robot) if robot else None
         res = import_tracker(joints, list(target), list(base or []), rob, drift_threshold_mm, correct_drift, outlier_mm)
         write_table(output, res.table)
@@ -410,6 +460,7 @@ def export_tables_cmd(
     format: Annotated[str, typer.Option("--format", help="csv | siemens-cec | linuxcnc | all")] = "csv",
     points: Annotated[Optional[int], typer.Option(help="Grid points per table (equally spaced over the input axis's range).")] = None,
     max_points: Annotated[int, typer.Option(help="Siemens MD18342 $MN_MM_CEC_MAX_POINTS of the controller.")] = 2000,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the files already there.")] = False,
 ):
     """Compensation tables -f_ij of a machine model for a controller (Paper I): q̂_i = q_i + Σ_j T_ij(q_j)."""
     import warnings
@@ -418,6 +469,7 @@ def export_tables_cmd(
         warnings.simplefilter("always")
         from .export.controller import export_run_tables
 
+        _check_table_outputs(run_dir, out, format, force)
         with _progress(_console(stderr=True), f"exporting the compensation tables of {run_dir} ({format})"):
             written = export_run_tables(run_dir, out, format, points, max_points)
     seen = set()
@@ -428,6 +480,24 @@ def export_tables_cmd(
     typer.echo(f"wrote {written}")
 
 
+def _check_table_outputs(run_dir: Path, out: Path, fmt: str, force: bool) -> None:
+    """export-tables' overwrite policy: a file format checks its file; linuxcnc / all, the files they put in the folder."""
+    from .io.atomic import OutputExistsError
+
+    if fmt not in ("linuxcnc", "all"):
+        if fmt in ("csv", "siemens-cec"):  # an unknown format is the library's message
+            _check_output(out, force, *_run_files(run_dir))
+        return
+    if out.exists() and not out.is_dir():
+        raise OutputExistsError(f"{out}: already exists and is a file; --format {fmt} writes a folder, give a folder name")
+    names = ["*.comp", "linuxcnc_comp.ini"] if fmt == "linuxcnc" else \
+        ["tables.csv", "cec_tables.mpf", "linuxcnc/*.comp", "linuxcnc/linuxcnc_comp.ini"]
+    existing = sorted(str(p.relative_to(out)) for pattern in names for p in out.glob(pattern))
+    if existing and not force:
+        shown = ", ".join(existing[:5]) + (f" and {len(existing) - 5} more" if len(existing) > 5 else "")
+        raise OutputExistsError(f"{out}: already holds {shown}; pass --force to overwrite them or choose another folder")
+
+
 # ------------------------------------------------------------------ import-tmac
 @app.command("import-tmac")
 def import_tmac_cmd(
@@ -436,12 +506,14 @@ def import_tmac_cmd(
     robot: Annotated[str, typer.Option(help="Bundled robot name, joint-map YAML or URDF (joint count and limits are checked).")] = "ur10",
     convention: Annotated[str, typer.Option(help="Euler convention of measurement_rx/ry/rz (scipy naming; XYZ = intrinsic).")] = "XYZ",
     exclude: Annotated[Optional[list[int]], typer.Option("--exclude", help="1-based data row to leave out (repeat).")] = None,
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """Convert a UR10 + Leica T-Mac export (ipa-robot-accuracy format) into the sensor CSV contract."""
     from .io.tmac import convert_tmac
     from .kinematics import load_robot
 
     with _user_errors(), _progress(_console(stderr=True), f"converting {source}"):
+        _check_output(output, force, source, _robot_file(robot))
         path = convert_tmac(source, output, load_robot(robot), convention, exclude or ())
     if exclude:
         typer.echo(f"left out data rows {sorted(set(exclude))}")
@@ -476,6 +548,7 @@ def plan_poses_cmd(
     min_height_mm: Annotated[float, typer.Option(help="Lowest flange z (mm) in the robot base frame.")] = 0.0,
     min_distance_mm: Annotated[float, typer.Option(help="Radius (mm) of the keep-out sphere around the base origin.")] = 200.0,
     order: Annotated[str, typer.Option(help="Visiting order: decorrelate (backlash-friendly), shuffle, or sequence (Sobol order; confounds backlash).")] = "decorrelate",
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """Quasi-random, reachable measurement poses in an order that decorrelates approach direction from position.
 
@@ -486,8 +559,11 @@ def plan_poses_cmd(
     with _user_errors():
         from . import units
         from .kinematics import load_robot
-        from .planning import plan_poses
+        from .planning import MAX_POSES, PlanningError, plan_poses
 
+        if not 1 <= count <= MAX_POSES:  # before the robot loads: a huge count used to die in numpy's allocator
+            raise PlanningError(f"COUNT {count}: plan between 1 and {MAX_POSES} poses")
+        _check_output(output, force, _robot_file(robot))
         with _progress(_console(stderr=True)):
             rob = load_robot(robot)
             plan = plan_poses(rob, count, seed=seed, tracker=_parse_xyz_mm(tracker, "--tracker"),

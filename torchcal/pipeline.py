@@ -52,6 +52,7 @@ from .analysis.stats import ResidualStats, percent_decrease, point_residuals, re
 from .identify import FitResult, NoiseModel, Prior, fit
 from .io.config import ConfigError, check_config, to_yaml
 from .kinematics.transforms import homogeneous, rpy_to_matrix
+from .io.atomic import atomic_write_text
 from .io.csv import read_measurements, write_table
 from .io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
 from .kinematics import load_robot
@@ -522,7 +523,7 @@ def align_inputs(cfg, inp: FitInputs):
 def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
     """config.yaml (the resolved config) and versions.json: what every run directory starts with."""
     files["config"] = run_dir / "config.yaml"
-    files["config"].write_text(to_yaml(cfg), encoding="utf-8")
+    atomic_write_text(files["config"], to_yaml(cfg))
     files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
 
 
@@ -1001,8 +1002,17 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     from .io.csv import joint_columns, joints_to_file, read_table, write_table
     from .io.rundir import load_model
 
+    from .io.rundir import RunDirError
+    from .model import RobotModel
+
     with progress_task(f"loading the run {run_dir}"):
         model = load_model(run_dir, device=device)
+    if not isinstance(model, RobotModel):  # machine tools and sensor rigs have no joint-error Newton solve here
+        what = ("a machine-tool model (model.kind axis_perturbation); export its compensation tables with "
+                f"'torchcal export-tables {run_dir} OUT'") if hasattr(model, "axis_errors") else \
+               "a sensor-rig model (Paper III, 6-DOF sensor)"
+        raise RunDirError(f"{run_dir}: compensate supports robot runs fitted from point measurements (Paper II "
+                          f"(46)-(52)); this run holds {what}")
     robot = model.robot
     with progress_task(f"reading {input}"):
         data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)

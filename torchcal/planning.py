@@ -44,6 +44,10 @@ from .analysis.coverage import DirectionCoverage
 from .basis import chebyshev, normalize
 from .sim.sampling import approach_directions, quasi_random_commands
 
+MAX_POSES = 100_000
+"""Largest pose plan: candidate draws (2 x count, ~2 kB each) and the decorrelating order (O(N^2)) stay tractable."""
+
+
 class PlanningError(TorchcalError, ValueError):
     """Bad planning inputs (order, tracker, count) or too few reachable, visible poses."""
 
@@ -242,6 +246,9 @@ def plan_poses(
         raise PlanningError(f"plan_poses: order must be one of {ORDERS}, got {order!r}")
     if count < 1:
         raise PlanningError(f"plan_poses: count must be >= 1, got {count}")
+    if count > MAX_POSES:  # checked before anything is allocated: the candidate draws scale with count
+        raise PlanningError(f"plan_poses: count {count} is more than {MAX_POSES} poses (a measurement session is "
+                            f"hundreds to a few thousand; larger plans exhaust memory and the O(N^2) ordering)")
     if not 0.0 <= margin < 0.5:
         raise PlanningError(f"plan_poses: margin must be in [0, 0.5), got {margin}")
     lim = robot.joint_map.limits.detach().to("cpu", torch.float64)

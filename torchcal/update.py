@@ -38,6 +38,7 @@ import torch
 
 from . import threads
 from .identify.online import STRATEGIES, OnlineCalibration, OnlineStep
+from .io.atomic import atomic_path, atomic_write_text
 from .io.config import ConfigError, to_yaml
 from .io.rundir import (
     RunDirError,
@@ -316,7 +317,7 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
         files["config"] = run / "config.yaml"
         header = (f"# torchcal update: parent run {parent}\n# new data {new_path.resolve()}; the parent's config "
                   f"follows unchanged (its data.* name the parent's files)\n")
-        files["config"].write_text(header + to_yaml(cfg), encoding="utf-8")
+        atomic_write_text(files["config"], header + to_yaml(cfg))
         files["versions"] = write_json(run / "versions.json", collect_versions(dev))
         progress.info(f"run directory {run}; parent {parent}")
         for note in notes:
@@ -335,7 +336,8 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
         meta = {"parent": str(parent), "new_data": str(new_path.resolve()), "strategy": online.strategy}
         files["model"] = save_model(run, model, **meta)
         files["online"] = run / ONLINE_FILE
-        torch.save(online.state_dict(), files["online"])
+        with atomic_path(files["online"]) as tmp:
+            torch.save(online.state_dict(), tmp)
         files["fit"] = write_json(run / "fit.json", {**step.result.summary(), "pinned_names": list(step.pinned),
                                                       "history": list(step.result.history)})
         lineage = _lineage(parent)

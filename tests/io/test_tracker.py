@@ -259,7 +259,7 @@ def test_cli(tmp_path, session):
     q = session["q"].copy()
     q[0, 1] = 120.0
     write(j, q)
-    r = CliRunner().invoke(app, [str(a) for a in args + ["--robot", "abb_irb120", out]])
+    r = CliRunner().invoke(app, [str(a) for a in args + ["--robot", "abb_irb120", out, "--force"]])
     assert r.exit_code == 2
     assert "joints.txt" in r.output and "row 1 (line 1), column '2 (J2)'" in r.output
 

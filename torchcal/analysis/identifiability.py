@@ -433,9 +433,8 @@ def plot_position_std(ident: Identifiability, path=None, home=None, tool: int = 
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
     if path is not None:
-        from pathlib import Path
+        from ..io.atomic import atomic_path
 
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=120)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120)
     return fig

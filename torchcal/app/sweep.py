@@ -33,6 +33,7 @@ from pathlib import Path
 import torch
 
 from .. import units
+from ..io.atomic import atomic_path, atomic_write_text
 from ..io.config import ConfigError, load_config, to_yaml
 
 log = logging.getLogger("torchcal")
@@ -141,7 +142,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     cfgs = [load_config(config, plain + [f"{k}={v}" for k, v in cell.items()]) for cell in cells]
     base = load_config(config, plain)
     run_dir = make_run_dir(Path(out) if out is not None else Path(base.out).with_name("sweeps"))
-    (run_dir / "config.yaml").write_text(to_yaml(base), encoding="utf-8")
+    atomic_write_text(run_dir / "config.yaml", to_yaml(base))
     write_json(run_dir / "sweep.json", {"config": str(config), "overrides": plain, "axes": {k: v for k, v in axes},
                                         "cells": len(cells)})
     write_json(run_dir / "versions.json", collect_versions(torch.device(base.device)))
@@ -220,7 +221,7 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
                 row.update(validation_mean_mm=val.mean, validation_max_mm=val.max, validation_gamma99_mm=val.gamma99)
             cell_dir = run_dir / "cells" / f"{cells[i]:02d}"
             cell_dir.mkdir(parents=True, exist_ok=True)
-            (cell_dir / "config.yaml").write_text(to_yaml(cfgs[i]), encoding="utf-8")
+            atomic_write_text(cell_dir / "config.yaml", to_yaml(cfgs[i]))
             save_model(cell_dir, model, orders=structures[i][0], config_file=cfgs[i].config_file, fit=r.summary())
             out[i] = row
             log.info(f"cell {cells[i]}: orders {structures[i][0]}, {data.n_poses} poses: "
@@ -261,9 +262,8 @@ def _write_results(run_dir: Path, result: SweepResult) -> None:
 
     df = pd.DataFrame([{k: (json.dumps(v) if isinstance(v, (list, tuple)) else v) for k, v in r.items()}
                        for r in result.rows])
-    tmp = run_dir / "results.csv.tmp"
-    df.to_csv(tmp, index=False, float_format="%.6g")
-    tmp.replace(run_dir / "results.csv")
+    with atomic_path(run_dir / "results.csv") as tmp:
+        df.to_csv(tmp, index=False, float_format="%.6g")
     write_json(run_dir / "results.json", {"keys": result.keys, "time_s": result.time, "cells": result.rows})
     try:
         plot_sweep(result, run_dir / "plots" / "sweep.png")
@@ -297,8 +297,8 @@ def plot_sweep(result: SweepResult, path: Path) -> Path:
     if others:
         ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
     return path
 

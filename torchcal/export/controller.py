@@ -72,6 +72,7 @@ from ..compensate.tables import (
     TableSizeError,
     warn_end_slopes,
 )
+from ..io.atomic import atomic_write_text
 from ..io.csv import DataError, Problem, _numbers, _read_raw, write_table
 
 CSV_COLUMNS = ("output_axis", "input_axis", "input", "correction")
@@ -276,9 +277,7 @@ def write_siemens_cec(path, tables, machine_axes=None, max_points: int = SIEMENS
     if warn_slopes:
         warn_end_slopes(tables)
     text, written, failed = siemens_cec_program(tables, machine_axes, max_points, modulo_axes, first_index)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text)
+    path = atomic_write_text(path, text)
     if failed:
         raise TableSizeError(f"{path}: {len(failed)} table(s) not written ({len(written)} written): "
                              + "; ".join(f"{k}: {v}" for k, v in failed.items()), ok=written, failed=failed)
@@ -326,11 +325,11 @@ def write_linuxcnc_comp(folder, tables, max_points: int = LINUXCNC_MAX_POINTS, j
             failed[t.name] = "nominal positions not strictly increasing in file precision"
             continue
         p = folder / f"{t.input_name}.comp"
-        p.write_text("\n".join(lines) + "\n")
+        atomic_write_text(p, "\n".join(lines) + "\n")
         written[t.input_name] = p
         jn = joint_numbers[t.input_name] if joint_numbers else t.input_axis
         ini += ["", f"[JOINT_{jn}]", f"COMP_FILE = {p.name}", "COMP_FILE_TYPE = 1"]
-    (folder / "linuxcnc_comp.ini").write_text("\n".join(ini) + "\n")
+    atomic_write_text(folder / "linuxcnc_comp.ini", "\n".join(ini) + "\n")
     if failed:
         raise TableSizeError(f"{folder}: {len(failed)} LinuxCNC table(s) not written ({len(written)} written): "
                              + "; ".join(f"{k}: {v}" for k, v in failed.items()), ok=written, failed=failed)

@@ -28,6 +28,7 @@ import torch
 import yaml
 
 from .. import units
+from ..io.atomic import atomic_write_text
 from ..analysis.stats import ResidualStats, point_residuals, residual_stats, stats_table
 from ..kinematics.robot import Robot, load_robot, urdf_dir
 from ..kinematics.transforms import homogeneous, invert, matrix_to_rpy, rpy_to_matrix, twist_to_transform
@@ -211,7 +212,7 @@ def export_urdf(model, path, base: str = "joint", measurement_frame: bool = Fals
     problems = validate_urdf(xml, str(path))
     if problems:
         raise URDFError(f"{path}: exported URDF failed validation:\n  " + "\n  ".join(problems))
-    path.write_text(xml)
+    atomic_write_text(path, xml)
 
     yaml_path = None
     if spec is not None:
@@ -225,7 +226,7 @@ def export_urdf(model, path, base: str = "joint", measurement_frame: bool = Fals
         out.setdefault("end_link", chain.end_link)
         yaml_path = path.with_suffix(".yaml")
         header = f"# joint map of {robot.name}, unchanged; the URDF carries torchcal's calibrated joint origins\n"
-        yaml_path.write_text(header + yaml.safe_dump(out, sort_keys=False, default_flow_style=None))
+        atomic_write_text(yaml_path, header + yaml.safe_dump(out, sort_keys=False, default_flow_style=None))
     loaded = load_robot(yaml_path or path)
     _check_joint_map(robot, loaded)
     return UrdfExport(path, yaml_path, loaded, base, measurement_frame)

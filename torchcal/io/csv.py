@@ -454,10 +454,15 @@ def measurements_frame(data: Measurements, robot) -> pd.DataFrame:
 
 
 def write_table(path, df: pd.DataFrame) -> Path:
-    """Write a table as CSV (floats with :data:`FLOAT_FORMAT`, NaN as an empty cell); creates the folder."""
+    """Write a table as CSV (floats with :data:`FLOAT_FORMAT`, NaN as an empty cell); creates the folder.
+
+    Atomic (:func:`torchcal.io.atomic.atomic_path`): an interrupted write leaves the earlier file whole.
+    """
+    from .atomic import atomic_path
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    df.to_csv(path, index=False, float_format=FLOAT_FORMAT, na_rep="", lineterminator="\n")
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False, float_format=FLOAT_FORMAT, na_rep="", lineterminator="\n")
     return path
 
 

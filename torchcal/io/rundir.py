@@ -48,6 +48,9 @@ class RunDirError(TorchcalError, ValueError):
     """A run directory that cannot be created or read; the message names the folder."""
 
 
+PARTIAL_FILE = "PARTIAL"
+"""Present in a run directory whose run failed or was interrupted (written when its log opens, removed at its end)."""
+
 RUN_MARKERS = ("config.yaml", "run.log", "model.pt", "versions.json", "metrics.json")
 """Files that make a folder a run directory (what :func:`torchcal.pipeline.run_fit` writes first)."""
 
@@ -87,6 +90,13 @@ def make_run_dir(out) -> Path:
         'runs-2'
     """
     out = Path(out)
+    try:
+        return _make_run_dir(out)
+    except OSError as exc:  # read-only or full filesystem, ...: one line naming the folder, not a traceback
+        raise RunDirError(f"{out}: cannot create the run directory ({exc.strerror or exc})") from None
+
+
+def _make_run_dir(out: Path) -> Path:
     if out.exists() and not out.is_dir():
         raise RunDirError(f"{out}: exists and is not a folder; choose another 'out'")
     if not out.exists() or (not any(out.iterdir())):
@@ -130,9 +140,9 @@ def _jsonable(obj):
 
 def write_json(path, obj) -> Path:
     """Write ``obj`` as indented, strict JSON (NaN -> null)."""
-    path = Path(path)
-    path.write_text(json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n", encoding="utf-8")
-    return path
+    from .atomic import atomic_write_text
+
+    return atomic_write_text(path, json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n")
 
 
 def read_json(path):
@@ -192,8 +202,12 @@ def save_model(run_dir, model, **meta) -> Path:
     if robot.suffix and robot.exists():
         # a robot file named relative to the working directory must reload from anywhere
         spec["robot"] = str(robot.resolve())
-    torch.save({"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "spec": spec,
-                "state_dict": state, "meta": _jsonable(meta)}, path)
+    from .atomic import atomic_path
+
+    # atomic: a full disk used to leave a truncated model.pt that later loads fail on
+    with atomic_path(path) as tmp:
+        torch.save({"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "spec": spec,
+                    "state_dict": state, "meta": _jsonable(meta)}, tmp)
     return path
 
 
@@ -258,14 +272,28 @@ def load_run_config(run_dir):
 
 
 # ---------------------------------------------------------------------- logging
+def _mark(exc: BaseException, run_dir) -> None:
+    """Name the partial run directory on the failure (the CLI prints it); an enclosing run (a sweep) names its own."""
+    try:
+        exc.run_dir = Path(run_dir)
+    except (AttributeError, TypeError):  # an exception type without a __dict__: the PARTIAL file still says it
+        pass
+
+
 @contextmanager
 def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
     """Send the ``torchcal`` logger's INFO records to ``<run_dir>/run.log`` for the duration of the block.
 
     A failure inside the block is logged with its traceback before it propagates,
     so the log shows how far a run got; an interrupt (Ctrl-C) is logged as one line.
+    While the block runs the folder holds :data:`PARTIAL_FILE`; it stays when the
+    block fails (killed processes included), so an incomplete run is never taken
+    for a finished one. The failure carries the folder as ``exc.run_dir``.
     """
     logger = logging.getLogger(name)
+    marker = Path(run_dir) / PARTIAL_FILE
+    marker.write_text("This run did not finish (failed or interrupted; see run.log). The files here are what it "
+                      "had computed by then.\n", encoding="utf-8")
     handler = logging.FileHandler(Path(run_dir) / filename, encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s", "%Y-%m-%d %H:%M:%S"))
     old_level = logger.level
@@ -274,11 +302,14 @@ def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
         logger.setLevel(logging.INFO)
     try:
         yield logger
-    except KeyboardInterrupt:
+        marker.unlink(missing_ok=True)
+    except KeyboardInterrupt as exc:
         logger.error("interrupted (Ctrl-C); this run directory is incomplete")
+        _mark(exc, run_dir)
         raise
-    except BaseException:
+    except BaseException as exc:
         logger.exception("run failed")
+        _mark(exc, run_dir)
         raise
     finally:
         logger.removeHandler(handler)
@@ -288,6 +319,7 @@ def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
 
 __all__ = [
     "MODEL_FILE",
+    "PARTIAL_FILE",
     "RunDirError",
     "RUN_MARKERS",
     "collect_versions",

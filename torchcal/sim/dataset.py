@@ -53,6 +53,7 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
 
     from .. import units
     from ..identify import NoiseModel
+    from ..io.atomic import atomic_write_text
     from ..io.config import ConfigError
     from ..io.csv import write_measurements
     from ..io.truth import save_truth
@@ -117,7 +118,7 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
               f"# Run:  torchcal fit {out_dir / names['config']}  [key=value ...]\n"
               "# Units: mm, deg, deg^2. Relative paths resolve against this file's folder.\n"
               "# 'data.truth' enables the compensation check on the simulated robot (Paper II Table 7, Fig. 16).\n")
-    (out_dir / names["config"]).write_text(header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None), encoding="utf-8")
+    atomic_write_text(out_dir / names["config"], header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None))
     paths["config"] = out_dir / names["config"]
     return paths
 

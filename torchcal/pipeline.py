@@ -625,13 +625,16 @@ def structural_pins(make, orders, inp: FitInputs, poses: int | None = None, seed
     names are what any data set pins. What a fit pins beyond them, its data cannot determine.
     """
     from .identify import CalibrationProblem, fix_gauge
-    from .sim import quasi_random_commands
 
     model = make(orders)
     dev = inp.ident.q.device
     P = CalibrationProblem(model, inp.ident, inp.noise, inp.prior).layout.size
     poses = poses or max(64, P // max(inp.T, 1) + 32)
-    q = quasi_random_commands(inp.robot.joint_map.limits.to(dev), poses, seed)
+    # torch's own Sobol engine: which names are pinned does not depend on the points, and scipy.stats
+    # (torchcal.sim's sampler) costs 1-3 s to import on every fit
+    lim = inp.robot.joint_map.limits.to(dev)
+    u = torch.quasirandom.SobolEngine(lim.shape[0], scramble=True, seed=seed).draw(poses, dtype=torch.float64).to(dev)
+    q = lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
     g = torch.Generator().manual_seed(seed)
     s = torch.where(torch.rand(poses, q.shape[1], generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0).to(q)
     R = poses * inp.T

@@ -69,8 +69,48 @@ def _read(source: str | Path) -> tuple[str, str]:
     return str(source), "<urdf string>"
 
 
+def _validated_marker(xml: str) -> Path | None:
+    """Where a passed validation of exactly this text is remembered (None: no cache directory).
+
+    yourdfpy pulls trimesh, networkx and scipy: 1-3 s of imports on every
+    CLI run for a URDF that passed before. The key is the text's hash with
+    the torchcal and yourdfpy versions, so an edit or an upgrade validates
+    again; ``TORCHCAL_CACHE`` moves the directory (default
+    ``~/.cache/torchcal``), ``TORCHCAL_CACHE=off`` disables it.
+    """
+    import hashlib
+    import os
+    from importlib.metadata import PackageNotFoundError, version
+
+    root = os.environ.get("TORCHCAL_CACHE") or str(Path.home() / ".cache" / "torchcal")
+    if root.lower() == "off":
+        return None
+    try:
+        versions = f"{version('torchcal')}|{version('yourdfpy')}"
+    except PackageNotFoundError:
+        return None
+    key = hashlib.sha256((versions + "\0" + xml).encode()).hexdigest()
+    return Path(root) / "urdf-valid" / key
+
+
 def validate_urdf(xml: str, label: str = "<urdf string>") -> list[str]:
-    """Problems found by yourdfpy's validator plus our own kinematic checks, each naming its joint."""
+    """Problems found by yourdfpy's validator plus our own kinematic checks, each naming its joint.
+
+    A text that passed once is not validated again (:func:`_validated_marker`)."""
+    marker = _validated_marker(xml)
+    if marker is not None and marker.is_file():
+        return []
+    problems = _validate_urdf(xml)
+    if not problems and marker is not None:
+        try:
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.touch()
+        except OSError:  # a read-only home only costs the next run the validation
+            pass
+    return problems
+
+
+def _validate_urdf(xml: str) -> list[str]:
     import yourdfpy
 
     problems: list[str] = []

@@ -30,6 +30,7 @@ MODULES = [
     "torchcal.measure.sts",
     "torchcal.measure.pose",
     "torchcal.io.sensor_csv",
+    "torchcal.measure.gravity",
     "torchcal.identify.hand_eye",
     "torchcal.identify.online",
     "torchcal.sim.sensor_truth",

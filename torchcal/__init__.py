@@ -63,7 +63,7 @@ _LAZY = {
     "compensation_tables": ("torchcal.compensate.tables", "compensation_tables"),
     "ParamGroup": ("torchcal.params", "ParamGroup"),
     # backlash: what the data cover, how far direction and position are confounded
-    "DirectionCoverage": ("torchcal.analysis.coverage", "DirectionCoverage"),
+    "DirectionCoverage": ("torchcal.coverage", "DirectionCoverage"),
     "backlash_confounding": ("torchcal.analysis.confounding", "backlash_confounding"),
     # compensation, simulation, planning
     "compensate": ("torchcal.compensate", None),  # the subpackage, callable as its compensate()

@@ -20,3 +20,7 @@ class TorchcalError(Exception):
         ...     print(type(exc).__name__)
         URDFError
     """
+
+
+class ConfigError(TorchcalError, ValueError):
+    """A config that cannot be used; the message names the file (or override) and the key."""

@@ -327,7 +327,7 @@ class RobotModel(ChainBuffers, nn.Module):
                     torch.tensor(spec["base_nominal"], dtype=torch.float64), compliance=spec.get("compliance") or False,
                     error_variable=spec.get("error_variable", "joint"), fine=spec.get("fine"))
         if spec.get("coverage") is not None:
-            from .analysis.coverage import DirectionCoverage
+            from .coverage import DirectionCoverage
 
             model.coverage = DirectionCoverage.from_dict(spec["coverage"])
         return model

@@ -38,57 +38,41 @@ a terminal and plain lines elsewhere, and run.log gets the lines
 from __future__ import annotations
 
 import logging
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from . import threads, units
-from .analysis.stats import ResidualStats, percent_decrease, point_residuals, residual_stats
+from .analysis.stats import percent_decrease, point_residuals, residual_stats
 from .identify import FitResult, NoiseModel, Prior, fit
-from .io.config import ConfigError, check_config, to_yaml
+from .io.config import ConfigError, check_config
 from .kinematics.transforms import homogeneous, rpy_to_matrix
-from .io.atomic import atomic_write_text
 from .io.csv import read_measurements, write_table
-from .io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
+from .io.rundir import make_run_dir, run_log, save_model, write_json
 from .kinematics import load_robot
 from .measurements import Measurements
 from .model import RobotModel
+from .pipeline_common import (  # shared with pipeline_sensor; re-exported here under the old names
+    STAT_KEYS,
+    RunResult,
+    _collect_warnings,
+    _Progress,
+    _row,
+    config_backlash,
+    config_compliance,
+    config_error_variable,
+    config_noise,
+    config_prior,
+    joint_variance_source,
+    solver_options,
+    write_preamble_files,
+)
 from .progress import task as progress_task
 
 log = logging.getLogger("torchcal")
-
-STAT_KEYS = ("mean", "max", "gamma99")
-
-
-@dataclass
-class RunResult:
-    """What a fit run produced.
-
-    run_dir: the run directory; model: the identified model (on the config's
-    device); fit: the solver's result; metrics: what metrics.json holds (mm);
-    table: Table 6 rows (mm, percent); compensation_table: Table 7 rows or
-    None; orders: Chebyshev order per joint; selection: the order search
-    (model.order: auto) or None; files: name -> path of everything written;
-    warnings: see below.
-    """
-
-    run_dir: Path
-    model: RobotModel
-    fit: FitResult
-    metrics: dict
-    table: list[dict]
-    compensation_table: list[dict] | None
-    orders: list[int]
-    selection: object | None = None
-    files: dict[str, Path] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-    """What the run warned about (also in run.log and metrics.json): data that cannot determine the model,
-    an implausible nominal residual, a CSV read as a European export, ..."""
 
 
 # --------------------------------------------------------------- config -> objects
@@ -140,86 +124,6 @@ def config_alignment(cfg, robot, data: Measurements, label: str = "config"):
         what = " and ".join(w for w, free in (("tool vectors", tools_m is None), ("measurement frame", mode == "estimate")) if free)
         raise ConfigError(f"{label}: cannot estimate the {what} from data.identification: {exc}") from None
     return res.tools, res.base_nominal, res
-
-
-def joint_variance_source(cfg, robot) -> str:
-    """Where the joint variances of :func:`config_noise` come from, for the run log ("joint variances: <source>")."""
-    if cfg.noise.joint_var_fwd is not None:
-        where = cfg.config_file or "the config"
-        return f"noise.joint_var_fwd / joint_var_bwd of {where}"
-    if robot.repeatability is not None:
-        return f"robot '{robot.name}' repeatability ({robot.repeatability.source})"
-    return "none"
-
-
-def config_noise(cfg, robot, label: str | None = None) -> NoiseModel:
-    """NoiseModel (SI) from noise.sigma_m (mm) and the joint variances (deg², mm² for prismatic joints).
-
-    The joint variances are the config's ``noise.joint_var_fwd`` / ``joint_var_bwd`` when given,
-    else the robot's own ``repeatability:`` (its YAML); with neither, a ConfigError naming the keys.
-    The tracker sigma is the config's (default 0.005 mm): a property of the tracker, not of the robot.
-
-    Example:
-        >>> from torchcal.io.config import make_config
-        >>> from torchcal.kinematics import load_robot
-        >>> cfg = make_config({"robot": "fanuc_lrmate200i", "tools": [[0, 0, 100]], "data": {"identification": "x.csv"}})
-        >>> noise = config_noise(cfg, load_robot("fanuc_lrmate200i"))   # the robot's Table 5 variances
-        >>> round(noise.sigma_m * 1e6, 3), noise.joint_var_fwd.shape
-        (5.0, torch.Size([6]))
-    """
-    label = label or cfg.config_file or "config"
-    sigma = float(cfg.noise.sigma_m)
-    if cfg.noise.joint_var_fwd is not None and cfg.noise.joint_var_bwd is not None:
-        return NoiseModel.from_file_units(sigma, list(cfg.noise.joint_var_fwd), list(cfg.noise.joint_var_bwd),
-                                          robot.joint_map.prismatic.cpu())
-    if robot.repeatability is None:
-        raise ConfigError(
-            f"{label}: keys 'noise.joint_var_fwd' and 'noise.joint_var_bwd' are not set and robot '{robot.name}' "
-            f"({robot.source or robot.name}) has no 'repeatability:' (joint variances, deg²): give one variance per "
-            f"joint ({robot.joint_map.n}) in the config, e.g. noise.joint_var_fwd=[...] noise.joint_var_bwd=[...], "
-            "or a 'repeatability: {joint_var_fwd, joint_var_bwd, source}' in the robot's YAML")
-    return NoiseModel.from_robot(robot, sigma_m=units.mm_to_m(sigma))
-
-
-def config_prior(cfg) -> Prior | None:
-    """Prior (SI) from prior.* (deg, mm), or None when prior.enabled is false."""
-    p = cfg.prior
-    if not p.enabled:
-        return None
-    backlash = p.get("backlash_deg")
-    compliance = p.get("compliance_deg")
-    extra = {} if compliance is None else {"compliance": units.deg_to_rad(compliance)}
-    return Prior(rotation=units.deg_to_rad(p.rotation_deg), translation=units.mm_to_m(p.translation_mm),
-                 frame_rotation=units.deg_to_rad(p.frame_rotation_deg), frame_translation=units.mm_to_m(p.frame_translation_mm),
-                 backlash=None if backlash is None else units.deg_to_rad(backlash), **extra)
-
-
-def config_backlash(cfg):
-    """model.backlash as RobotModel takes it: None (off), True, an int order or a per-joint list."""
-    b = cfg.model.backlash
-    if isinstance(b, bool):
-        return True if b else None
-    return list(b) if not isinstance(b, int) else int(b)
-
-
-def solver_options(cfg) -> dict:
-    """Keyword arguments for :func:`torchcal.identify.fit` from solver.*."""
-    opts = {"method": cfg.solver.method, "ftol": float(cfg.solver.ftol)}
-    if cfg.solver.max_iter is not None:
-        opts["max_iter"] = int(cfg.solver.max_iter)
-    return opts
-
-
-def config_compliance(cfg):
-    """model.compliance as RobotModel takes it: False, True, 'auto', 'gravity', 'functions' or a plain dict."""
-    c = cfg.model.compliance
-    return dict(OmegaConf.to_container(c)) if isinstance(c, DictConfig) else c
-
-
-def config_error_variable(cfg):
-    """model.error_variable as RobotModel takes it: None (the robot's), 'command', 'joint' or a per-joint list."""
-    ev = cfg.model.error_variable
-    return None if ev is None else (str(ev) if isinstance(ev, str) else [str(e) for e in ev])
 
 
 class ModelFactory:
@@ -291,14 +195,6 @@ def evaluate(model, data: Measurements) -> dict:
     }
 
 
-def _row(set_name: str, label: str, s: ResidualStats, ref: ResidualStats | None) -> dict:
-    row = {"set": set_name, "residual": label, "count": s.count}
-    for k in STAT_KEYS:
-        row[k] = getattr(s, k)
-        row[f"{k}_decrease"] = None if ref is None else percent_decrease(getattr(ref, k), getattr(s, k))
-    return row
-
-
 def table6(evaluations: dict[str, dict]) -> list[dict]:
     """Paper II Table 6 rows: per data set, nominal then modeled (mm), with percent decrease against nominal."""
     rows = []
@@ -345,90 +241,6 @@ def compensation_check(model, truth, data: Measurements, noise: NoiseModel | Non
     return {"result": res, "nominal": nominal, "compensated": compensated,
             "measured": Measurements(q_comp, data.tool, xyz, data.direction, data.pose, data.rows, data.has_direction,
                                      "compensated commands on the simulated truth")}
-
-
-# ------------------------------------------------------------------ reporting
-class _Progress:
-    """Log lines to the run log and, when a rich console is given, to the console too; stages as progress tasks.
-
-    Every :meth:`step` is a :func:`torchcal.progress.task`: the installed
-    :class:`torchcal.io.progress_view.ProgressView` shows it (a bar on a terminal,
-    plain lines with a heartbeat elsewhere and in run.log), together with the
-    library's own tasks inside it. warnings: every :meth:`warn` text, in order
-    (they also go to ``metrics.json`` and the CLI's summary).
-    """
-
-    QUIET_STEP_S = 2.0
-    """A quiet step says 'done in' only when it took at least this long."""
-
-    def __init__(self, console=None):
-        self.console = console
-        self.task = None  # the innermost running step's progress.Task
-        self.warnings: list[str] = []
-
-    def _show(self, text: str, markup: bool = True) -> None:
-        if self.console is None:
-            return
-        from .io.progress_view import current_view
-
-        view = current_view()
-        if view is not None and view.console is self.console:
-            view.message(text, markup=markup)  # never in the middle of a progress line
-        else:
-            self.console.log(text, markup=markup)
-
-    def info(self, text: str) -> None:
-        log.info(text)
-        self._show(text)
-
-    def warn(self, text: str) -> None:
-        self.warnings.append(text)
-        log.warning(text)
-        self._show(f"warning: {text}", markup=False)
-
-    def update(self, text: str) -> None:
-        """A note on the running step (its bar, its next progress line)."""
-        log.debug(text)
-        if self.task is not None:
-            self.task.set_note(text)
-
-    @contextmanager
-    def step(self, text: str, total: int | None = None, quiet: bool = False):
-        """A stage: logged when it starts and with its duration when it ends, a progress task in between.
-
-        total: items, when the stage advances ``self.task`` itself; quiet: no start line, and the
-        'done in' line only when it took :data:`QUIET_STEP_S` or longer (short bookkeeping stages).
-        """
-        if not quiet:
-            log.info(text)
-        t0 = time.perf_counter()
-        with progress_task(text, total) as t:
-            outer, self.task = self.task, t
-            try:
-                yield self
-            finally:
-                self.task = outer
-        dt = time.perf_counter() - t0
-        if not quiet or dt >= self.QUIET_STEP_S:
-            self.info(f"{text} done in {dt:.1f} s")
-
-
-@contextmanager
-def _collect_warnings(into: list[str], name: str = "torchcal"):
-    """Keep the WARNING records of the ``torchcal`` logger emitted in the block (e.g. a CSV read as a
-    European export) in ``into``, to be replayed into the run log once it exists."""
-
-    class _Keep(logging.Handler):
-        def emit(self, record):
-            into.append(record.getMessage())
-
-    logger = logging.getLogger(name)
-    handler = _Keep(logging.WARNING)
-    logger.addHandler(handler)
-    try:
-        yield into
-    finally:
-        logger.removeHandler(handler)
 
 
 NOMINAL_IMPLAUSIBLE_MM = 20.0
@@ -518,13 +330,6 @@ def align_inputs(cfg, inp: FitInputs):
     The rigid alignment is cheap and runs before anything is written (see :func:`config_alignment`).
     """
     return config_alignment(cfg, inp.robot, inp.ident, inp.label)
-
-
-def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
-    """config.yaml (the resolved config) and versions.json: what every run directory starts with."""
-    files["config"] = run_dir / "config.yaml"
-    atomic_write_text(files["config"], to_yaml(cfg))
-    files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
 
 
 def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: _Progress, files: dict) -> None:

@@ -82,7 +82,7 @@ def read_sensor_set(path, robot, device) -> Measurements:
 def load_sensor_inputs(cfg) -> SensorInputs:
     """Stage 1: robot, config checks against it, noise, prior, solver options, the sensor CSVs."""
     from .io.config import check_config
-    from .pipeline import _collect_warnings, config_noise, config_prior, joint_variance_source, solver_options
+    from .pipeline_common import _collect_warnings, config_noise, config_prior, joint_variance_source, solver_options
 
     label = cfg.config_file or "config"
     notes: list[str] = []
@@ -225,7 +225,7 @@ def pose_residuals(rig, data: Measurements, nominal: bool = False) -> tuple[torc
 
 def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[dict, list[dict]]:
     """-> ({set: {position_mm: {nominal, modeled, decrease_percent}, orientation_deg: {...}}}, Table 6 rows)."""
-    from .pipeline import _row
+    from .pipeline_common import _row
 
     out, table = {}, []
     for name, data in sets.items():
@@ -277,7 +277,7 @@ def choose_sensor_orders(cfg, inp: SensorInputs, make, ident: Measurements, inst
 
 def run_sensor_fit(cfg, console=None):
     """``torchcal fit`` for a sensor config: the stages of this module, written to a run directory."""
-    from .pipeline import (
+    from .pipeline_common import (
         RunResult,
         _Progress,
         config_backlash,

@@ -13,7 +13,7 @@ remaining poses it takes next the one whose approach directions best cancel
 the running direction x position moments of every joint (Chebyshev c_0..c_3
 of the normalized position and a per-bin direction count, the quantities
 :func:`~torchcal.analysis.confounding.backlash_confounding` and
-:class:`~torchcal.analysis.coverage.DirectionCoverage` look at), starting
+:class:`~torchcal.coverage.DirectionCoverage` look at), starting
 from a seeded random pose. On the FANUC with 250 poses this leaves both
 approach directions in every position bin of every joint and max_i
 |corr(s_i, q_i)| ≈ 0.08-0.10, R² ≈ 0.05 (sequence order: 0.85 / 0.82;
@@ -40,7 +40,7 @@ import torch
 from .exceptions import TorchcalError
 from .progress import task as progress_task
 from .analysis.confounding import direction_position_dependence
-from .analysis.coverage import DirectionCoverage
+from .coverage import DirectionCoverage
 from .basis import chebyshev, normalize
 from .sim.sampling import approach_directions, quasi_random_commands
 

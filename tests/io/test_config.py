@@ -248,6 +248,21 @@ def test_sensor_run_needs_no_tools_and_checks_gravity(tmp_path):
     assert cfg.sensor.mount.xyz_mm == [0, 0, 50]
 
 
+def test_sensor_gravity_pointing_up_is_reported_as_given(tmp_path):
+    """sensor.gravity is gravity (points down, default [0, 0, -1]); one pointing up is named as the user wrote it,
+    not negated into the level's 'up' vector (which once read "gravity [..., -0.8] must point up")."""
+    p = tmp_path / "fit.yaml"
+    p.write_text(SENSOR)
+    assert load_config(p, ["sensor.gravity=[0, 0.6, -0.8]"]).sensor.gravity == [0, 0.6, -0.8]
+    with pytest.raises(ConfigError) as err:
+        load_config(p, ["sensor.gravity=[0, 0.6, 0.8]"])
+    msg = str(err.value)
+    assert "key 'sensor.gravity': [0.0, 0.6, 0.8] points up" in msg and "points down (g_z < 0" in msg
+    assert "-0.8" not in msg and "must point up" not in msg
+    with pytest.raises(ConfigError, match=r"sensor.gravity.*\[1.0, 0.0, 0.0\] points up"):  # horizontal: g_z = 0
+        load_config(p, ["sensor.gravity=[1, 0, 0]"])
+
+
 def test_point_target_run_still_needs_tools(cfg_file):
     cfg_file.write_text(MINIMAL.replace("tools:\n  - [33.06, 57.73, 161.22]\n  - [57.26, -33.86, 161.22]\n", ""))
     with pytest.raises(ConfigError, match="key 'tools'.*required"):

@@ -84,7 +84,7 @@ def fit(
     entries (:func:`~torchcal.identify.layout.copy_overlap`), the gauge fixed
     first at ``model``'s own values, as in a cold fit.
     When the data carry approach directions, ``model.coverage`` records them
-    (:class:`torchcal.analysis.coverage.DirectionCoverage`).
+    (:class:`torchcal.coverage.DirectionCoverage`).
 
     Example:
         >>> import torch, torchcal
@@ -108,7 +108,7 @@ def fit(
         result = SOLVERS[method](problem, **solver_options)
     result.pinned = pinned
     if data.has_direction and hasattr(model, "command_limits"):
-        from ..analysis.coverage import DirectionCoverage
+        from ..coverage import DirectionCoverage
 
         model.coverage = DirectionCoverage.from_data(data.q, data.direction, model.command_limits)
     return result

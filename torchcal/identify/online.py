@@ -399,7 +399,7 @@ class OnlineCalibration:
         self.rows += len(data)
         if coverage and data.has_direction and getattr(self.model, "command_limits", None) is not None:
             # the directions every row so far came from (what fit() records for one batch)
-            from ..analysis.coverage import DirectionCoverage
+            from ..coverage import DirectionCoverage
 
             cov = getattr(self.model, "coverage", None)
             self.model.coverage = (DirectionCoverage.from_data(data.q, data.direction, self.model.command_limits)

@@ -23,13 +23,9 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from .. import units
-from ..exceptions import TorchcalError
+from ..exceptions import ConfigError  # defined low (torchcal.exceptions) so that any layer can raise it
 from ..error_models.joint import MAX_ORDER
 from ..identify import SOLVERS, Prior
-
-
-class ConfigError(TorchcalError, ValueError):
-    """A config that cannot be used; the message names the file (or override) and the key."""
 
 
 _PRIOR = Prior()
@@ -442,6 +438,9 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
             norm = sum(v * v for v in g) ** 0.5
             if abs(norm - 1.0) > 1e-6:
                 fail("sensor.gravity", f"{g!r} has norm {norm:.6g}: give a unit vector (normalize it)")
+            if not g[2] < 0:
+                fail("sensor.gravity", f"{g!r} points up (g_z >= 0): give the direction of gravity in the tracker "
+                     "frame, which points down (g_z < 0; null: [0, 0, -1]); the level's 'up' is its negative")
     elif tools is None:
         fail("tools", "is required but not set (tool vectors [[x, y, z], ...] in mm, or {count: T})")
     elif sensor["position_only"]:

@@ -48,7 +48,7 @@ from ..measure.pose import (
     rotation_from_euler,
 )
 from ..measurements import Measurements
-from .config import ConfigError
+from ..measure.gravity import GRAVITY_TOL, GravityError, check_gravity  # noqa: F401  (moved; old imports keep working)
 from .csv import (
     DataError,
     Problem,
@@ -68,41 +68,8 @@ STD_COLUMNS = ("sx", "sy", "sz", "srx", "sry", "srz")
 EULER_TOL_DEG = 1e-3
 """How far (deg) Euler columns in the declared convention may miss the r-columns of the same row."""
 
-GRAVITY_TOL = 1e-6
-"""How far from 1 the norm of a configured gravity vector may be."""
-
 MIN_DISTANCE_MM = 1e-3
 """A sensor origin closer than this to the tracker origin is a failed reading."""
-
-
-class GravityError(ConfigError):
-    """A configured gravity vector that is not a unit vector with positive z (Paper III (27))."""
-
-
-def check_gravity(g, where: str, tol: float = GRAVITY_TOL) -> torch.Tensor:
-    """A gravity ('up') vector in the tracker frame, checked: (3,) float64, unit within ``tol``, z > 0.
-
-    where: what to name in the message (config key, file). Paper III (27)
-    parameterizes g by (g_x, g_y) with g_z = +sqrt(1 - g_x^2 - g_y^2): a
-    tracker standing upright. Raises :class:`GravityError` naming ``where``.
-
-    Example:
-        >>> check_gravity([0.0, 0.6, 0.8], "config 'gravity'").tolist()
-        [0.0, 0.6, 0.8]
-    """
-    try:
-        t = torch.as_tensor(g, dtype=torch.float64).flatten().cpu()
-    except (TypeError, ValueError, RuntimeError):
-        raise GravityError(f"{where}: gravity must be three numbers (g_x, g_y, g_z), got {g!r}") from None
-    if t.numel() != 3 or not bool(torch.isfinite(t).all()):
-        raise GravityError(f"{where}: gravity must be three finite numbers (g_x, g_y, g_z), got {t.tolist()}")
-    norm = float(t.norm())
-    if abs(norm - 1.0) > tol:
-        raise GravityError(f"{where}: gravity {t.tolist()} is not normalized (norm {norm:.9g}, tolerance {tol:g}); "
-                           f"give the unit vector, e.g. {[round(v, 9) for v in (t / norm).tolist()] if norm > 0 else [0.0, 0.0, 1.0]}")
-    if not float(t[2]) > 0:
-        raise GravityError(f"{where}: gravity {t.tolist()} must point up the tracker's z axis (g_z > 0, Paper III (27))")
-    return t
 
 
 def _problem_rows(problems: list[Problem], lines) -> list[Problem]:

@@ -372,7 +372,7 @@ def import_tracker(
 
 
 def _approach_directions(q: np.ndarray) -> np.ndarray:
-    from ..sim import approach_directions
+    from ..sim.sampling import approach_directions
 
     return approach_directions(torch.from_numpy(q)).numpy()
 

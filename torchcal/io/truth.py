@@ -60,7 +60,7 @@ def save_truth(path, truth, kind: str, seed: int, noise=None, robot_spec: str | 
 def load_truth(path, robot=None):
     """Rebuild the TruthRobot of a ``truth.json`` (on CPU). robot: a loaded Robot to use instead of the recorded one."""
     from ..kinematics import load_robot
-    from ..sim import TruthRobot
+    from ..sim.truth import TruthRobot
 
     path = Path(path)
     if not path.is_file():

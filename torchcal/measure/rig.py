@@ -78,7 +78,7 @@ class SensorRig(nn.Module):
         if gravity is not None:
             g = torch.as_tensor(gravity, dtype=dtype, device=device)
             if g.shape == (3,):
-                from ..io.sensor_csv import check_gravity
+                from .gravity import check_gravity
 
                 g = check_gravity(g, "SensorRig(gravity=...)")[:2]
             elif g.shape != (2,) or not bool((g * g).sum() < 1):

@@ -307,7 +307,7 @@ class STSInstrument(Instrument):
         """
         if invalid not in ("raise", "exclude"):
             raise ValueError(f"invalid must be 'raise' or 'exclude', got {invalid!r}")
-        from ..io.sensor_csv import check_gravity
+        from .gravity import check_gravity
 
         rot = data.extra.get("rotation")
         if rot is None:

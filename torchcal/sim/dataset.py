@@ -46,15 +46,15 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     see :func:`torchcal.sim.sampling.quasi_random_commands`).
     -> name -> path of the files written.
 
-    Bad options raise :class:`torchcal.io.config.ConfigError`.
+    Bad options raise :class:`torchcal.exceptions.ConfigError` (also importable from :mod:`torchcal.io.config`).
     """
     import torch
     import yaml
 
     from .. import units
     from ..identify import NoiseModel
+    from ..exceptions import ConfigError
     from ..io.atomic import atomic_write_text
-    from ..io.config import ConfigError
     from ..io.csv import write_measurements
     from ..io.truth import save_truth
     from ..kinematics import load_robot

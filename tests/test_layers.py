@@ -1,0 +1,90 @@
+"""The package's import structure: the layers of ``[tool.importlinter]`` in pyproject.toml hold, and no module
+imports itself back through others (no import cycles). Imports inside functions count: grimp reads every import
+statement, wherever it stands."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("importlinter") is None or importlib.util.find_spec("grimp") is None,
+    reason="import-linter is not installed (it is in the test extra: pip install -e '.[test]')")
+
+
+def test_import_contracts_are_kept(capsys):
+    """``lint-imports``: every contract of pyproject.toml (layers, independent siblings, forbidden imports) is kept."""
+    from importlinter.cli import EXIT_STATUS_SUCCESS, lint_imports
+
+    status = lint_imports(config_filename=str(ROOT / "pyproject.toml"), no_cache=True, no_logo=True)
+    report = capsys.readouterr().out
+    assert status == EXIT_STATUS_SUCCESS, report
+
+
+def _cycles(graph, modules: set[str]) -> list[list[str]]:
+    """Strongly connected components with more than one module (or a module importing itself), Tarjan, iterative."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set[str] = set()
+    stack: list[str] = []
+    found = []
+    succ = {m: sorted(graph.find_modules_directly_imported_by(m) & modules) for m in modules}
+    counter = 0
+    for root in sorted(modules):
+        if root in index:
+            continue
+        work = [(root, 0)]
+        while work:
+            v, i = work.pop()
+            if i == 0:
+                index[v] = low[v] = counter
+                counter += 1
+                stack.append(v)
+                on_stack.add(v)
+            if i < len(succ[v]):
+                work.append((v, i + 1))
+                w = succ[v][i]
+                if w not in index:
+                    work.append((w, 0))
+                elif w in on_stack:
+                    low[v] = min(low[v], index[w])
+                continue
+            if work:  # v is done: pass its low link up to its caller
+                caller = work[-1][0]
+                low[caller] = min(low[caller], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on_stack.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1 or v in succ[v]:
+                    found.append(sorted(comp))
+    return found
+
+
+def test_no_import_cycles():
+    """No module reaches itself through imports (a cycle would make import order matter, and layers meaningless)."""
+    import grimp
+
+    graph = grimp.build_graph("torchcal", cache_dir=None)
+    modules = {m for m in graph.modules if m == "torchcal" or m.startswith("torchcal.")}
+    cycles = _cycles(graph, modules)
+    assert not cycles, "import cycles:\n" + "\n".join(
+        f"{len(c)} modules: " + ", ".join(c) for c in cycles)
+
+
+def test_cycle_finder_finds_a_planted_cycle():
+    """The check above is not vacuous: a three-module cycle and a self-import are found, a chain is not."""
+    import grimp
+
+    graph = grimp.ImportGraph()
+    for m in ("p", "p.a", "p.b", "p.c", "p.d", "p.e"):
+        graph.add_module(m)
+    for a, b in (("p.a", "p.b"), ("p.b", "p.c"), ("p.c", "p.a"), ("p.d", "p.a"), ("p.e", "p.e")):
+        graph.add_import(importer=a, imported=b)
+    assert _cycles(graph, set(graph.modules)) == [["p.a", "p.b", "p.c"], ["p.e"]]

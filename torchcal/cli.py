@@ -199,13 +199,15 @@ def fit_cmd(
         help="Dotted overrides, e.g. model.order=4 data.validation=val.csv solver.method=lbfgs.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Print the resolved config (overrides applied) and stop.")] = False,
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Identify a model from a config and write a run directory (model, metrics, plots, log)."""
     with _user_errors():
         from .io.config import load_config, to_yaml
         from .pipeline import run_fit
 
-        cfg = load_config(config, overrides or [])
+        cfg = load_config(config, [*(overrides or []), *(["data.units_checked=true"] if units_checked else [])])
         if dry_run:
             typer.echo(to_yaml(cfg), nl=False)
             return
@@ -263,13 +265,15 @@ def predict_cmd(
     input: Annotated[Path, typer.Argument(help="CSV with tool, q1..qN [, dir1..dirN] (deg / mm); other columns are kept.")],
     output: Annotated[Path, typer.Argument(help="CSV to write: the same rows with x, y, z predicted (mm, measurement frame).")],
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Predict measured points x, y, z (mm) for joint commands with an identified model."""
     with _user_errors():
         from .pipeline import predict_file
 
         with _progress(_console(stderr=True)):
-            rows = predict_file(run_dir, input, output, _device(device))
+            rows = predict_file(run_dir, input, output, _device(device), units_checked)
     typer.echo(f"predicted {rows} rows -> {output}")
 
 
@@ -313,6 +317,8 @@ def compensate_cmd(
         help="Largest correction |q_new - q_nom| of any joint (deg, mm for prismatic joints; also the step bound); "
              "rows that need more are flagged, not converged. Default 5.")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).
 
@@ -328,7 +334,8 @@ def compensate_cmd(
         from .pipeline import compensate_file
 
         with _progress(_console(stderr=True)):
-            out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg)
+            out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg,
+                                  units_checked)
     typer.echo(f"compensated {out.rows} commands -> {output}")
     if out.flagged:
         _console(stderr=True).print(

@@ -490,6 +490,18 @@ def load_inputs(cfg) -> FitInputs:
         val = read_measurements(cfg.data.validation, robot, T).to(device) if cfg.data.validation else None
     if cfg.data.get("n_poses") is not None:
         ident = first_poses(ident, int(cfg.data.n_poses), label)
+    if not cfg.data.get("units_checked", False):
+        from .io.unit_checks import check_point_scale, radian_columns, radian_message
+
+        for d in (ident, val):
+            if d is None:
+                continue
+            rad = radian_columns(d.q, robot)
+            if rad:
+                notes.append(radian_message(d.source, d.q, robot, rad)
+                             + "; set data.units_checked=true if they really are degrees")
+                continue  # the nominal points of radians read as degrees say nothing about the points' unit
+            check_point_scale(d, robot, config_tools(cfg))
     if cfg.model.kind == "axis_perturbation":
         for key, bad, why in (("model.order", isinstance(cfg.model.order, str) and int(cfg.model.folds) > 0,
                                "auto on a machine tool chooses by leave-one-pose-out or the validation set "
@@ -519,11 +531,32 @@ def align_inputs(cfg, inp: FitInputs):
     return config_alignment(cfg, inp.robot, inp.ident, inp.label)
 
 
+DATA_HASH_FILE = "data_hashes.json"
+"""In a fit's run directory: {config key: {path, sha256}} of the data files the fit read (``torchcal update``
+re-reads the identification file and refuses one that changed since)."""
+
+
+def file_sha256(path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
-    """config.yaml (the resolved config) and versions.json: what every run directory starts with."""
+    """config.yaml (the resolved config), versions.json and data_hashes.json: what every run directory starts with."""
     files["config"] = run_dir / "config.yaml"
     files["config"].write_text(to_yaml(cfg), encoding="utf-8")
     files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
+    hashes = {}
+    for key in ("identification", "validation"):
+        p = cfg.data.get(key, None)
+        if p and Path(p).is_file():
+            hashes[f"data.{key}"] = {"path": str(p), "sha256": file_sha256(p)}
+    files["data_hashes"] = write_json(run_dir / DATA_HASH_FILE, hashes)
 
 
 def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: _Progress, files: dict) -> None:
@@ -923,7 +956,18 @@ def _run_stages(cfg, console, plotter) -> RunResult:
     return RunResult(run_dir, model, result, metrics, table, comp_table, orders, selection, files, progress.warnings)
 
 
-def predict_file(run_dir, input, output, device=None) -> int:
+def _refuse_radians(path, data: Measurements, robot, units_checked: bool) -> None:
+    """Commands that look like radians would be driven as degrees: refuse unless the user says they are degrees."""
+    if units_checked:
+        return
+    from .io.unit_checks import OVERRIDE, UnitsError, radian_columns, radian_message
+
+    rad = radian_columns(data.q, robot)
+    if rad:
+        raise UnitsError(radian_message(path, data.q, robot, rad) + f"; pass {OVERRIDE} if they really are degrees")
+
+
+def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> int:
     """``torchcal predict``: the points x, y, z (mm, measurement frame) an identified model predicts for
     the commands of a CSV (tool, q1..qN [, dir1..dirN]); other columns are kept, measured x, y, z replaced.
 
@@ -941,6 +985,7 @@ def predict_file(run_dir, input, output, device=None) -> int:
             return predict_pose_file(run_dir, input, output, model)
     with progress_task(f"reading {input}"):
         data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
+    _refuse_radians(input, data, model.robot, units_checked)
     data = data.to(model.device)
     with torch.no_grad(), progress_task(f"predicting {len(df)} rows"):
         p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
@@ -989,7 +1034,7 @@ def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: in
 
 
 def compensate_file(run_dir, input, output, device=None, tol_deg: float | None = None, max_iter: int | None = None,
-                    max_correction_deg: float | None = None) -> CompensationFile:
+                    max_correction_deg: float | None = None, units_checked: bool = False) -> CompensationFile:
     """``torchcal compensate``: compensated commands for every row of a CSV (q1..qN [, dir1..dirN], deg / mm).
 
     Writes q1..qN compensated plus converged, iterations, within_limits,
@@ -1006,6 +1051,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     robot = model.robot
     with progress_task(f"reading {input}"):
         data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
+    _refuse_radians(input, data, robot, units_checked)
     data = data.to(model.device)
     with progress_task(f"compensating {len(df)} commands"):
         res = compensate(model, data.q, data.direction if data.has_direction else None,

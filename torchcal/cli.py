@@ -238,13 +238,15 @@ def fit_cmd(
         help="Dotted overrides, e.g. model.order=4 data.validation=val.csv solver.method=lbfgs.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Print the resolved config (overrides applied) and stop.")] = False,
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Identify a model from a config and write a run directory (model, metrics, plots, log)."""
     with _user_errors():
         from .io.config import load_config, to_yaml
         from .pipeline import run_fit
 
-        cfg = load_config(config, overrides or [])
+        cfg = load_config(config, [*(overrides or []), *(["data.units_checked=true"] if units_checked else [])])
         if dry_run:
             typer.echo(to_yaml(cfg), nl=False)
             return
@@ -303,6 +305,8 @@ def predict_cmd(
     output: Annotated[Path, typer.Argument(help="CSV to write: the same rows with x, y, z predicted (mm, measurement frame).")],
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Predict measured points x, y, z (mm) for joint commands with an identified model."""
     with _user_errors():
@@ -310,7 +314,7 @@ def predict_cmd(
 
         _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
-            rows = predict_file(run_dir, input, output, _device(device))
+            rows = predict_file(run_dir, input, output, _device(device), units_checked)
     typer.echo(f"predicted {rows} rows -> {output}")
 
 
@@ -355,6 +359,8 @@ def compensate_cmd(
              "rows that need more are flagged, not converged. Default 5.")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).
 
@@ -376,7 +382,8 @@ def compensate_cmd(
             _positive_option(float(max_iter), "--max-iter", "iterations")
         _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
-            out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg)
+            out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg,
+                                  units_checked)
     typer.echo(f"compensated {out.rows} commands -> {output}")
     if out.flagged:
         _console(stderr=True).print(

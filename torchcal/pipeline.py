@@ -303,6 +303,18 @@ def load_inputs(cfg) -> FitInputs:
         val = read_measurements(cfg.data.validation, robot, T).to(device) if cfg.data.validation else None
     if cfg.data.get("n_poses") is not None:
         ident = first_poses(ident, int(cfg.data.n_poses), label)
+    if not cfg.data.get("units_checked", False):
+        from .io.unit_checks import check_point_scale, radian_columns, radian_message
+
+        for d in (ident, val):
+            if d is None:
+                continue
+            rad = radian_columns(d.q, robot)
+            if rad:
+                notes.append(radian_message(d.source, d.q, robot, rad)
+                             + "; set data.units_checked=true if they really are degrees")
+                continue  # the nominal points of radians read as degrees say nothing about the points' unit
+            check_point_scale(d, robot, config_tools(cfg))
     if cfg.model.kind == "axis_perturbation":
         for key, bad, why in (("model.order", isinstance(cfg.model.order, str) and int(cfg.model.folds) > 0,
                                "auto on a machine tool chooses by leave-one-pose-out or the validation set "
@@ -732,7 +744,18 @@ def _run_stages(cfg, console, plotter) -> RunResult:
     return RunResult(run_dir, model, result, metrics, table, comp_table, orders, selection, files, progress.warnings)
 
 
-def predict_file(run_dir, input, output, device=None) -> int:
+def _refuse_radians(path, data: Measurements, robot, units_checked: bool) -> None:
+    """Commands that look like radians would be driven as degrees: refuse unless the user says they are degrees."""
+    if units_checked:
+        return
+    from .io.unit_checks import OVERRIDE, UnitsError, radian_columns, radian_message
+
+    rad = radian_columns(data.q, robot)
+    if rad:
+        raise UnitsError(radian_message(path, data.q, robot, rad) + f"; pass {OVERRIDE} if they really are degrees")
+
+
+def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> int:
     """``torchcal predict``: the points x, y, z (mm, measurement frame) an identified model predicts for
     the commands of a CSV (tool, q1..qN [, dir1..dirN]); other columns are kept, measured x, y, z replaced.
 
@@ -750,6 +773,7 @@ def predict_file(run_dir, input, output, device=None) -> int:
             return predict_pose_file(run_dir, input, output, model)
     with progress_task(f"reading {input}"):
         data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
+    _refuse_radians(input, data, model.robot, units_checked)
     data = data.to(model.device)
     with torch.no_grad(), progress_task(f"predicting {len(df)} rows"):
         p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
@@ -798,7 +822,7 @@ def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: in
 
 
 def compensate_file(run_dir, input, output, device=None, tol_deg: float | None = None, max_iter: int | None = None,
-                    max_correction_deg: float | None = None) -> CompensationFile:
+                    max_correction_deg: float | None = None, units_checked: bool = False) -> CompensationFile:
     """``torchcal compensate``: compensated commands for every row of a CSV (q1..qN [, dir1..dirN], deg / mm).
 
     Writes q1..qN compensated plus converged, iterations, within_limits,
@@ -824,6 +848,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     robot = model.robot
     with progress_task(f"reading {input}"):
         data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
+    _refuse_radians(input, data, robot, units_checked)
     data = data.to(model.device)
     with progress_task(f"compensating {len(df)} commands"):
         res = compensate(model, data.q, data.direction if data.has_direction else None,

@@ -230,11 +230,32 @@ def _collect_warnings(into: list[str], name: str = "torchcal"):
         logger.removeHandler(handler)
 
 
+DATA_HASH_FILE = "data_hashes.json"
+"""In a fit's run directory: {config key: {path, sha256}} of the data files the fit read (``torchcal update``
+re-reads the identification file and refuses one that changed since)."""
+
+
+def file_sha256(path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
-    """config.yaml (the resolved config) and versions.json: what every run directory starts with."""
+    """config.yaml (the resolved config), versions.json and data_hashes.json: what every run directory starts with."""
     files["config"] = run_dir / "config.yaml"
     atomic_write_text(files["config"], to_yaml(cfg))
     files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
+    hashes = {}
+    for key in ("identification", "validation"):
+        p = cfg.data.get(key, None)
+        if p and Path(p).is_file():
+            hashes[f"data.{key}"] = {"path": str(p), "sha256": file_sha256(p)}
+    files["data_hashes"] = write_json(run_dir / DATA_HASH_FILE, hashes)
 
 
 

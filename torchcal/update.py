@@ -135,6 +135,14 @@ def _history_from_data(cfg, parent: Path, model, online: OnlineCalibration, note
     pinned = read_json(fit_json).get("pinned_names") if fit_json.is_file() else None
     ident = cfg.get("data", {}).get("identification", None)
     if ident and Path(ident).is_file():
+        from .pipeline_common import DATA_HASH_FILE, file_sha256
+
+        record = _run_file(parent, DATA_HASH_FILE)
+        fitted = read_json(record).get("data.identification", {}) if record.is_file() else {}
+        if fitted.get("sha256") and fitted["sha256"] != file_sha256(ident):
+            # absorbing other rows than the fit used would count them twice or miss some
+            raise RunDirError(f"{ident}: the parent run's identification file changed since the fit (sha256 recorded "
+                              f"in {record} differs); restore the file the fit read, or refit with torchcal fit")
         data, instrument = read_update_data(cfg, model, ident, online.noise, progress)
         online.absorb(data, instrument, pinned=pinned)
         notes.append(f"parent has no {ONLINE_FILE}: its {len(data)} identification rows ({ident}) absorbed at the "
@@ -286,6 +294,34 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
         threads.set_threads(old_override)
 
 
+def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
+    """Refuse rows the update cannot use as the parent's robot: no approach directions for a backlash model,
+    or points the calibrated model misses by more than any calibration error (another robot, frame or unit)."""
+    from .io.csv import DataError, Problem
+
+    je = getattr(model, "joint_errors", None)
+    if je is not None and not new.has_direction:
+        on = [j for j, b in enumerate(je.backlash_orders.cpu().tolist()) if b >= 0]
+        if on:
+            names = list(model.robot.joint_map.names)
+            n = model.robot.joint_map.n
+            raise DataError(new_path, [Problem(None, f"dir1..dir{n}", (
+                f"missing on rows 1..{len(new)}: the run's model has backlash terms on {', '.join(names[j] for j in on)}, "
+                f"which need each row's approach directions (+1 / -1 per joint)"))])
+    if is_sensor_run(cfg):
+        return
+    from .pipeline import NOMINAL_IMPLAUSIBLE_MM, evaluate
+
+    with torch.no_grad():
+        ev = evaluate(model, new)
+    modeled, nominal = ev["modeled_stats"].mean, ev["nominal_stats"].mean
+    if modeled > NOMINAL_IMPLAUSIBLE_MM:
+        raise DataError(new_path, [Problem(None, "x, y, z", (
+            f"the run's model misses these points by {modeled:.1f} mm on average (nominal {nominal:.1f} mm), far beyond "
+            f"any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): data of another robot, tool set, measurement "
+            f"frame or unit? An update only refines the parent's robot; fit such data with torchcal fit"))])
+
+
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console) -> UpdateResult:
     from .pipeline import _Progress
 
@@ -295,6 +331,7 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
         noise = _noise_prior_options(cfg, model)[0]
         new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written
         new = new.to(dev)
+        _check_new_data(cfg, model, new, new_path)
     notes: list[str] = []
     with progress.step("loading the parent's online state (or rebuilding it from its data)", quiet=True):
         online, history = load_online(parent, cfg, model, strategy, notes, progress)

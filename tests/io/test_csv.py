@@ -217,11 +217,17 @@ def test_european_export_is_read_with_a_note(tmp_path, fanuc, caplog):
 
 
 def test_one_field_header_says_what_separates_fields(tmp_path, fanuc):
+    # tab-separated files are read; a decimal comma in one is named by row and column
     lines = [HEADER.replace(",", "\t")] + [r.replace(",", "\t") for r in GOOD]
-    lines[1] = lines[1].replace("\t100\t", "\t100,5\t")  # a decimal comma makes the rows split on ','
+    lines[1] = lines[1].replace("\t100\t", "\t100,5\t")
     with pytest.raises(DataError) as err:
         read_measurements(write(tmp_path, lines, "tabs.csv"), fanuc, 2)
-    assert "the contract separates fields with ','" in str(err.value)
+    assert "row 1 (line 2), column 'x'" in str(err.value) and "'100,5'" in str(err.value)
+    # space-separated: one line saying so, not "column missing" for every column
+    lines = [HEADER.replace(",", " ")] + [r.replace(",", " ") for r in GOOD]
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, lines, "spaces.csv"), fanuc, 2)
+    assert "the contract separates fields with ','" in str(err.value) and "missing" not in str(err.value)
 
 
 def test_data_error_is_a_torchcal_error():

@@ -417,6 +417,11 @@ def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None,
                           "axis_perturbation)")
     k = int(points) if points is not None else DEFAULT_POINTS
     if fmt in ("siemens-cec", "all"):
+        if points is not None and k > int(siemens_max_points):
+            # an explicit request is never cut down behind the user's back
+            raise TableSizeError(f"--points {k} is more than the Siemens 840D table holds (--max-points "
+                                 f"{int(siemens_max_points)}, MD18342 $MN_MM_CEC_MAX_POINTS); give --points <= "
+                                 f"{int(siemens_max_points)} or raise --max-points to the controller's MD18342")
         k = min(k, int(siemens_max_points))
     tables = compensation_tables(model, k, pairs)
     modulo = ()

@@ -43,6 +43,9 @@ class DataConfig:
     """Simulated runs only: ``truth.json`` from ``torchcal simulate``; enables the compensation check (Table 7, Fig. 16)."""
     n_poses: Optional[int] = None
     """Identify from the first N poses of the identification file only (file order; Figure 11's 150 / 250 / 350); null: all."""
+    units_checked: bool = False
+    """true: skip the unit-slip checks (joints that look like radians, x, y, z that look like metres); see
+    :mod:`torchcal.io.unit_checks`."""
 
 
 MODEL_KINDS = ("joint_dependent", "axis_perturbation")
@@ -332,6 +335,33 @@ def make_config(values: dict | None = None, overrides: Sequence[str] = (), base_
     return cfg
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """SafeLoader that refuses a key given twice in one mapping (plain YAML keeps the last one silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen: dict = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            try:
+                if key in seen:
+                    raise _DuplicateKey(key, seen[key], line)
+                seen[key] = line
+            except TypeError:  # an unhashable key: SafeLoader's own error follows
+                continue
+        return super().construct_mapping(node, deep=deep)
+
+
+class _DuplicateKey(ConfigError):
+    """Raised by :class:`_UniqueKeyLoader`; load_config turns it into a ConfigError naming the file."""
+
+    def __init__(self, key, first: int, second: int):
+        super().__init__(key, first, second)
+        self.key, self.first, self.second = key, first, second
+
+
 def load_config(path, overrides: Sequence[str] = ()) -> DictConfig:
     """Read a YAML config, merge it over the schema's defaults, then apply ``overrides`` (``["model.order=4"]``).
 
@@ -348,9 +378,12 @@ def load_config(path, overrides: Sequence[str] = ()) -> DictConfig:
     """
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"{path}: config file not found")
+        raise ConfigError(f"{path}: " + ("is a directory, not a config file" if path.is_dir() else "config file not found"))
     try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+        raw = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)
+    except _DuplicateKey as exc:
+        raise ConfigError(f"{path}: key '{exc.key}' is given twice (lines {exc.first} and {exc.second}) in one mapping; "
+                          f"keep one") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""

@@ -110,23 +110,31 @@ _DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+(?:[eE][+-]?\d+)?$")
 
 
 def _delimiter(path: Path) -> str:
-    """',' (the contract) or ';' for a European spreadsheet export (``;`` separators, decimal commas).
+    """',' (the contract), ';' for a European spreadsheet export (``;`` separators, decimal commas), or a tab.
 
-    Judged on the header line: a header split by ';' into more fields than by ','
-    (the contract's header has no ';') is a ';'-separated file.
+    Judged on the header line: a header split by ';' (or a tab) into more fields
+    than by ',' (the contract's header has neither) is a ';'- (tab-) separated file.
     """
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             first = fh.readline()
     except (OSError, UnicodeDecodeError):
         return ","  # _scan reports it
-    return ";" if first.count(";") > first.count(",") else ","
+    counts = {",": first.count(","), ";": first.count(";"), "\t": first.count("\t")}
+    best = max(counts, key=lambda k: counts[k])
+    return best if counts[best] > counts[","] else ","
+
+
+def missing_file_message(path) -> str:
+    """Why ``path`` cannot be read as a file: a folder given where a file is expected is not 'not found'."""
+    path = Path(path)
+    return "is a directory, not a file; give the data file inside it" if path.is_dir() else "file not found"
 
 
 def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[int]]:
     """Header names, first file line and field count of every record (csv module: knows quoted newlines)."""
     if not path.is_file():
-        raise DataError(path, [Problem(None, None, "file not found")])
+        raise DataError(path, [Problem(None, None, missing_file_message(path))])
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
             reader = _csv.reader(fh, delimiter=delimiter)
@@ -171,11 +179,11 @@ def _read_raw(path: Path) -> pd.DataFrame:
     for r, (line, w) in enumerate(zip(starts, widths)):
         if w and w != len(names):
             problems.append(Problem(r + 1, None, f"has {w} fields, the header has {len(names)}", line))
+    if sep == "," and len(names) == 1 and (len(names[0].split()) > 1 or any(w > 1 for w in widths)):
+        # e.g. a space-separated file: say so once instead of "column missing" for every column, or one line per row
+        problems = [Problem(None, None, f"the header has one field ({names[0][:60]!r}) and the rows up to "
+                                        f"{max(widths, default=0)}: the contract separates fields with ','")] + problems[:3]
     if problems:
-        if sep == "," and len(names) == 1 and any(w > 1 for w in widths):
-            # e.g. a tab- or space-separated file: say so once instead of one line per row
-            problems = [Problem(None, None, f"the header has one field ({names[0][:60]!r}) but the rows have "
-                                            f"{max(widths)}: the contract separates fields with ','")] + problems[:3]
         raise DataError(path, problems)
     try:
         df = pd.read_csv(path, dtype=str, keep_default_na=False, skip_blank_lines=False, encoding="utf-8-sig",
@@ -198,6 +206,11 @@ def _read_raw(path: Path) -> pd.DataFrame:
         raise DataError(path, [Problem(None, None, "no data rows after the header")])
     df.attrs["lines"] = list(starts[:end])
     df.attrs["notes"] = []
+    if sep == "\t":
+        # spreadsheets and instrument software often export tabs; the values are the same, only the separator differs
+        note = f"{path}: read as tab-separated; the contract is ',' between fields"
+        df.attrs["notes"].append(note)
+        log.warning(note)
     if sep == ";":
         converted = []
         for c in df.columns:

@@ -72,6 +72,48 @@ MIN_DISTANCE_MM = 1e-3
 """A sensor origin closer than this to the tracker origin is a failed reading."""
 
 
+TRANSPOSE_MIN_DEG = 5.0
+"""Median misfit (deg) of the rotations as read above which a much better fit of their transposes is reported."""
+
+
+def rotation_fit(q: torch.Tensor, rot: torch.Tensor, robot) -> tuple[float, float, int] | None:
+    """How well the rotations fit the nominal robot as read and transposed: (median deg, median deg, pairs).
+
+    q: (R, n) SI commands, rot: (R, 3, 3) rotations (finite rows only). The rotation between consecutive
+    rows, in the sensor frame, is the nominal flange's (in the flange frame) turned by the constant mount
+    rotation, whatever the tracker frame; a transposed file breaks that. The mount is fitted (Kabsch) on
+    the rotation vectors; -> the median misfit of each reading, or None with fewer than 6 rows.
+    """
+    from scipy.spatial.transform import Rotation
+
+    if q.shape[0] < 6:
+        return None
+    F = robot.chain.fk(robot.joint_map.to_joint(q.detach().cpu()))[:, :3, :3].numpy()
+    a = Rotation.from_matrix(np.swapaxes(F[:-1], 1, 2) @ F[1:]).as_rotvec()
+    R = nearest_rotation(rot.detach().cpu()).numpy()
+    out = []
+    for cand in (R, np.swapaxes(R, 1, 2)):
+        b = Rotation.from_matrix(np.swapaxes(cand[:-1], 1, 2) @ cand[1:]).as_rotvec()
+        U, _, Vt = np.linalg.svd(a.T @ b)
+        d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+        Q = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+        out.append(float(np.degrees(np.median(np.linalg.norm(b - a @ Q.T, axis=1)))))
+    return out[0], out[1], len(a)
+
+
+def transposed_message(fit: tuple[float, float, int] | None, columns: str) -> str | None:
+    """One line when the transposes fit the nominal robot far better than the rotations as read, else None."""
+    if fit is None:
+        return None
+    as_read, transposed, pairs = fit
+    if as_read > TRANSPOSE_MIN_DEG and as_read > 10 * transposed:
+        return (f"the rotations look transposed: between consecutive rows they miss the nominal robot by {as_read:.3g} "
+                f"deg (median of {pairs} row pairs), their transposes by {transposed:.3g} deg; "
+                + (f"{columns} must hold the sensor axes as the columns of R (row-major: r11 r12 r13 is the first row)"
+                   if columns.startswith("r11") else f"{columns} give the inverse of the sensor's rotation"))
+    return None
+
+
 def _problem_rows(problems: list[Problem], lines) -> list[Problem]:
     if lines is None:
         return problems
@@ -199,6 +241,10 @@ def parse_pose_table(df: pd.DataFrame, path, robot, require_pose: bool = True, e
             for b, name, msg in v.problems:
                 problems.append(Problem(int(idx[b]) + 1, f"{name} angle (from x, y, z, {r_col})", msg))
 
+    if not problems and require_pose and data is not None and bool(present.all()):
+        msg = transposed_message(rotation_fit(data.q, torch.from_numpy(rot), robot), r_col)
+        if msg:
+            problems.append(Problem(None, r_col, msg))
     if problems:
         raise DataError(path, _problem_rows(problems, lines))
     assert data is not None

@@ -188,7 +188,7 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=()) -> P
     exclude: 1-based data rows to leave out (e.g. the known bad rows of a series); each must exist,
     else a DataError naming it. The pose ids stay the source rows, so what was left out stays visible.
     """
-    from .sensor_csv import write_pose_measurements
+    from .sensor_csv import rotation_fit, transposed_message, write_pose_measurements
 
     data = read_tmac(src, robot, convention)
     exclude = sorted({int(r) for r in exclude})
@@ -199,6 +199,10 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=()) -> P
             raise DataError(src, [Problem(None, None, f"rows {missing} to exclude are not data rows of the file "
                                                       f"(1..{len(data)})")])
         data = data.subset(~torch.isin(data.rows, torch.tensor(exclude)))
+    msg = transposed_message(rotation_fit(data.q, data.extra["rotation"], robot), "measurement_rx/ry/rz")
+    if msg:
+        raise DataError(src, [Problem(None, "measurement_rx/ry/rz", msg + f"; is the Euler convention '{convention}' "
+                                                                         f"the export's (--convention)?")])
     return write_pose_measurements(dst, data, robot)
 
 

@@ -47,7 +47,7 @@ import pandas as pd
 import torch
 
 from .. import units
-from .csv import LIMIT_TOL, XYZ, DataError, Problem, direction_columns, joint_columns
+from .csv import LIMIT_TOL, XYZ, DataError, Problem, direction_columns, joint_columns, missing_file_message
 
 OUTLIER_MM = 1.0
 """Default distance (mm) from its median beyond which a single base reading is a wrong-target outlier."""
@@ -79,7 +79,7 @@ def read_rows(path, columns: list[str]) -> RowFile:
     """
     path = Path(path)
     if not path.is_file():
-        raise DataError(path, [Problem(None, None, "file not found")])
+        raise DataError(path, [Problem(None, None, missing_file_message(path))])
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -266,6 +266,13 @@ def import_tracker(
                         f"{q[r, c]:.6g} {unit[c]} is outside the controller range [{lim[c, 0]:.6g}, {lim[c, 1]:.6g}] "
                         f"{unit[c]} of '{robot.name}'", jf.lines[r])
                 for r, c in zip(*np.nonzero(outside))])
+        from .unit_checks import radian_columns, radian_message
+
+        q_si = units.joints_to_si(torch.from_numpy(q), prismatic)
+        rad = radian_columns(q_si, robot)
+        if rad:
+            # a warning, not a refusal: the CSV written here is read again (fit warns, predict / compensate refuse)
+            report.append("warning: " + radian_message(jf.path, q_si, robot, rad).replace(f"{jf.path}: columns ", f"{jf.path}: joint columns "))
     else:
         report.append("no robot given: joint limits not checked")
 
@@ -393,7 +400,7 @@ def _count_fields(path) -> int:
     """Fields on the first data row of a file (for the joint count without a robot)."""
     path = Path(path)
     if not path.is_file():
-        raise DataError(path, [Problem(None, None, "file not found")])
+        raise DataError(path, [Problem(None, None, missing_file_message(path))])
     for line in path.read_text(encoding="utf-8-sig").splitlines():
         s = line.strip()
         if s and not s.startswith("#"):

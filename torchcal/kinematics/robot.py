@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,7 +89,12 @@ def _joint_map_from_yaml(spec: dict, chain: Chain, label: str) -> JointMap:
         lims.append([float(j["lower"]), float(j["upper"])])
     prismatic_t = torch.tensor(prismatic)
     if not torch.equal(prismatic_t, chain.prismatic):
-        raise URDFError(f"{label}: controller units {[j['unit'] for j in joints]} do not match the URDF joint types")
+        bad = [f"joints[{i}] '{names[i]}' (URDF joint '{chain.joint_names[i]}'): unit "
+               f"'{joints[i]['unit']}' ({'prismatic' if prismatic[i] else 'revolute'}) but the URDF joint is "
+               f"{'prismatic' if bool(chain.prismatic[i]) else 'revolute'}"
+               for i in range(chain.n) if prismatic[i] != bool(chain.prismatic[i])]
+        raise URDFError(f"{label}: controller units do not match the URDF joint types: " + "; ".join(bad)
+                        + " (unit 'mm' = prismatic, 'deg' = revolute)")
     scale = units.joint_scale(prismatic_t)
     limits = torch.tensor(lims, dtype=torch.float64) * scale[:, None]
     coupling = torch.tensor(spec.get("coupling", torch.eye(chain.n).tolist()), dtype=torch.float64)
@@ -139,6 +145,17 @@ def load_robot(spec: str | Path) -> Robot:
     spec_s = str(spec)
     path = Path(spec_s)
     bundled = not path.suffix and not path.exists()
+    if not path.suffix and path.is_dir() and (urdf_dir() / f"{spec_s}.yaml").is_file():
+        # a local folder that happens to share a bundled robot's name (e.g. a data folder 'ur10') is not a robot file
+        found = sorted(p.name for p in path.glob("*.urdf"))
+        if not found:
+            bundled = True
+            logging.getLogger("torchcal").warning(
+                "robot '%s': the local folder './%s' holds no URDF; using the bundled robot '%s'", spec_s, spec_s, spec_s)
+        else:
+            raise URDFError(f"robot '{spec_s}': './{spec_s}' is a local folder (holding {found[:5]}), which hides the "
+                            f"bundled robot of that name; give the file inside it (e.g. {path / found[0]}) or run "
+                            f"from another folder to use the bundled '{spec_s}'")
     if bundled:
         path = urdf_dir() / f"{spec_s}.yaml"
         if not path.is_file():
@@ -150,7 +167,8 @@ def load_robot(spec: str | Path) -> Robot:
             raise URDFError(f"{path}: joints {missing} have no limits; give a joint-map YAML with the controller range")
         return Robot(chain.name or path.stem, chain, JointMap.identity(chain.limits, chain.prismatic, list(chain.joint_names)), str(path))
     if not path.is_file():
-        raise URDFError(f"{path}: robot file not found")
+        raise URDFError(f"{path}: " + ("is a directory, not a robot file (joint-map .yaml or .urdf)" if path.is_dir()
+                                       else "robot file not found"))
     spec_d = yaml.safe_load(path.read_text())
     if not isinstance(spec_d, dict) or "urdf" not in spec_d:
         raise URDFError(f"{path}: a joint-map YAML needs a 'urdf' key")

@@ -64,7 +64,7 @@ def _read(source: str | Path) -> tuple[str, str]:
     if isinstance(source, Path) or (isinstance(source, str) and not source.lstrip().startswith("<")):
         path = Path(source)
         if not path.is_file():
-            raise URDFError(f"{path}: URDF file not found")
+            raise URDFError(f"{path}: " + ("is a directory, not a URDF file" if path.is_dir() else "URDF file not found"))
         return path.read_text(), str(path)
     return str(source), "<urdf string>"
 
@@ -142,6 +142,34 @@ def _validate_urdf(xml: str) -> list[str]:
     return problems
 
 
+def _check_well_formed(xml: str, label: str) -> None:
+    """A strict XML parse first: the URDF parsers recover from a truncated file and fail later with a TypeError."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(xml.encode() if isinstance(xml, str) else xml)
+    except ET.ParseError as exc:
+        tail = "" if xml.rstrip().endswith("</robot>") else "; the file does not end with </robot>: is it truncated?"
+        raise URDFError(f"{label}: not a readable URDF: not well-formed XML ({exc}){tail}") from None
+    if root.tag != "robot":
+        raise URDFError(f"{label}: the root element is <{root.tag}>, a URDF's is <robot>")
+    missing = []
+    for owner in root:
+        if owner.tag not in ("joint", "link"):
+            continue
+        for el in owner.iter():
+            lack = [a for a in _REQUIRED_ATTRIBUTES.get(el.tag, ()) if el.get(a) is None]
+            if lack:
+                missing.append(f"{owner.tag} '{owner.get('name')}': <{el.tag}> has no {', '.join(lack)}")
+    if missing:
+        raise URDFError(f"{label}: incomplete URDF (a line cut or deleted?): " + "; ".join(missing))
+
+
+_REQUIRED_ATTRIBUTES = {"joint": ("name", "type"), "link": ("name",), "parent": ("link",), "child": ("link",),
+                        "axis": ("xyz",), "mass": ("value",), "inertia": ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")}
+"""Attributes the URDF spec requires and the parsers dereference without checking (a TypeError otherwise)."""
+
+
 def _joints_without_axis(xml: str) -> set[str]:
     """Names of the joints that have no <axis> element (URDF default: x)."""
     import xml.etree.ElementTree as ET
@@ -169,10 +197,14 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
     URDF = urdf_parser().URDF
 
     xml, label = _read(source)
+    _check_well_formed(xml, label)
     problems = validate_urdf(xml, label)
     if problems:
         raise URDFError(f"{label}: URDF failed validation:\n  " + "\n  ".join(problems))
-    robot = URDF.from_xml_string(xml)
+    try:
+        robot = URDF.from_xml_string(xml)
+    except Exception as exc:  # the parser dereferences what it does not check: TypeError, AttributeError, its ParseError
+        raise URDFError(f"{label}: not a readable URDF ({type(exc).__name__}: {' '.join(str(exc).split())})") from None
     by_child = {j.child: j for j in robot.joints}
     links = [l.name for l in robot.links]
     roots = [l for l in links if l not in by_child]

@@ -77,6 +77,11 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
         raise ConfigError(f"--validation-tool {validation_tool}: tools are 0..{len(tools_mm) - 1} (Paper II Table 4)")
     rob = load_robot(robot)
     n = rob.joint_map.n
+    # fit.yaml must pass `torchcal fit`'s own check: the same rule, not a copy of it
+    from ..io.config import make_config
+
+    make_config({"robot": rob.name, "tools": PAPER2_TOOLS_MM, "data": {"identification": names["identification"]},
+                 "model": {"order": order}}, label="--order", base_dir=out_dir)
     try:
         error_variable = normalize_error_variable(error_variable, n, rob.joint_map.names)
     except ValueError as exc:

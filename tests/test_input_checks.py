@@ -1,0 +1,265 @@
+"""Inputs that used to pass silently or fail vaguely: unit slips, stale or foreign update data, transposed
+rotations, duplicate YAML keys, capped table sizes, simulate's order, tab-separated files, folders given as
+files, truncated URDFs, unit / joint-type mismatches, a local folder named like a bundled robot."""
+
+import math
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from torchcal.cli import app
+from torchcal.io.csv import DataError, read_measurements
+from torchcal.kinematics import load_robot
+from torchcal.kinematics.urdf import URDFError, load_urdf
+from torchcal.measurements import Measurements
+
+runner = CliRunner()
+POSES = 20
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+class _Result:
+    """exit_code and output with rich's line wrapping undone (messages are one line; the console wraps them)."""
+
+    def __init__(self, r):
+        self.exit_code, self.output = r.exit_code, " ".join(r.output.split())
+
+
+def invoke(*args):
+    return _Result(runner.invoke(app, [str(a) for a in args]))
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory, one_thread):
+    root = tmp_path_factory.mktemp("checks")
+    sim = root / "sim"
+    r = invoke("simulate", sim, "--identification", POSES, "--validation", 10, "--seed", 5)
+    assert r.exit_code == 0, r.output
+    r = invoke("fit", sim / "fit.yaml", "model.order=1", "plots=false", "data.truth=null", f"out={root / 'run'}", "-q")
+    assert r.exit_code == 0, r.output
+    return {"root": root, "sim": sim, "run": root / "run"}
+
+
+def _radians(src, dst):
+    df = pd.read_csv(src)
+    for c in [f"q{i}" for i in range(1, 7)]:
+        df[c] = np.radians(df[c])
+    df.to_csv(dst, index=False)
+    return dst
+
+
+# ------------------------------------------------------------------------- 1. joints in radians
+def test_radian_joints_refused_by_predict_and_compensate_warned_by_fit(fitted, tmp_path):
+    sim, run = fitted["sim"], fitted["run"]
+    rad = _radians(sim / "validation.csv", tmp_path / "rad.csv")
+    for cmd in ("predict", "compensate"):
+        r = invoke(cmd, run, rad, tmp_path / f"{cmd}.csv")
+        assert r.exit_code == 2, r.output
+        assert "rad.csv" in r.output and "q1" in r.output and "radians" in r.output and "--units-checked" in r.output
+        assert not (tmp_path / f"{cmd}.csv").exists()
+        r = invoke(cmd, run, rad, tmp_path / f"{cmd}.csv", "--units-checked")
+        assert r.exit_code == 0, r.output
+    # degrees pass untouched
+    assert invoke("predict", run, sim / "validation.csv", tmp_path / "ok.csv").exit_code == 0
+    # fit: a warning naming the file and columns (the points still make it a poor fit, not a refusal)
+    ident = _radians(sim / "identification.csv", tmp_path / "ident_rad.csv")
+    r = invoke("fit", sim / "fit.yaml", "model.order=1", "plots=false", "data.truth=null", "data.validation=null",
+               f"data.identification={ident}", f"out={tmp_path / 'run'}")
+    assert "ident_rad.csv: columns q1" in r.output and "look like radians" in r.output, r.output
+
+
+def test_import_tracker_warns_on_radian_joints(tmp_path, fanuc):
+    from torchcal.model import RobotModel
+    from tests.conftest import random_commands
+
+    q = random_commands(fanuc, 15, 3)
+    model = RobotModel(fanuc, torch.tensor([[0.0, 0.0, 0.1]]), orders=1)
+    with torch.no_grad():
+        pts = model.nominal_points(q, torch.zeros(15, dtype=torch.long)).numpy() * 1e3
+    np.savetxt(tmp_path / "joints.txt", q.numpy())  # radians where degrees belong
+    np.savetxt(tmp_path / "smr.txt", pts)
+    r = invoke("import-tracker", tmp_path / "m.csv", "--joints", tmp_path / "joints.txt", "--target",
+               tmp_path / "smr.txt", "--robot", "fanuc_lrmate200i")
+    assert r.exit_code == 0, r.output
+    assert "warning:" in r.output and "joints.txt: joint columns q1" in r.output and "radians" in r.output
+
+
+# ------------------------------------------------------------------------- 2. points in metres
+def test_fit_refuses_points_in_metres(fitted, tmp_path):
+    sim = fitted["sim"]
+    df = pd.read_csv(sim / "identification.csv")
+    df[["x", "y", "z"]] = df[["x", "y", "z"]] / 1000.0
+    df.to_csv(tmp_path / "m.csv", index=False)
+    args = ("fit", sim / "fit.yaml", "model.order=1", "plots=false", "data.truth=null", "data.validation=null",
+            f"data.identification={tmp_path / 'm.csv'}", f"out={tmp_path / 'run'}", "-q")
+    r = invoke(*args)
+    assert r.exit_code == 2, r.output
+    assert "m.csv" in r.output and "x, y, z" in r.output and "metres" in r.output and "~1e+03" in r.output
+    assert not (tmp_path / "run").exists()
+    # the override lets it through (to whatever the fit makes of it)
+    r = invoke(*args, "data.units_checked=true")
+    assert "look like metres" not in r.output
+
+
+# ------------------------------------------------------------------------- 3. update
+def test_update_refuses_stale_parent_data_missing_directions_and_another_robot(fitted, tmp_path):
+    sim, run = fitted["sim"], fitted["run"]
+    root = tmp_path
+    new = pd.read_csv(sim / "validation.csv")
+    new["tool"] = 2
+    new.to_csv(root / "new.csv", index=False)
+    # no approach directions for a backlash model
+    new.drop(columns=[f"dir{i}" for i in range(1, 7)]).to_csv(root / "nodir.csv", index=False)
+    r = invoke("update", run, root / "nodir.csv", "--out", root / "u1", "-q")
+    assert r.exit_code == 2 and "nodir.csv" in r.output and "dir1..dir6" in r.output and "rows 1..10" in r.output
+    # another robot's data: points far off the parent's model
+    far = new.copy()
+    far["x"] += 1500.0
+    far.to_csv(root / "far.csv", index=False)
+    r = invoke("update", run, root / "far.csv", "--out", root / "u2", "-q")
+    assert r.exit_code == 2 and "far.csv" in r.output and "misses these points" in r.output
+    assert not (root / "u2").exists()
+    # the parent's identification file edited after the fit
+    ident = sim / "identification.csv"
+    keep = ident.read_bytes()
+    try:
+        df = pd.read_csv(ident)
+        df.loc[0, "x"] += 0.5
+        df.to_csv(ident, index=False)
+        r = invoke("update", run, root / "new.csv", "--out", root / "u3", "-q")
+        assert r.exit_code == 2 and "identification.csv" in r.output and "changed since the fit" in r.output
+    finally:
+        ident.write_bytes(keep)
+    r = invoke("update", run, root / "new.csv", "--out", root / "u4", "-q")
+    assert r.exit_code == 0, r.output
+
+
+# ------------------------------------------------------------------------- 4. transposed rotations
+def _sensor_rows(robot, n=12, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    lim = robot.joint_map.limits
+    q = lim[:, 0] + torch.rand(n, robot.n, generator=g, dtype=torch.float64) * (lim[:, 1] - lim[:, 0])
+    F = robot.chain.fk(robot.joint_map.to_joint(q))
+    A = torch.from_numpy(Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_matrix())    # tracker frame
+    M = torch.from_numpy(Rotation.from_euler("xyz", [0.1, 0.4, -0.7]).as_matrix())    # sensor mount
+    R = A @ F[:, :3, :3] @ M
+    xyz = (A @ F[:, :3, 3:])[:, :, 0] + torch.tensor([2.0, 0.5, 0.3], dtype=torch.float64)
+    return q, xyz, R
+
+
+def test_transposed_sensor_rotations_are_named(tmp_path, fanuc):
+    from torchcal.io.sensor_csv import read_pose_measurements, write_pose_measurements
+
+    q, xyz, R = _sensor_rows(fanuc)
+    data = Measurements.from_tensors(q, 0, xyz, pose=torch.arange(len(q)))
+    data.extra["rotation"] = R
+    good = read_pose_measurements(write_pose_measurements(tmp_path / "ok.csv", data, fanuc), fanuc)
+    assert torch.allclose(good.extra["rotation"], R, atol=1e-10)
+    data.extra["rotation"] = R.transpose(1, 2).contiguous()
+    path = write_pose_measurements(tmp_path / "t.csv", data, fanuc)
+    with pytest.raises(DataError, match=r"column 'r11\.\.r33': the rotations look transposed") as err:
+        read_pose_measurements(path, fanuc)
+    assert "t.csv" in str(err.value)
+
+
+# ------------------------------------------------------------------------- 5. duplicate YAML keys
+def test_config_key_given_twice_is_refused(fitted, tmp_path):
+    text = (fitted["sim"] / "fit.yaml").read_text()
+    cfg = tmp_path / "dup.yaml"
+    cfg.write_text(text.replace("model:", "seed: 7\nmodel:", 1))
+    lines = cfg.read_text().splitlines()
+    seed_lines = [i + 1 for i, ln in enumerate(lines) if ln.startswith("seed:")]
+    r = invoke("fit", cfg, "--dry-run")
+    assert r.exit_code == 2 and "dup.yaml" in r.output and "'seed'" in r.output
+    assert f"lines {seed_lines[0]} and {seed_lines[1]}" in r.output, r.output
+    assert "backlash: true}" in text
+    cfg.write_text(text.replace("backlash: true}", "backlash: true, order: 2}"))  # nested, in one flow mapping
+    r = invoke("fit", cfg, "--dry-run")
+    assert r.exit_code == 2 and "'order'" in r.output and "twice" in r.output
+
+
+# ------------------------------------------------------------------------- 6. export-tables --points
+def test_export_tables_points_above_the_siemens_cap_is_refused(tmp_path, monkeypatch):
+    import types
+
+    import torchcal.io.rundir as rundir
+
+    monkeypatch.setattr(rundir, "load_model", lambda run_dir, **kw: types.SimpleNamespace(axis_errors=object()))
+    r = invoke("export-tables", tmp_path, tmp_path / "t.mpf", "--format", "siemens-cec", "--points", 3000)
+    assert r.exit_code == 2 and "--points 3000" in r.output and "2000" in r.output and "--max-points" in r.output
+
+
+# ------------------------------------------------------------------------- 7. simulate --order
+def test_simulate_checks_the_order_as_fit_does(tmp_path):
+    r = invoke("simulate", tmp_path / "s", "--identification", 5, "--validation", 0, "--order", 11)
+    assert r.exit_code == 2 and "model.order" in r.output and "11" in r.output
+    assert not (tmp_path / "s").exists()
+
+
+# ------------------------------------------------------------------------- 8-9. tab-separated files, folders
+def test_tab_separated_file_is_read_and_folder_is_named(fitted, tmp_path, fanuc):
+    sim = fitted["sim"]
+    df = pd.read_csv(sim / "validation.csv")
+    df.to_csv(tmp_path / "tab.csv", index=False, sep="\t")
+    a = read_measurements(tmp_path / "tab.csv", fanuc, 3)
+    b = read_measurements(sim / "validation.csv", fanuc, 3)
+    assert torch.equal(a.q, b.q) and torch.equal(a.xyz, b.xyz)
+    (tmp_path / "folder.csv").mkdir()
+    with pytest.raises(DataError, match="is a directory"):
+        read_measurements(tmp_path / "folder.csv", fanuc, 3)
+    r = invoke("predict", fitted["run"], tmp_path / "folder.csv", tmp_path / "p.csv")
+    assert r.exit_code == 2 and "folder.csv" in r.output and "is a directory" in r.output
+
+
+# ------------------------------------------------------------------------- 10. truncated URDF
+def test_truncated_urdf_names_the_file(tmp_path):
+    from torchcal.kinematics.robot import urdf_dir
+
+    text = (urdf_dir() / "fanuc_lrmate200i.urdf").read_text()
+    for cut in (0.3, 0.5, 0.7, 0.9):
+        p = tmp_path / f"cut{cut}.urdf"
+        p.write_text(text[: int(len(text) * cut)])
+        with pytest.raises(URDFError, match=f"cut{cut}.urdf"):
+            load_urdf(p)
+    # a required attribute lost: the parser used to raise a bare TypeError / AttributeError
+    ur10 = (urdf_dir() / "ur10.urdf").read_text()
+    for attr, what in (('<mass value="7.1"/>', "link 'shoulder_link': <mass> has no value"),
+                       ('<axis xyz="0 0 1"/>', "<axis> has no xyz")):
+        assert attr in ur10
+        p = tmp_path / "lost.urdf"
+        p.write_text(ur10.replace(attr, attr.split()[0] + "/>", 1))
+        with pytest.raises(URDFError) as err:
+            load_urdf(p)
+        assert "lost.urdf" in str(err.value) and what in str(err.value)
+
+
+# ------------------------------------------------------------------------- 11. unit / joint type mismatch
+def test_joint_type_mismatch_names_the_joint(tmp_path):
+    from torchcal.kinematics.robot import urdf_dir
+
+    src = urdf_dir() / "fanuc_lrmate200i.yaml"
+    text = src.read_text()
+    shutil.copy(urdf_dir() / "fanuc_lrmate200i.urdf", tmp_path / "fanuc_lrmate200i.urdf")
+    first = text.index("unit: deg")
+    (tmp_path / "r.yaml").write_text(text[:first] + "unit: mm" + text[first + len("unit: deg"):])
+    with pytest.raises(URDFError) as err:
+        load_robot(tmp_path / "r.yaml")
+    msg = str(err.value)
+    assert "joints[0]" in msg and "'mm' (prismatic)" in msg and "is revolute" in msg
+
+
+# ------------------------------------------------------------------------- 12. a folder named like a bundled robot
+def test_local_folder_named_like_a_bundled_robot(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "ur10").mkdir()
+    (tmp_path / "ur10" / "data.csv").write_text("x\n1\n")
+    assert load_robot("ur10").n == 6  # no URDF there: the bundled robot
+    (tmp_path / "ur10" / "mine.urdf").write_text("<robot name='x'/>")
+    with pytest.raises(URDFError, match=r"local folder .*mine\.urdf.*bundled 'ur10'"):
+        load_robot("ur10")

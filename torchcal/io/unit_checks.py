@@ -1,0 +1,116 @@
+"""Unit slips a valid-looking file can hide: joints in radians, points in metres.
+
+Both give numbers the contract accepts (radians sit inside any degree range;
+metres are finite), and both give a fit that "succeeds" on a robot shrunk or
+barely moved. The checks compare the file with the robot's own scale; real
+data can trip them (a file of near-home poses, a tiny workspace), so every
+caller offers the override named in :data:`OVERRIDE`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from .. import units
+from ..exceptions import TorchcalError
+
+OVERRIDE = "--units-checked"
+"""The one override name: a CLI flag, and ``data.units_checked: true`` in a fit config."""
+
+MIN_ROWS = 10
+"""Fewer rows than this are too few to judge the units by their spread."""
+
+RADIAN_BOUND = 2 * math.pi + 0.05
+"""Values (in the file's 'degrees') all within this are what radians look like."""
+
+WIDE_RANGE_DEG = 8 * RADIAN_BOUND
+"""A controller range at least this wide (deg) would rarely be used only within +-RADIAN_BOUND."""
+
+SCALE_BOUNDS = (0.02, 50.0)
+"""Measured / nominal distance ratios outside these are a unit slip (mm vs m: 1e-3, mm vs um: 1e3)."""
+
+
+class UnitsError(TorchcalError, ValueError):
+    """A file whose numbers look like another unit than the contract's (mm, deg)."""
+
+
+def radian_columns(q: torch.Tensor, robot) -> list[str]:
+    """Revolute joint columns that look like radians: every wide-range revolute joint stays within +-2 pi 'deg'.
+
+    q: (R, n) controller commands as read (SI, i.e. the file's degrees converted). -> ['q1', ...] or [].
+    """
+    jm = robot.joint_map
+    if q.shape[0] < MIN_ROWS:
+        return []
+    deg = units.joints_from_si(q.detach().cpu(), jm.prismatic.cpu()).numpy()
+    span = units.joints_from_si(jm.limits.cpu().T, jm.prismatic.cpu()).T.numpy()  # (n, 2) deg / mm
+    wide = [j for j in range(jm.n) if not bool(jm.prismatic[j]) and span[j, 1] - span[j, 0] >= WIDE_RANGE_DEG]
+    if not wide:
+        return []
+    a = np.abs(deg[:, wide])
+    # all zeros (a home-pose file) is no evidence either way
+    if not np.isfinite(a).all() or a.max() > RADIAN_BOUND or a.max() < 0.5:
+        return []
+    return [f"q{j + 1}" for j in wide]
+
+
+def radian_message(path, q: torch.Tensor, robot, cols: list[str]) -> str:
+    """One line naming the file and columns: what was seen against the robot's range."""
+    jm = robot.joint_map
+    span = units.joints_from_si(jm.limits.cpu().T, jm.prismatic.cpu()).T.numpy()
+    j = int(cols[0][1:]) - 1
+    return (f"{path}: columns {', '.join(cols)} all stay within +-{RADIAN_BOUND:.2f} over {q.shape[0]} rows, while "
+            f"'{robot.name}' moves e.g. {cols[0]} over [{span[j, 0]:.6g}, {span[j, 1]:.6g}] deg: the joints look like "
+            f"radians; the contract is degrees (deg = rad * 180 / pi)")
+
+
+def _nominal_points(robot, q: torch.Tensor, tool: torch.Tensor, tools_m: torch.Tensor | None) -> torch.Tensor:
+    F = robot.chain.fk(robot.joint_map.to_joint(q.detach().cpu()))
+    if tools_m is None:
+        return F[:, :3, 3]
+    t = tools_m.detach().cpu().to(F.dtype)[tool.cpu().clamp(0, tools_m.shape[0] - 1)]
+    return F[:, :3, 3] + (F[:, :3, :3] @ t[:, :, None])[:, :, 0]
+
+
+def point_scale(data, robot, tools_m: torch.Tensor | None = None) -> float | None:
+    """Median measured / nominal distance between consecutive rows of one tool (frame-free); None: too few rows.
+
+    data: Measurements (SI); tools_m: (T, 3) tool vectors, or None (the flange: tool
+    vectors are small next to the distances between poses, so the ratio stays near 1).
+    """
+    if len(data) < MIN_ROWS:
+        return None
+    xyz = data.xyz.detach().cpu()
+    p = _nominal_points(robot, data.q, data.tool, tools_m)
+    ratios = []
+    for t in torch.unique(data.tool.cpu()).tolist():
+        idx = (data.tool.cpu() == t).nonzero()[:, 0]
+        if idx.numel() < 2:
+            continue
+        dm = (xyz[idx[1:]] - xyz[idx[:-1]]).norm(dim=1)
+        dn = (p[idx[1:]] - p[idx[:-1]]).norm(dim=1)
+        ok = torch.isfinite(dm) & (dn > 1e-3)  # poses a millimetre apart say nothing about the scale
+        ratios.append(dm[ok] / dn[ok])
+    r = torch.cat(ratios) if ratios else torch.zeros(0, dtype=torch.float64)
+    if r.numel() < MIN_ROWS // 2:
+        return None
+    return float(r.median())
+
+
+def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=None) -> None:
+    """Raise :class:`UnitsError` when the measured x, y, z spread ~1000x less (metres) or more than the nominal model's."""
+    s = point_scale(data, robot, tools_m)
+    if s is None or SCALE_BOUNDS[0] <= s <= SCALE_BOUNDS[1]:
+        return
+    guess = "metres" if s < 1 else "micrometres" if s > 300 else "another unit"
+    raise UnitsError(
+        f"{path or data.source}: columns x, y, z: the distances between the measured points are {s:.3g} times the "
+        f"nominal robot's ('{robot.name}'), i.e. off by a factor ~{(1 / s if s < 1 else s):.3g}: they look like "
+        f"{guess}, and the contract is mm; convert them, or pass {OVERRIDE} (fit: data.units_checked=true) if they "
+        f"really are mm")
+
+
+__all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "point_scale", "radian_columns", "radian_message"]

@@ -143,3 +143,12 @@ def test_every_torchcal_exception_derives_from_torchcalerror():
     assert len(found) >= 6  # URDFError, ConfigError, DataError, RunDirError, TruthError, AlignmentError, PlanningError
     bad = [c.__qualname__ for c in found if not issubclass(c, torchcal.TorchcalError)]
     assert bad == []
+
+
+def test_fit_path_modules_do_not_import_scipy_stats():
+    """scipy.stats costs 1-3 s to import on a 2-core machine: the modules every `torchcal fit` loads (truth
+    files, the simulators' package, the pipeline) must not pull it in at import."""
+    code = ("import sys, torchcal, torchcal.sim, torchcal.io.truth, torchcal.pipeline, torchcal.pipeline_sensor; "
+            "print('scipy.stats' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout
+    assert out.strip() == "False"

@@ -94,7 +94,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from scipy.stats import qmc
 
 from .. import units
 from ..measurements import Measurements
@@ -371,6 +370,8 @@ def region_commands(n: int, seed: int, band: bool, limits: torch.Tensor | None =
     """n quasi-random commands (n, 5) SI in the measured region (band=False: above the extrapolation band;
     band=True: in the band at the bottom border of BZ space). Scrambled Sobol, seeded. floor_h, band_g:
     the region's shape (module docstring)."""
+    from scipy.stats import qmc  # 1-3 s to import: only where machine commands are drawn, not on import of torchcal.sim
+
     lim = limits_si() if limits is None else limits
     sampler = qmc.Sobol(d=5, scramble=True, seed=np.random.default_rng(seed))
     import warnings

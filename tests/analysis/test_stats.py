@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from torchcal.analysis import gamma99, percent_decrease, point_residuals, residual_stats, stats_table
@@ -117,3 +119,15 @@ def test_grouped_stats_split_by_label():
     g = torch.tensor([1, 1, 1, 2, 2])
     out = grouped_stats(r, g)
     assert out[1].mean == pytest.approx(2.0) and out[2].max == 20.0 and out[2].count == 2
+
+
+@settings(max_examples=30, deadline=None)
+@given(shape=st.floats(0.3, 50.0), scale=st.floats(1e-6, 1e3), n=st.integers(2, 400), seed=st.integers(0, 10_000))
+def test_gamma99_equals_scipy_stats_gamma_fit(shape, scale, n, seed):
+    """The closed-form MLE (Newton on log a - digamma(a) = s) gives scipy.stats.gamma.fit(floc=0)'s quantile."""
+    from scipy import stats
+
+    x = np.random.default_rng(seed).gamma(shape, scale, size=n)
+    a, _, sc = stats.gamma.fit(x / x.mean(), floc=0)
+    ref = stats.gamma.ppf(0.99, a, loc=0, scale=sc) * x.mean()
+    assert gamma99(x) == pytest.approx(ref, rel=1e-6)

@@ -359,6 +359,10 @@ FLOPS_PER_POSE = 2e4
 updates): the size :func:`torchcal.threads.threads_for` gives threads by."""
 
 
+FUSED_MIN_POSES = 1024
+"""Batches smaller than this run on the torch ops, not the compiled kernel (see :func:`compensate`'s body)."""
+
+
 @torch.no_grad()
 def compensate(
     model,
@@ -492,7 +496,9 @@ def _compensate(
     max_correction = per_joint_bound(max_correction, n, dtype, device, "max_correction", prismatic)
     if direction is not None:
         direction = direction.to(dtype)
-    kernel = FlangeKernel(model)
+    # the compiled kernel's first call in a process costs ~0.5-0.8 s (numba loads its cached machine code and
+    # sets up LLVM), more than the torch ops take for a few thousand poses (the fit's compensation check)
+    kernel = FlangeKernel(model, fused=None if B >= FUSED_MIN_POSES else False)
     if chunk_size is None:
         chunk_size = min(max(B, 1), 262144)
     chunk_size = max(int(chunk_size), 1)

@@ -131,3 +131,15 @@ def test_gamma99_equals_scipy_stats_gamma_fit(shape, scale, n, seed):
     a, _, sc = stats.gamma.fit(x / x.mean(), floc=0)
     ref = stats.gamma.ppf(0.99, a, loc=0, scale=sc) * x.mean()
     assert gamma99(x) == pytest.approx(ref, rel=1e-6)
+
+
+def test_gamma_density_and_fit_match_scipy_stats():
+    from torchcal.gamma_fit import gamma_mle, gamma_pdf
+
+    x = np.random.default_rng(3).gamma(2.5, 0.04, size=300)
+    a, scale = gamma_mle(x)
+    a_ref, _, scale_ref = stats.gamma.fit(x, floc=0)
+    assert a == pytest.approx(a_ref, rel=1e-6) and scale == pytest.approx(scale_ref, rel=1e-6)
+    xs = np.linspace(0, 0.5, 50)
+    np.testing.assert_allclose(gamma_pdf(xs, a, scale), stats.gamma.pdf(xs, a, scale=scale), rtol=1e-10, atol=1e-300)
+    assert gamma_mle(np.full(5, 0.1)) is None

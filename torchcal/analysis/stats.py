@@ -79,26 +79,15 @@ def gamma99(residuals, quantile: float = GAMMA_QUANTILE) -> float:
     NaN for fewer than two residuals or any zero residual (the Gamma
     likelihood is zero there, so no fit exists).
     """
-    from scipy import special  # not scipy.stats: its import costs 1-3 s of every CLI run on a busy 2-core machine
+    from ..gamma_fit import gamma_mle, gamma_ppf
 
     x = _as_numpy(residuals)
     if x.size < 2 or (x <= 0).any():
         return float("nan")
-    # MLE with the location at 0, as scipy.stats.gamma.fit(x, floc=0): the shape a solves
-    # log(a) - digamma(a) = log(mean x) - mean(log x) = s (> 0 unless all x are equal), the scale is mean / a.
-    # Start from Minka's approximation, then Newton (the left side is convex and decreasing in a).
-    m = float(np.mean(x))
-    s = math.log(m) - float(np.mean(np.log(x)))
-    if not s > 1e-12:  # (numerically) identical residuals: a degenerate Gamma, all its quantiles at the value
-        return m
-    a = (3.0 - s + math.sqrt((s - 3.0) ** 2 + 24.0 * s)) / (12.0 * s)
-    for _ in range(50):
-        step = (math.log(a) - float(special.digamma(a)) - s) / (1.0 / a - float(special.polygamma(1, a)))
-        a_new = a - step
-        a = a_new if a_new > 0 else a / 2.0
-        if abs(step) <= 1e-13 * a:
-            break
-    return float(special.gammaincinv(a, quantile)) * m / a
+    fitted = gamma_mle(x)
+    if fitted is None:  # (numerically) identical residuals: a degenerate Gamma, all its quantiles at the value
+        return float(np.mean(x))
+    return gamma_ppf(quantile, *fitted)
 
 
 def _as_numpy(residuals) -> np.ndarray:

@@ -275,11 +275,12 @@ def distribution_figure(residuals, stats=None, title: str = "Residual distributi
     if stats is not None:
         out.update(mean=float(stats.mean), max=float(stats.max))
         if np.isfinite(stats.gamma99) and r.size > 1 and (r > 0).all():
-            from scipy import stats as sps
+            from ..gamma_fit import gamma_mle, gamma_pdf
 
-            a, _, scale = sps.gamma.fit(r / r.mean(), floc=0)
+            fitted = gamma_mle(r)
             xs = np.linspace(0, max(r.max(), stats.gamma99) * 1.1, 300)
-            out.update(gamma99=float(stats.gamma99), gamma_curve=(xs, sps.gamma.pdf(xs / r.mean(), a, scale=scale) / r.mean()))
+            curve = None if fitted is None else (xs, gamma_pdf(xs, *fitted))
+            out.update(gamma99=float(stats.gamma99), gamma_curve=curve)
     return out
 
 

@@ -32,6 +32,20 @@ from .kinematics.robot import ChainBuffers, Robot
 from .kinematics.transforms import twist_to_transform
 
 
+def joint_series(je: JointErrors, u: torch.Tensor):
+    """Joint errors' Chebyshev series (23) at error variables u (B, n), with their derivatives.
+
+    -> basis, dbasis (B, n, max(K, Kb)) (d/du), e, de (B, n, 6) (the terms without backlash and
+    their slopes), K, Kb (coefficients per term and per backlash series).
+    """
+    K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
+    basis, dbasis = chebyshev_design(je.normalized(u), max(K, Kb), 2.0 / (je.ranges[:, 1] - je.ranges[:, 0]))
+    coef = je.coef * je.mask
+    e = torch.einsum("bnk,ntk->bnt", basis[..., :K], coef)
+    de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
+    return basis, dbasis, e, de, K, Kb
+
+
 class RobotModel(ChainBuffers, nn.Module):
     """Paper II's generalized kinematic error model (19)-(27) for one robot.
 
@@ -179,13 +193,7 @@ class RobotModel(ChainBuffers, nn.Module):
         """Forward pass keeping what the closed-form Jacobians need."""
         je = self.joint_errors
         theta, u, comp = self._variables(q, v)
-        lam = je.normalized(u)
-        K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
-        scale = 2.0 / (je.ranges[:, 1] - je.ranges[:, 0])
-        basis, dbasis = chebyshev_design(lam, max(K, Kb), scale)
-        coef = je.coef * je.mask
-        e = torch.einsum("bnk,ntk->bnt", basis[..., :K], coef)
-        de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
+        basis, dbasis, e, de, K, Kb = joint_series(je, u)
         s = None
         if je.has_backlash and direction is not None:
             s = direction.to(u)

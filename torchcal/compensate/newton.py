@@ -448,12 +448,10 @@ def compensate(
         >>> bool(res.converged[0]), float(res.correction[0]) < 0.01
         (True, True)
     """
-    with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):
-        return _compensate(model, q_nom, direction, tol, max_iter, damping, chunk_size,
-                           max_damped_iter=max_damped_iter, contraction=contraction, length=length,
-                           residual_tol=residual_tol, sigma=sigma, broyden=broyden, refresh=refresh,
-                           refresh_model=refresh_model, max_step=max_step, max_correction=max_correction,
-                           null_damping=null_damping)
+    with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.threads)
+        return _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction,
+                      length, residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction,
+                      null_damping)
 
 
 def _chunks(count: int, chunk_size: int, name: str):
@@ -465,28 +463,9 @@ def _chunks(count: int, chunk_size: int, name: str):
 
 
 @torch.no_grad()
-def _compensate(
-    model,
-    q_nom: torch.Tensor,
-    direction: torch.Tensor | None = None,
-    tol: float = 1e-10,
-    max_iter: int = 30,
-    damping: float = 1e-5,
-    chunk_size: int | None = None,
-    *,
-    max_damped_iter: int = 50,
-    contraction: float = 0.5,
-    length: float = 1.0,
-    residual_tol: float = 1e-12,
-    sigma: bool = False,
-    broyden: bool = True,
-    refresh: int = 2,
-    refresh_model: bool = True,
-    max_step: float | torch.Tensor | str | None = DEFAULT_BOUND,
-    max_correction: float | torch.Tensor | str | None = DEFAULT_BOUND,
-    null_damping: float = 1e-3,
-) -> CompensationResult:
-    """:func:`compensate` on the calling thread count."""
+def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length,
+           residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction, null_damping):
+    """:func:`compensate`'s work, on the calling thread count."""
     _check_inputs(model, q_nom, direction)
     dtype, device = model.dtype, model.device
     q_nom = q_nom.to(dtype)

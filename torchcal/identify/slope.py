@@ -337,8 +337,8 @@ def _robot_parts(model, context: dict) -> dict:
     The same operations in the same order as :meth:`RobotModel._variables` and :meth:`RobotModel._parts`
     (tests hold the two to bitwise equality); no backlash (direction unknown), no base frame.
     """
-    from ..jacobian import chebyshev_design
     from ..kinematics.transforms import twist_to_transform
+    from ..model import joint_series
 
     theta, u, comp = context["theta"], context["u"], context["comp"]
     if comp is not None:
@@ -349,14 +349,7 @@ def _robot_parts(model, context: dict) -> dict:
         dfine = model.fine(context["theta"])
         theta = theta + dfine
         u = u + dfine * model.error_follows_joint
-    je = model.joint_errors
-    lam = je.normalized(u)
-    K, Kb = je.coef.shape[-1], je.backlash.shape[-1]
-    scale = 2.0 / (je.ranges[:, 1] - je.ranges[:, 0])
-    basis, dbasis = chebyshev_design(lam, max(K, Kb), scale)
-    coef = je.coef * je.mask
-    e = torch.einsum("bnk,ntk->bnt", basis[..., :K], coef)
-    de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
+    basis, dbasis, e, de, K, Kb = joint_series(model.joint_errors, u)
     jR, jp, F = chain_frames(model.origins, model.axes, model.prismatic, theta, twist_to_transform(e), model.tip, None)
     return dict(theta=theta, basis=basis, e=e, de=de, s=None, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp)
 

@@ -96,7 +96,8 @@ def test_search_chooses_what_refitting_every_candidate_chooses(case):
 
     args = (case["make"], case["data"], None, case["noise"], Prior())
     fast = select_orders(*args, candidates=[1, 2, 3, 4], joint_window=1)
-    slow = _select_orders_refit(*args, candidates=[1, 2, 3, 4], joint_window=1)
+    # select_orders' own defaults for the rest: folds 0, seed 0, per joint, 2 passes, margin 1, no progress
+    slow = _select_orders_refit(*args, [1, 2, 3, 4], 0, 0, True, 2, 1, 1.0, None)
     assert fast.orders == slow.orders
     assert abs(fast.score / slow.score - 1) < 3e-3
 

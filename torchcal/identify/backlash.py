@@ -24,7 +24,7 @@ from ..error_models.joint import DEFAULT_BACKLASH_ORDER
 from ..measurements import Measurements
 from ..progress import task
 from .candidates import StructureSearch
-from .order import OrderSelection, held_out_errors, paired_improvement
+from .order import OrderSelection, SearchScores, held_out_errors, paired_improvement
 from .problem import NoiseModel, Prior
 
 
@@ -118,7 +118,6 @@ def select_backlash_orders(
                                       margin, folds, seed, progress, **fit_options)
     pose = (validation if validation is not None else data).pose
     table: list[dict] = []
-    seen: set = set()
     top = max(candidates)
     with task("choosing backlash orders: first fit", total=None) as t:
         search = StructureSearch(lambda: make_model(orders, [top] * n), lambda k: make_model(orders, list(k)), data,
@@ -126,20 +125,8 @@ def select_backlash_orders(
                                  validation_instrument=validation_instrument)
         t.advance()
 
-    def scores(keys, stage):
-        """Errors of ``keys`` in the current linearization; each (epoch, key) goes into the table once."""
-        errs = search.errors(keys)
-        for k in keys:
-            if (search.epoch, k) not in seen:
-                seen.add((search.epoch, k))
-                table.append({"orders": list(k), "score": float(errs[k].mean()), "stage": stage, "epoch": search.epoch})
-                if progress is not None:
-                    progress(f"{stage}: backlash orders {list(k)} -> {table[-1]['score'] * 1e3:.4f} mm")
-        return errs
-
-    def better(errs, trial, incumbent) -> bool:
-        gain, se = paired_improvement(errs[incumbent], errs[trial], pose)
-        return gain > margin * se
+    scores = SearchScores(search, table, pose, margin, progress, "backlash orders")
+    better = scores.better
 
     best = (int(start),) * n
     uniform = [(m,) * n for m in candidates]

@@ -182,6 +182,35 @@ def paired_improvement(err_a: torch.Tensor, err_b: torch.Tensor, pose: torch.Ten
     return float(d.mean()), float(d.std() / N**0.5) if N > 1 else float("inf")
 
 
+class SearchScores:
+    """Scores of structures in a :class:`StructureSearch`'s current linearization, for a coordinate search.
+
+    Calling it with keys and a stage name gives their held-out errors; each
+    (epoch, key) goes into ``table`` (and to ``progress``) once. ``better``:
+    a trial beats the incumbent by more than ``margin`` standard errors of the
+    paired per-pose improvement.
+    """
+
+    def __init__(self, search, table: list, pose: torch.Tensor, margin: float, progress, what: str):
+        self.search, self.table, self.pose, self.margin, self.progress, self.what = search, table, pose, margin, progress, what
+        self.seen: set = set()
+
+    def __call__(self, keys, stage: str) -> dict:
+        search = self.search
+        errs = search.errors(keys)
+        for k in keys:
+            if (search.epoch, k) not in self.seen:
+                self.seen.add((search.epoch, k))
+                self.table.append({"orders": list(k), "score": float(errs[k].mean()), "stage": stage, "epoch": search.epoch})
+                if self.progress is not None:
+                    self.progress(f"{stage}: {self.what} {list(k)} -> {self.table[-1]['score'] * 1e3:.4f} mm")
+        return errs
+
+    def better(self, errs, trial, incumbent) -> bool:
+        gain, se = paired_improvement(errs[incumbent], errs[trial], self.pose)
+        return gain > self.margin * se
+
+
 def select_orders(
     make_model: Callable[[Sequence[int]], torch.nn.Module],
     data: Measurements,
@@ -236,7 +265,6 @@ def select_orders(
         noise = resolve_noise(make_model([candidates[0]] * n), None)
     pose = (validation if validation is not None else data).pose
     table: list[dict] = []
-    seen: set = set()
     uniform = [(m,) * n for m in candidates]
     with task("choosing orders: first fit", total=None) as t:
         center = uniform[len(uniform) // 2]
@@ -244,20 +272,8 @@ def select_orders(
                                  fit_options, center=center, validation_instrument=validation_instrument)
         t.advance()
 
-    def scores(keys, stage):
-        """Errors of ``keys`` in the current linearization; each (epoch, key) goes into the table once."""
-        errs = search.errors(keys)
-        for k in keys:
-            if (search.epoch, k) not in seen:
-                seen.add((search.epoch, k))
-                table.append({"orders": list(k), "score": float(errs[k].mean()), "stage": stage, "epoch": search.epoch})
-                if progress is not None:
-                    progress(f"{stage}: orders {list(k)} -> {table[-1]['score'] * 1e3:.4f} mm")
-        return errs
-
-    def better(errs, trial, incumbent) -> bool:
-        gain, se = paired_improvement(errs[incumbent], errs[trial], pose)
-        return gain > margin * se
+    scores = SearchScores(search, table, pose, margin, progress, "orders")
+    better = scores.better
 
     with task("choosing orders: uniform candidates", total=len(uniform)) as t:
         errs = scores(uniform, "uniform")
@@ -299,22 +315,8 @@ def select_orders(
     return OrderSelection(orders=list(best), score=best_score, criterion=criterion, table=table, fitted=search.superset)
 
 
-def _select_orders_refit(
-    make_model: Callable[[Sequence[int]], torch.nn.Module],
-    data: Measurements,
-    validation: Measurements | None = None,
-    noise: NoiseModel | None = None,
-    prior: Prior | None = Prior(),
-    candidates: Iterable[int] = range(0, 11),
-    folds: int = 0,
-    seed: int = 0,
-    per_joint: bool = True,
-    max_passes: int = 2,
-    joint_window: int | None = None,
-    margin: float = 1.0,
-    progress: Callable[[str], None] | None = None,
-    **fit_options,
-) -> OrderSelection:
+def _select_orders_refit(make_model, data, validation, noise, prior, candidates, folds, seed, per_joint, max_passes,
+                         joint_window, margin, progress, **fit_options) -> OrderSelection:
     """:func:`select_orders` by refitting every candidate: the K-fold cross-validation criterion (K fits a trial)."""
     candidates = sorted(set(int(c) for c in candidates))
     if noise is None:

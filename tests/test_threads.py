@@ -83,7 +83,8 @@ def test_fused_kernel_is_loaded_from_numba_cache_in_a_new_process():
         pytest.skip("numba not available")
     code = """
         import torch, torchcal
-        from torchcal.compensate import compensate, fused
+        from torchcal.compensate import compensate, fused, newton
+        newton.FUSED_MIN_POSES = 0  # a handful of poses would run on the torch ops
         robot = torchcal.load_robot("fanuc_lrmate200i")
         model = torchcal.RobotModel(robot, torch.zeros(1, 3, dtype=torch.float64), orders=1, backlash=True)
         q = torch.zeros(4, 6, dtype=torch.float64) + 0.3

@@ -290,3 +290,28 @@ def test_compensation_of_a_model_with_gravity_compliance(fanuc, tools_m):
     other = compensate(rigid, q, s)
     both = c & other.converged
     assert (res.q - other.q)[both].norm(dim=-1).median() > 1e-4
+
+
+def test_small_batches_on_the_torch_ops_agree_with_the_compiled_kernel(monkeypatch):
+    """Under FUSED_MIN_POSES poses compensate skips the numba kernel (its first call costs ~0.5 s per process):
+    the same commands either way."""
+    import torchcal
+    from torchcal.compensate import fused, newton
+
+    if not fused.HAVE_NUMBA:
+        pytest.skip("numba not available")
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    model = torchcal.RobotModel(robot, torch.zeros(1, 3, dtype=torch.float64), orders=3, backlash=True)
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        model.joint_errors.coef.normal_(0.0, 2e-4, generator=g)
+    lim = robot.joint_map.limits
+    q = lim[:, 0] + 0.1 + torch.rand(300, 6, generator=g, dtype=torch.float64) * (lim[:, 1] - lim[:, 0] - 0.2)
+    s = torch.where(torch.rand(300, 6, generator=g) < 0.5, -1.0, 1.0).to(q)
+    assert q.shape[0] < newton.FUSED_MIN_POSES
+    small = torchcal.compensate(model, q, s)
+    monkeypatch.setattr(newton, "FUSED_MIN_POSES", 0)
+    compiled = torchcal.compensate(model, q, s)
+    assert torch.equal(small.converged, compiled.converged)
+    ok = small.converged
+    assert (small.q[ok] - compiled.q[ok]).abs().max() < 1e-9

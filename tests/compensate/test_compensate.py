@@ -315,3 +315,15 @@ def test_small_batches_on_the_torch_ops_agree_with_the_compiled_kernel(monkeypat
     assert torch.equal(small.converged, compiled.converged)
     ok = small.converged
     assert (small.q[ok] - compiled.q[ok]).abs().max() < 1e-9
+
+
+def test_a_model_without_joint_errors_is_refused_by_name():
+    """A machine-tool model has no Newton compensation here: a TypeError naming it and the tables, not an
+    AttributeError from deep inside."""
+    import torchcal
+    from torchcal.machine import MachineModel
+
+    model = MachineModel(torchcal.load_robot("five_axis_xyzcb"), torch.tensor([[0.0, 0.0, 0.4]], dtype=torch.float64),
+                         orders=2)
+    with pytest.raises(TypeError, match="MachineModel.*export-tables"):
+        torchcal.compensate(model, torch.zeros(3, model.n, dtype=torch.float64))

@@ -25,45 +25,31 @@ def _project_out(r: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
     return r
 
 
-def _greedy_columns(Bt: torch.Tensor, keep: torch.Tensor, rtol: float) -> torch.Tensor:
-    """The greedy test column by column: Bt (P, n) unit columns of B as rows, in priority order; keep (M, P).
+def _greedy(Bt: torch.Tensor, keep: torch.Tensor, rtol: float, candidates: torch.Tensor | None = None) -> torch.Tensor:
+    """The greedy test: Bt (P, n) unit columns as rows, in priority order; keep (M, P) bool, M column subsets.
 
     Column j of subset m is dependent when less than ``rtol`` of it is new
     against the kept, independent columns before it (classical Gram-Schmidt
     twice). A plain Householder QR cannot stand in: a dependent (or masked
     out, zero) column still takes a reflector that uses up a dimension, and
     later columns lose their component along it (on 126 x 99 it pinned 7
-    independent columns). -> (M, P) bool.
-    """
-    P, n = Bt.shape
-    M = keep.shape[0]
-    Q = Bt.new_zeros(M, P, n)  # row j: the new direction of column j, zero where dependent / not kept
-    dependent = torch.zeros(M, P, dtype=torch.bool, device=Bt.device)
-    for j in range(P):
-        r = _project_out(Bt[j].expand(M, 1, n), Q[:, :j])[:, 0]
-        nr = r.norm(dim=1)
-        dep = nr < rtol
-        dependent[:, j] = keep[:, j] & dep
-        Q[:, j] = torch.where((keep[:, j] & ~dep)[:, None], r / nr.clamp(min=1e-300)[:, None], 0.0)
-    return dependent
+    independent columns).
 
-
-def _greedy_subsets(Bt: torch.Tensor, keep: torch.Tensor, rtol: float, candidates: torch.Tensor) -> torch.Tensor:
-    """:func:`_greedy_columns` for subsets of a column set whose own dependent columns are ``candidates`` (P,).
-
-    Dropping columns only shrinks the span before any column, so a column
-    independent in the full set is independent in every subset: only the
-    candidates need a test. The runs of columns between them go through one
-    batched QR each (compacted per subset, so that no zero column takes a
-    reflector before a real one), each candidate through Gram-Schmidt
-    against everything kept before it. -> (M, P) bool.
+    candidates: (P,) bool, the columns that can be dependent at all (None:
+    every column). Subsets of a set whose own dependent columns are known
+    pass those: dropping columns only shrinks the span before any column,
+    so a column independent in the full set is independent in every subset.
+    The runs of columns between candidates then go through one batched QR
+    each (compacted per subset, so that no zero column takes a reflector
+    before a real one), each candidate through Gram-Schmidt against
+    everything kept before it. -> (M, P) bool.
     """
     P, n = Bt.shape
     M = keep.shape[0]
     dependent = torch.zeros(M, P, dtype=torch.bool, device=Bt.device)
     Q = Bt.new_zeros(M, P, n)  # filled up to K rows: the directions kept so far (zero rows where none)
     K = 0
-    marks = candidates.nonzero()[:, 0].tolist() + [P]
+    marks = (list(range(P)) if candidates is None else candidates.nonzero()[:, 0].tolist()) + [P]
     s = 0
     for c in marks:
         if c > s:  # columns s..c-1: independent wherever kept
@@ -112,8 +98,8 @@ def dependent_columns(A: torch.Tensor, order: torch.Tensor | None = None, rtol: 
     dependent = torch.zeros(P, dtype=torch.bool)
     if P == 0:
         return dependent
-    Bt, zero = _unit_columns_in_order(A, order)
-    dependent[order] = _greedy_columns(Bt, torch.ones(1, P, dtype=torch.bool, device=Bt.device), rtol)[0].cpu()
+    _, order, zero, full = gauge_basis(A, order, rtol)
+    dependent[order] = full.cpu()
     return dependent | zero.cpu()
 
 
@@ -124,7 +110,7 @@ def gauge_basis(A: torch.Tensor, order: torch.Tensor | None = None, rtol: float 
     P = A.shape[1]
     order = torch.arange(P) if order is None else order.cpu()
     Bt, zero = _unit_columns_in_order(A, order)
-    full = _greedy_columns(Bt, torch.ones(1, P, dtype=torch.bool, device=Bt.device), rtol)[0]
+    full = _greedy(Bt, torch.ones(1, P, dtype=torch.bool, device=Bt.device), rtol)[0]
     return Bt, order, zero, full
 
 
@@ -142,7 +128,7 @@ def dependent_columns_masked(basis, keep: torch.Tensor, rtol: float = 1e-7, chun
     kp = keep[:, order.to(keep.device)].to(Bt.device)
     out = torch.zeros(M, P, dtype=torch.bool)
     for c0 in range(0, M, chunk):
-        out[c0:c0 + chunk, order] = _greedy_subsets(Bt, kp[c0:c0 + chunk], rtol, full).cpu()
+        out[c0:c0 + chunk, order] = _greedy(Bt, kp[c0:c0 + chunk], rtol, full).cpu()
     return (out.to(keep.device) & keep) | (keep & zero[None, :].to(keep.device))
 
 

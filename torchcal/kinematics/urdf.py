@@ -142,8 +142,9 @@ def _validate_urdf(xml: str) -> list[str]:
     return problems
 
 
-def _check_well_formed(xml: str, label: str) -> None:
-    """A strict XML parse first: the URDF parsers recover from a truncated file and fail later with a TypeError."""
+def _check_well_formed(xml: str, label: str):
+    """A strict XML parse first: the URDF parsers recover from a truncated file and fail later with a TypeError.
+    -> the parsed root element."""
     import xml.etree.ElementTree as ET
 
     try:
@@ -163,6 +164,7 @@ def _check_well_formed(xml: str, label: str) -> None:
                 missing.append(f"{owner.tag} '{owner.get('name')}': <{el.tag}> has no {', '.join(lack)}")
     if missing:
         raise URDFError(f"{label}: incomplete URDF (a line cut or deleted?): " + "; ".join(missing))
+    return root
 
 
 _REQUIRED_ATTRIBUTES = {"joint": ("name", "type"), "link": ("name",), "parent": ("link",), "child": ("link",),
@@ -170,14 +172,8 @@ _REQUIRED_ATTRIBUTES = {"joint": ("name", "type"), "link": ("name",), "parent": 
 """Attributes the URDF spec requires and the parsers dereference without checking (a TypeError otherwise)."""
 
 
-def _joints_without_axis(xml: str) -> set[str]:
-    """Names of the joints that have no <axis> element (URDF default: x)."""
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.fromstring(xml.encode() if isinstance(xml, str) else xml)
-    except ET.ParseError:
-        return set()
+def _joints_without_axis(root) -> set[str]:
+    """Names of the joints of the parsed URDF ``root`` that have no <axis> element (URDF default: x)."""
     return {j.get("name") for j in root.iter("joint") if j.find("axis") is None}
 
 
@@ -197,7 +193,7 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
     URDF = urdf_parser().URDF
 
     xml, label = _read(source)
-    _check_well_formed(xml, label)
+    tree = _check_well_formed(xml, label)
     problems = validate_urdf(xml, label)
     if problems:
         raise URDFError(f"{label}: URDF failed validation:\n  " + "\n  ".join(problems))
@@ -243,7 +239,7 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
         if len(path) > len(robot.joints):
             raise URDFError(f"{label}: kinematic loop through joint '{joint.name}'")
     path.reverse()
-    no_axis = _joints_without_axis(xml)
+    no_axis = _joints_without_axis(tree)
     for joint in path:
         if joint.name in no_axis and joint.type != "fixed":
             # legal URDF, but often a mistake: the pipeline warns again if the nominal residual is implausible

@@ -716,17 +716,17 @@ def _run_stages(cfg, console, plotter) -> RunResult:
             plot_folder = run_dir / "plots"
             if plotter is not None:
                 _submit_plots(plotter, plot_folder, model=model)
-            with progress.step("checking what the data determine", quiet=True):
-                diagnostics = check_data(cfg, inp, model, make, orders, result, progress)
+            # the figures' data first (evaluation, compensation check), the diagnostics last: the plot worker
+            # draws while this process checks the data, rather than alone at the end
             with progress.step("evaluating the residuals", quiet=True):
                 sets, evaluations, table = evaluate_sets(inp, model, progress)
+            if plotter is not None:
+                _submit_plots(plotter, plot_folder, evaluations=evaluations)
             metrics = fit_metrics(orders, selection, result, alignment, sets, evaluations, table)
-            metrics["data_checks"] = diagnostics
+            metrics["data_checks"] = None
             metrics["constraint"] = constraint
             metrics["warnings"] = progress.warnings
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
-            if plotter is not None:
-                _submit_plots(plotter, plot_folder, evaluations=evaluations)
             files["residuals"] = _write_residuals(run_dir / "residuals.csv", sets, evaluations)
             comp_table, comp = None, None
             if inp.truth is not None:
@@ -734,6 +734,10 @@ def _run_stages(cfg, console, plotter) -> RunResult:
                 files["metrics"] = write_json(run_dir / "metrics.json", metrics)
                 if plotter is not None:
                     _submit_plots(plotter, plot_folder, comp=comp)
+            with progress.step("checking what the data determine", quiet=True):
+                metrics["data_checks"] = check_data(cfg, inp, model, make, orders, result, progress)
+            metrics["warnings"] = progress.warnings
+            files["metrics"] = write_json(run_dir / "metrics.json", metrics)
             if plotter is not None:
                 with progress.step("plotting") as p:  # waits for the figures drawn meanwhile
                     files.update(plotter.finish(p.task))

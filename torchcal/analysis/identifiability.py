@@ -306,9 +306,13 @@ def identifiability(
     P = layout.size
     names = layout.names()
 
-    sv = torch.linalg.svdvals(Ared)
+    # Ared = Q R with orthonormal Q: R (P, P) has Ared's singular values and right vectors, and so has every
+    # matrix below with Ared replaced by R (the prior rows, the column scaling act on the right); one QR of the
+    # tall matrix instead of three SVDs of it
+    Rq = torch.linalg.qr(Ared, mode="r")[1] if Ared.shape[0] > P else Ared
+    sv = torch.linalg.svdvals(Rq)
     prior_rows = torch.diag(prior_precision.sqrt())
-    _, sp, Vh = torch.linalg.svd(torch.cat([Ared, prior_rows]), full_matrices=False)
+    _, sp, Vh = torch.linalg.svd(torch.cat([Rq, prior_rows]), full_matrices=False)
     inv = torch.where(sp > sp[0] * 1e-15, 1.0 / sp.clamp(min=1e-300) ** 2, torch.zeros_like(sp))
     cov = (Vh.T * inv) @ Vh
     std = torch.diagonal(cov).clamp(min=0).sqrt()
@@ -316,7 +320,7 @@ def identifiability(
 
     # undetermined combinations: equilibrated (unit-invariant) data-only Jacobian
     scale = Ared.norm(dim=0)
-    _, se, Vhe = torch.linalg.svd(Ared / scale.clamp(min=1e-300), full_matrices=False)
+    _, se, Vhe = torch.linalg.svd(Rq / scale.clamp(min=1e-300), full_matrices=False)
     rel = se / se[0] if float(se[0]) > 0 else se
     combos = []
     for k in reversed((rel < rtol).nonzero()[:, 0].tolist()):  # least determined first

@@ -24,7 +24,6 @@ from __future__ import annotations
 import torch
 
 from ..kinematics.transforms import skew
-from . import fused as _fused
 
 
 def _rot_mul(R: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
@@ -135,6 +134,11 @@ class FlangeKernel:
             self.tipR, self.tipp = tip[:3, :3].clone(), tip[:3, 3].clone()
             base = model.base.correction().detach()
             self.baseR, self.basep = base[:3, :3].clone(), base[:3, 3].clone()
+        self.fused = None
+        if fused is False:  # numba's import (0.2-0.8 s of a CLI run) only where its kernel may run
+            return
+        from . import fused as _fused
+
         if fused and (not _fused.available(self.device, self.dtype) or self.model is not None):
             raise ValueError(f"FlangeKernel: the fused kernel needs numba, the CPU, float64 and no gravity compliance "
                              f"(numba {'found' if _fused.HAVE_NUMBA else 'missing'}, {self.device}, {self.dtype}, "

@@ -33,6 +33,7 @@ from ..threads import threads_for_work
 from .candidates import structure_mask
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .layout import copy_overlap
+from .lm import MU0
 from .problem import CalibrationProblem, NoiseModel, Prior, _prefixed
 from .result import FitResult
 
@@ -258,7 +259,7 @@ def _schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
 
 def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, noise: NoiseModel | Sequence | None = None,
               prior: Prior | None = Prior(), rows: torch.Tensor | None = None, fixed=(), gauge: bool = True,
-              max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-10, mu0: float = 1e-4, chunk: int = 8) -> BatchedFitResult:
+              max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-10, mu0: float = MU0, chunk: int = 8) -> BatchedFitResult:
     """Fit M models of one machine in one batched Levenberg-Marquardt solve; each model is updated in place.
 
     superset: a model of the same factory carrying every term any model carries

@@ -78,17 +78,24 @@ def _blocks(problem: CalibrationProblem, x: torch.Tensor):
     return block_normal_equations(problem.blocks, x, problem.layout)
 
 
+MU0 = 1e-8
+"""Levenberg-Marquardt's first damping, relative to the diagonal (Marquardt's scaling). The problem is close to
+linear and the prior keeps it positive definite, so undamped Gauss-Newton steps are what it wants; 1e-4 (the
+textbook start) damped the near-redundant combinations the prior holds, and a FANUC order-6 fit took 25 iterations
+instead of 7 to reach the same optimum (a rejected first step raises the damping at once)."""
+
+
 def levenberg_marquardt(
     problem: CalibrationProblem,
     max_iter: int = 100,
     ftol: float = 1e-8,
     xtol: float = 1e-10,
-    mu0: float = 1e-4,
+    mu0: float = MU0,
     callback=None,
 ) -> FitResult:
     """Minimize V of ``problem`` from the model's current values.
 
-    ftol: stop when an accepted step lowers V by less than ftol * V and the
+    mu0: the first damping (:data:`MU0`). ftol: stop when an accepted step lowers V by less than ftol * V and the
     Gauss-Newton model predicts no more; xtol: or when every parameter moves by
     less than xtol of its own scale. callback(it, cost) is called per iteration.
     """

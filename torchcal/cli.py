@@ -297,6 +297,38 @@ def sweep_cmd(
     typer.echo(f"run directory: {result.run_dir}")
 
 
+# ----------------------------------------------------------------------- fleet
+@app.command("fleet")
+def fleet_cmd(
+    config: Annotated[Path, typer.Argument(help="YAML config of one robot type whose data.identification is a folder "
+                                                "with one CSV per unit (data.validation: a folder of the same names).")],
+    overrides: Annotated[Optional[list[str]], typer.Argument(
+        help="Dotted overrides, e.g. fleet.engine=ray fleet.cell=25 model.order=4.")] = None,
+    out: Annotated[Optional[Path], typer.Option("--out", help="Run directory (default: 'fleets' beside the config's out).")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+):
+    """Fit every unit of a fleet in batched solves: a run directory per unit, a summary, outliers flagged."""
+    with _user_errors():
+        from .app.fleet import run_fleet
+
+        console = None if quiet else _console(stderr=True)
+        with _progress(console):
+            result = run_fleet(config, overrides or [], out=out, console=console)
+    t = Table(title=f"Fleet: {len(result.rows)} units ({result.time:.1f} s, solve {result.solve_time:.1f} s)")
+    cols = ["unit", "status", "converged", "identification_mean_mm", "validation_mean_mm", "validation_max_mm",
+            "outlier_score", "findings", "reason"]
+    cols = [c for c in cols if any(r.get(c) not in (None, "") for r in result.rows)]
+    for c in cols:
+        t.add_column(c.replace("_mm", " (mm)").replace("_", " "), justify="left" if c in ("unit", "findings", "reason") else "right")
+    for r in result.rows:
+        t.add_row(*[f"{r[c]:.4f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
+    _console().print(t)
+    failed = [r["unit"] for r in result.rows if r["status"] == "failed"]
+    if failed:
+        _console().print(f"warning: {len(failed)} unit(s) not fitted: {', '.join(failed)} (summary.csv: reason)", markup=False)
+    typer.echo(f"run directory: {result.run_dir}")
+
+
 # --------------------------------------------------------------------- predict
 @app.command("predict")
 def predict_cmd(

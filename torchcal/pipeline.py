@@ -298,23 +298,7 @@ def load_inputs(cfg) -> FitInputs:
     torch.manual_seed(int(cfg.seed))
     T = config_tool_count(cfg)
     noise = config_noise(cfg, robot, label)
-    with _collect_warnings(notes):
-        ident = read_measurements(cfg.data.identification, robot, T).to(device)
-        val = read_measurements(cfg.data.validation, robot, T).to(device) if cfg.data.validation else None
-    if cfg.data.get("n_poses") is not None:
-        ident = first_poses(ident, int(cfg.data.n_poses), label)
-    if not cfg.data.get("units_checked", False):
-        from .io.unit_checks import check_point_scale, radian_columns, radian_message
-
-        for d in (ident, val):
-            if d is None:
-                continue
-            rad = radian_columns(d.q, robot)
-            if rad:
-                notes.append(radian_message(d.source, d.q, robot, rad)
-                             + "; set data.units_checked=true if they really are degrees")
-                continue  # the nominal points of radians read as degrees say nothing about the points' unit
-            check_point_scale(d, robot, config_tools(cfg))
+    ident, val = read_sets(cfg, robot, T, cfg.data.identification, cfg.data.validation, notes, device, label)
     if cfg.model.kind == "axis_perturbation":
         for key, bad, why in (("model.order", isinstance(cfg.model.order, str) and int(cfg.model.folds) > 0,
                                "auto on a machine tool chooses by leave-one-pose-out or the validation set "
@@ -334,6 +318,30 @@ def load_inputs(cfg) -> FitInputs:
             raise ConfigError(f"{label}: key 'data.truth': the compensation check runs on the validation set; set data.validation")
     return FitInputs(robot, T, noise, joint_variance_source(cfg, robot), config_prior(cfg), solver_options(cfg),
                      ident, val, truth, device, label, notes)
+
+
+def read_sets(cfg, robot, T: int, identification, validation, notes: list[str], device, label: str = "config"):
+    """The identification and (optional) validation files of a config -> (ident, val or None) on ``device``,
+    with ``data.n_poses`` applied and the unit-slip checks (unless ``data.units_checked``); warnings go to
+    ``notes``. Raises DataError naming the file, row and column."""
+    with _collect_warnings(notes):
+        ident = read_measurements(identification, robot, T).to(device)
+        val = read_measurements(validation, robot, T).to(device) if validation else None
+    if cfg.data.get("n_poses") is not None:
+        ident = first_poses(ident, int(cfg.data.n_poses), label)
+    if not cfg.data.get("units_checked", False):
+        from .io.unit_checks import check_point_scale, radian_columns, radian_message
+
+        for d in (ident, val):
+            if d is None:
+                continue
+            rad = radian_columns(d.q, robot)
+            if rad:
+                notes.append(radian_message(d.source, d.q, robot, rad)
+                             + "; set data.units_checked=true if they really are degrees")
+                continue  # the nominal points of radians read as degrees say nothing about the points' unit
+            check_point_scale(d, robot, config_tools(cfg))
+    return ident, val
 
 
 def align_inputs(cfg, inp: FitInputs):
@@ -955,6 +963,7 @@ __all__ = [
     "evaluate",
     "model_factory",
     "predict_file",
+    "read_sets",
     "run_fit",
     "solver_options",
     "table6",

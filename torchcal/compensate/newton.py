@@ -364,6 +364,11 @@ updates): the size :func:`torchcal.threads.threads_for` gives threads by."""
 
 
 FUSED_MIN_POSES = 1024
+
+FLOAT32_TOL = 1e-5
+FLOAT32_RESIDUAL_TOL = 1e-6
+"""The least ``tol`` / ``residual_tol`` used for float32 commands (float64's defaults are below float32's
+resolution)."""
 """Batches smaller than this run on the torch ops, not the compiled kernel (see :func:`compensate`'s body)."""
 
 
@@ -452,6 +457,10 @@ def compensate(
         >>> bool(res.converged[0]), float(res.correction[0]) < 0.01
         (True, True)
     """
+    if q_nom.dtype == torch.float32:
+        # float32 (a GPU's fast path) carries ~1e-7 of a metre: the float64 tolerances cannot be met, so every row
+        # would be flagged; these are the float32 floor (measured: commands within ~1e-5 rad of float64's)
+        tol, residual_tol = max(tol, FLOAT32_TOL), max(residual_tol, FLOAT32_RESIDUAL_TOL)
     with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.threads)
         return _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction,
                       length, residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction,

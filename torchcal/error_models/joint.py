@@ -162,7 +162,10 @@ class JointErrors(nn.Module):
         sigma = torch.tensor([1e-2 if k == ANGLE else 1e-3 for k in kinds], dtype=torch.float64)
         nb = self.backlash.numel()
         k = torch.arange(self.backlash.shape[1]).expand_as(self.backlash).flatten()
-        bl_sigma = torch.where(k == 0, BACKLASH_SIGMA, BACKLASH_VARIATION_SIGMA).to(torch.float64)
+        # float64 from the start: python scalars in torch.where take the default dtype (float32 unless a user
+        # changed it), which rounded these sigmas and made a fit depend on torch.get_default_dtype()
+        bl_sigma = torch.where(k == 0, torch.tensor(BACKLASH_SIGMA, dtype=torch.float64),
+                               torch.tensor(BACKLASH_VARIATION_SIGMA, dtype=torch.float64))
         return [
             ParamGroup(f"{prefix}.coef", "joint", coef_names, kinds, sigma, self.mask.expand_as(self.coef).clone()),
             ParamGroup(f"{prefix}.backlash", "backlash", bl_names, [ANGLE] * nb, bl_sigma, self.backlash_mask.clone()),

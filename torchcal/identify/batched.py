@@ -287,6 +287,21 @@ def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, n
     """
     t0 = time.perf_counter()
     bp = BatchedProblem(superset, models, data, noise, prior, rows, fixed, gauge)
+    return solve_batched(bp, max_iter, ftol, xtol, mu0, chunk, t0=t0)
+
+
+def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-10, mu0: float = MU0,
+                  chunk: int = 8, label: str = "fitting models together", t0: float | None = None) -> BatchedFitResult:
+    """Levenberg-Marquardt on every model of ``bp`` at once, each with its own damping and convergence; writes
+    the solutions into ``bp.models``. -> :class:`BatchedFitResult`.
+
+    bp: a :class:`BatchedProblem` (models sharing the data) or anything with its surface
+    (``M, R, n, d, layout, models, keep, w_v, lam, mean``, ``start()``, ``write(X)``,
+    ``linearize(X, V, which)``, ``cost_from(f, X, V, which)``), e.g. a fleet's units each with
+    their own data (:class:`torchcal.identify.fleet.FleetProblem`).
+    """
+    t0 = time.perf_counter() if t0 is None else t0
+    models = bp.models
     M, R, n, P = bp.M, bp.R, bp.n, bp.layout.size
     X = bp.start()
     V = torch.zeros(M, R, n, dtype=X.dtype, device=X.device)
@@ -304,7 +319,7 @@ def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, n
         out = [bp.linearize(Xw[c:c + chunk], Vw[c:c + chunk], which[c:c + chunk]) for c in range(0, which.numel(), chunk)]
         return tuple(torch.cat(t) for t in zip(*out))
 
-    with threads_for_work(work), task("fitting models together", total=M) as bar:
+    with threads_for_work(work), task(label, total=M) as bar:
         f, A, C = lin_chunks(idx_all, X, V)
         cost = bp.cost_from(f, X, V, idx_all)
         for m in range(M):

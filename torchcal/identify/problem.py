@@ -116,7 +116,9 @@ class Prior:
     ~1e-6): the data cannot place the model along them, the prior does. The
     defaults are ~1e-5 of the data's information on well-determined
     combinations and about 20x the paper's largest constant errors.
-    mean: (P,) in the order of the full layout (before gauge fixing), SI.
+    mean, std: (P,) in the order of the full layout (before gauge fixing), SI
+    (std, when given, is every entry's sigma: e.g. a fleet's spread,
+    :func:`torchcal.identify.fleet.fleet_prior`).
 
     Example:
         >>> Prior(rotation=None).rotation is None  # None: every joint angle term keeps its module's declared sigma
@@ -132,9 +134,18 @@ class Prior:
     mean: torch.Tensor | None = field(default=None, repr=False)
     compliance: float | None = 1e-2
     backlash: float | None = None
+    std: torch.Tensor | None = field(default=None, repr=False)
 
     def sigma(self, layout: ParameterLayout) -> torch.Tensor:
-        """(P,) prior standard deviations in layout order (declared, then overridden by role + kind)."""
+        """(P,) prior standard deviations in layout order (declared, then overridden by role + kind; ``std``,
+        when given, replaces them all)."""
+        if self.std is not None:
+            std = torch.as_tensor(self.std, dtype=torch.float64).reshape(-1)
+            if std.numel() != layout.size:
+                raise ValueError(f"Prior.std has {std.numel()} entries, the model's layout {layout.size}")
+            if not bool((std > 0).all()):
+                raise ValueError("Prior.std: every standard deviation must be positive")
+            return std.cpu()
         sigma = layout.prior_sigma().tolist()
         for i, (role, kind) in enumerate(zip(layout.roles(), layout.kinds())):
             if role == "joint":

@@ -180,6 +180,26 @@ class CompensationConfig:
     """Fixed-Jacobian iterations before a command goes to the damped solver; null = the default."""
 
 
+FLEET_ENGINES = ("local", "ray")
+"""``fleet.engine``: where the fleet's cells of units are fitted."""
+
+
+@dataclass
+class FleetConfig:
+    """``torchcal fleet CONFIG``: one identification file per unit (``data.identification`` a folder)."""
+
+    engine: str = "local"
+    """local (this process) or ray (each cell of units a Ray task: ``pip install torchcal[ray]``)."""
+    address: Optional[str] = None
+    """engine: ray: the cluster's address (null: a local Ray started for the run, or RAY_ADDRESS)."""
+    cell: int = 50
+    """Units fitted together in one batched solve; the cells are what an engine sends out (every engine forms
+    the same cells, so local and Ray compute the same numbers)."""
+    threshold: float = 5.0
+    """Robust z above which a unit's joint is flagged, when it is also 3x the fleet median or more
+    (torchcal.identify.fleet.parameter_outliers)."""
+
+
 @dataclass
 class FitConfig:
     """The schema of ``torchcal fit CONFIG.yaml``."""
@@ -205,6 +225,7 @@ class FitConfig:
     constraint: ConstraintConfig = field(default_factory=ConstraintConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     compensation: CompensationConfig = field(default_factory=CompensationConfig)
+    fleet: FleetConfig = field(default_factory=FleetConfig)
     seed: int = 0
     device: str = "cpu"
     """torch device, e.g. cpu, cuda, cuda:1."""
@@ -447,6 +468,14 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
     except OmegaConfBaseException as exc:
         raise _explain(exc, label) from None
 
+    fleet = cfg.get("fleet")
+    if fleet is not None:
+        if fleet.engine not in FLEET_ENGINES:
+            fail("fleet.engine", f"must be one of {', '.join(FLEET_ENGINES)}, got {fleet.engine!r}")
+        if int(fleet.cell) < 1:
+            fail("fleet.cell", f"must be a positive number of units, got {fleet.cell}")
+        if not float(fleet.threshold) > 0:
+            fail("fleet.threshold", f"must be positive, got {fleet.threshold}")
     n_poses = cfg.data.get("n_poses")
     if n_poses is not None and (not _is_int(n_poses) or n_poses < 1):
         fail("data.n_poses", f"{n_poses!r}: give a positive number of poses (or null for all)")

@@ -1,0 +1,146 @@
+"""Bench: the hot paths on the CPU and on a CUDA GPU, side by side in one process (needs a GPU; prints why not).
+
+Cases (FANUC LR Mate 200i of Paper II, simulated; order 6 + backlash; float64 unless said):
+- compensation of 10^6 poses on the GPU (float64 and float32) against 10^5 on the CPU: poses per second
+  (target on the GPU: >= 5e6 poses/s);
+- prediction (model.points) of 10^6 rows;
+- one fit (250 poses x 3 tools);
+- a fleet of 100 units (250 x 3 each, every unit its own truth, one batched solve): GPU against the CPU
+  with 2 threads (the 2-core machine the issue means; target: the GPU >= 10x faster).
+
+    python bench/gpu.py [--units 100] [--cpu-threads 2] [--skip-cpu-fleet]
+"""
+
+from __future__ import annotations
+
+import torchcal  # noqa: F401  first: OMP_WAIT_POLICY=PASSIVE before torch loads
+
+import argparse
+import sys
+import time
+
+import torch
+
+import torchcal.sim
+from torchcal import units as U
+from torchcal.compensate import compensate
+from torchcal.identify import fit
+from torchcal.identify.fleet import fit_fleet
+from torchcal.sim.fleet import fleet_truths
+from torchcal.threads import set_threads
+
+TOOLS = U.mm_to_m(torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]],
+                               dtype=torch.float64))
+
+
+def timed(fn, device, repeats: int = 1):
+    fn()  # warm-up (kernels, allocator)
+    best = float("inf")
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        out = fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--units", type=int, default=100)
+    ap.add_argument("--cpu-threads", type=int, default=2)
+    ap.add_argument("--skip-cpu-fleet", action="store_true")
+    args = ap.parse_args(argv)
+    if not torch.cuda.is_available():
+        print("no CUDA device here: the GPU figures stay unmeasured (run this where a GPU is)")
+        return 0
+    gpu, cpu = torch.device("cuda"), torch.device("cpu")
+    print(f"GPU: {torch.cuda.get_device_name(0)}; CPU side: {args.cpu_threads} threads of "
+          f"{torch.get_num_threads()} available; torch {torch.__version__}")
+    set_threads(args.cpu_threads)
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    noise = torchcal.NoiseModel.from_robot(robot)
+    lim = robot.joint_map.limits
+    truth = torchcal.TruthRobot.fanuc_paper2(robot, TOOLS, 0)
+    q = torchcal.sim.quasi_random_commands(lim, 250, 0)
+    data = torchcal.simulate(truth, q, [0, 1, 2], noise, 0)
+
+    def make(dev):
+        return torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True).to(dev)
+
+    rows = []
+    # one fit
+    t_c, rc = timed(lambda: fit(make(cpu), data, noise), cpu)
+    dg = data.to(gpu)
+    t_g, rg = timed(lambda: fit(make(gpu), dg, noise), gpu)
+    rows.append(("one fit, 250 x 3", f"{t_c:.2f} s", f"{t_g:.2f} s", f"{t_c / t_g:.1f}x",
+                 f"cost {rc.fun:.1f} / {rg.fun:.1f}"))
+    model = make(cpu)
+    fit(model, data, noise)
+    mg = make(gpu)
+    mg.load_state_dict(model.state_dict())
+    # prediction
+    N = 10 ** 6
+    qp = torchcal.sim.quasi_random_commands(lim, N, 3)
+    tool = torch.randint(0, 3, (N,), generator=torch.Generator().manual_seed(0))
+    s = torch.ones_like(qp)
+    qpg, toolg, sg = qp.to(gpu), tool.to(gpu), s.to(gpu)
+    with torch.no_grad():
+        t_c, pc = timed(lambda: model.points(qp[:10 ** 5], tool[:10 ** 5], s[:10 ** 5]), cpu)
+        t_g, pg = timed(lambda: model.points(qpg, toolg, sg), gpu, 3)
+    err = float((pg[:10 ** 5].cpu() - pc).norm(dim=1).max())
+    rows.append(("prediction (rows/s)", f"{1e5 / t_c:.3g}", f"{N / t_g:.3g}", f"{(N / t_g) / (1e5 / t_c):.0f}x",
+                 f"max |GPU - CPU| {err:.1e} m"))
+    # compensation
+    t_c, cc = timed(lambda: compensate(model, qp[:10 ** 5], s[:10 ** 5]), cpu)
+    t_g, cg = timed(lambda: compensate(mg, qpg, sg), gpu, 3)
+    ok = cc.converged & cg.converged[:10 ** 5].cpu()
+    dq = float((cg.q[:10 ** 5].cpu()[ok] - cc.q[ok]).abs().max())
+    rows.append(("compensation float64 (poses/s)", f"{1e5 / t_c:.3g}", f"{N / t_g:.3g}",
+                 f"{(N / t_g) / (1e5 / t_c):.0f}x", f"target >= 5e6 on the GPU: {'PASS' if N / t_g >= 5e6 else 'MISS'}; "
+                                                      f"max |dq| {dq:.1e} rad; converged {float(cg.converged.float().mean()):.4f}"))
+    m32 = make(gpu)
+    m32.load_state_dict(model.state_dict())
+    m32 = m32.to(torch.float32)
+    q32, s32 = qpg.float(), sg.float()
+    t_g, c32 = timed(lambda: compensate(m32, q32, s32), gpu, 3)
+    # the float32 answers judged in float64: the modeled flange position they reach against the nominal target
+    ok32 = c32.converged.cpu()
+    with torch.no_grad():
+        q64 = c32.q.double()
+        reach = (mg.flange(q64, sg, base=False)[:, :3, 3] - mg.nominal_flange(qpg)[:, :3, 3]).norm(dim=1).cpu()
+    rows.append(("compensation float32 (poses/s)", "", f"{N / t_g:.3g}", "",
+                 f"converged {float(ok32.float().mean()):.4f}; position of the converged float32 commands, judged in "
+                 f"float64: max {float(reach[ok32].max()) * 1e6:.2f} µm off the target"))
+    # fleet
+    fleet = fleet_truths(robot, TOOLS, args.units, 0, [u for u in (7, 23, 42, 61, 88) if u < args.units])
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+    units = [torchcal.simulate(t, q, [0, 1, 2], noise, k, directions=dirs) for k, t in enumerate(fleet.truths)]
+    ug = [u.to(gpu) for u in units]
+    t = time.perf_counter()
+    fg = fit_fleet(lambda: make(gpu), ug, noise)
+    torch.cuda.synchronize()
+    t_g = time.perf_counter() - t
+    if args.skip_cpu_fleet:
+        t_c, note = float("nan"), "CPU side skipped"
+    else:
+        t = time.perf_counter()
+        fc = fit_fleet(lambda: make(cpu), units, noise)
+        t_c = time.perf_counter() - t
+        d = max(abs(a.fun / b.fun - 1) for a, b in zip(fg.results, fc.results))
+        note = f"largest relative cost difference GPU / CPU {d:.1e}"
+    rows.append((f"fleet of {args.units} (one batched solve)", f"{t_c:.1f} s", f"{t_g:.1f} s",
+                 f"{t_c / t_g:.1f}x", f"target GPU >= 10x the {args.cpu_threads}-thread CPU: "
+                                      f"{'PASS' if t_c / t_g >= 10 else 'MISS'}; {note}"))
+    w = max(len(r[0]) for r in rows)
+    print(f"{'case':<{w}}  {'CPU':>10}  {'GPU':>10}  {'GPU/CPU':>8}  note")
+    for r in rows:
+        print(f"{r[0]:<{w}}  {r[1]:>10}  {r[2]:>10}  {r[3]:>8}  {r[4]}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

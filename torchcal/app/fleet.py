@@ -1,0 +1,303 @@
+"""``torchcal fleet CONFIG``: every unit of one robot type fitted in batched solves; a run directory per unit.
+
+The config is a ``torchcal fit`` config whose ``data.identification`` is a
+folder with one CSV per unit (the unit is named by the file's stem) and whose
+optional ``data.validation`` is a folder holding files of the same names.
+Units are fitted ``fleet.cell`` at a time in one batched solve each
+(:func:`torchcal.identify.fleet.fit_fleet`: every unit its own data, damping
+and convergence). ``fleet.engine: ray`` sends the cells to Ray (a local Ray
+started for the run, or the cluster at ``fleet.address``); every engine forms
+the same cells from the same data, so a Ray run computes what the local run
+computes. A unit whose file cannot be read is reported (``summary.csv``,
+status ``failed``, with the reason) and the others go on; a cell that fails on
+a worker is reported the same way for its units.
+
+The run directory holds ``config.yaml``, ``versions.json``, ``run.log``,
+``summary.csv`` / ``fleet.json`` (per unit: status, rows, convergence,
+identification / validation mean and max in mm, the outlier score and what
+was flagged) and ``units/<name>/`` with the unit's own ``config.yaml`` (a
+``torchcal fit`` of it refits that unit alone), ``model.pt`` (usable by
+``torchcal predict`` / ``compensate``) and ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from .. import units
+from ..exceptions import ConfigError
+from ..io.atomic import atomic_path, atomic_write_text
+from ..io.config import load_config, to_yaml
+
+log = logging.getLogger("torchcal")
+
+
+@dataclass
+class FleetRunResult:
+    """What :func:`run_fleet` did: the run directory, one dict per unit (``rows``), the findings, the time."""
+
+    run_dir: Path
+    rows: list[dict] = field(default_factory=list)
+    findings: list = field(default_factory=list)
+    time: float = 0.0
+    solve_time: float = 0.0
+
+
+def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
+    """(name, identification file, validation file or None) per unit, sorted by name."""
+    label = cfg.config_file or "config"
+    ident = Path(cfg.data.identification)
+    if not ident.is_dir():
+        raise ConfigError(f"{label}: key 'data.identification': a fleet needs a folder with one CSV per unit, "
+                          f"got {ident} ({'a file' if ident.is_file() else 'not found'})")
+    files = sorted(p for p in ident.iterdir() if p.suffix.lower() in (".csv", ".tsv") and p.is_file())
+    if not files:
+        raise ConfigError(f"{label}: key 'data.identification': {ident} holds no .csv files")
+    val = Path(cfg.data.validation) if cfg.data.validation else None
+    if val is not None and not val.is_dir():
+        raise ConfigError(f"{label}: key 'data.validation': a fleet needs a folder with files named like the "
+                          f"identification files, got {val}")
+    out = []
+    for f in files:
+        v = val / f.name if val is not None else None
+        out.append((f.stem, f, v if v is not None and v.is_file() else None))
+    return out
+
+
+def _check_fleet_config(cfg) -> None:
+    label = cfg.config_file or "config"
+    if isinstance(cfg.model.order, str):
+        raise ConfigError(f"{label}: key 'model.order': a fleet fits one structure for every unit; give the order "
+                          "(choose it with `torchcal fit` on one unit, model.order: auto)")
+    for key, bad in (("constraint.c", cfg.constraint.c is not None), ("sensor.kind", cfg.sensor.kind is not None),
+                     ("model.kind", cfg.model.kind != "joint_dependent"), ("data.truth", bool(cfg.data.truth))):
+        if bad:
+            raise ConfigError(f"{label}: key '{key}': not supported by `torchcal fleet` (robots of Paper II, "
+                              "unconstrained LM fits)")
+    from omegaconf import DictConfig
+
+    if cfg.get("tools") is None or isinstance(cfg.tools, (dict, DictConfig)):
+        raise ConfigError(f"{label}: key 'tools': a fleet needs the tool vectors listed (mm)")
+
+
+def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -> list[dict]:
+    """One cell's batched solve: what an engine runs. config_yaml: the fleet's resolved config; cell: (name,
+    :class:`Measurements`) per unit; n_threads: the CPU threads of the solve, the same wherever it runs (the
+    driver's choice: a different count sums in another order, and a Ray worker starts with one). -> per unit {'name', 'state' (the model's state dict on the CPU),
+    'fit' (FitResult.summary()), 'orders', 'backlash'}: plain data, so that any transport carries it."""
+    from omegaconf import OmegaConf
+
+    from ..identify.fleet import fit_fleet
+    from ..kinematics import load_robot
+    from ..pipeline import config_frame, config_noise, config_prior, config_tools, model_factory
+    from ..pipeline_common import config_backlash, config_compliance, config_error_variable, solver_options
+    from .. import threads
+
+    cfg = OmegaConf.create(config_yaml)
+    robot = load_robot(cfg.robot)
+    device = torch.device(cfg.device)
+    mode, base = config_frame(cfg)
+    make = model_factory(robot, config_tools(cfg), config_backlash(cfg), device, base, config_compliance(cfg),
+                         config_error_variable(cfg), cfg.model.kind)
+    n = robot.joint_map.n
+    order = cfg.model.order
+    orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+    data = [d.to(device) for _, d in cell]
+    if make.backlash is True and data[0].has_direction:  # as torchcal fit: the backlash order follows the data
+        from ..identify.backlash import default_backlash_orders
+
+        make.backlash, _ = default_backlash_orders(orders, data[0].q, data[0].direction,
+                                                   robot.joint_map.limits.to(data[0].q))
+    noise = config_noise(cfg, robot, cfg.config_file or "config")
+    prior = config_prior(cfg)
+    opts = {k: v for k, v in solver_options(cfg).items() if k in ("ftol", "max_iter")}
+    old = threads.get_override()
+    threads.set_threads(int(n_threads))
+    try:
+        out = fit_fleet(lambda: make(orders), data, noise, prior, **opts)
+    finally:
+        threads.set_threads(old)
+    return [{"name": name, "state": {k: v.detach().cpu() for k, v in m.state_dict().items()},
+             "fit": r.summary(), "orders": orders, "backlash": make.backlash}
+            for (name, _), m, r in zip(cell, out.models, out.results)]
+
+
+def _run_cells(cfg, cells: list[list], config_yaml: str) -> list:
+    """Every cell through the configured engine -> per cell its list of unit dicts, or the exception it raised."""
+    from .. import threads
+
+    n_threads = int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()
+    if cfg.fleet.engine == "local":
+        out = []
+        for cell in cells:
+            try:
+                out.append(fit_cell(config_yaml, cell, n_threads))
+            except Exception as exc:  # a failing cell is reported; the others go on
+                log.warning("cell of %s failed: %s: %s", [n for n, _ in cell], type(exc).__name__, exc)
+                out.append(exc)
+        return out
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError(f"{cfg.config_file or 'config'}: key 'fleet.engine': ray needs Ray installed "
+                          "(pip install 'torchcal[ray]')") from None
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=cfg.fleet.address, include_dashboard=False, log_to_driver=False)
+    try:
+        task = ray.remote(max_retries=0, num_cpus=1)(fit_cell)
+        refs = [task.remote(config_yaml, cell, n_threads) for cell in cells]
+        out = []
+        for cell, ref in zip(cells, refs):
+            try:
+                out.append(ray.get(ref))
+            except Exception as exc:  # a cell that failed on its worker is reported; the others go on
+                log.warning("cell of %s failed on Ray: %s", [n for n, _ in cell], exc)
+                out.append(exc)
+        return out
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def run_fleet(config, overrides: list[str] | None = None, out=None, console=None) -> FleetRunResult:
+    """Fit every unit of the fleet ``config`` (see the module docstring) into one run directory."""
+    from ..identify.fleet import FleetFit, parameter_outliers
+    from ..io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
+    from ..kinematics import load_robot
+    from ..pipeline import config_tool_count, read_sets
+    from ..progress import task
+
+    t0 = time.perf_counter()
+    cfg = load_config(config, list(overrides or []))
+    from ..io.config import check_config
+
+    label = cfg.config_file or "config"
+    check_config(cfg, label)
+    _check_fleet_config(cfg)
+    files = unit_files(cfg)
+    robot = load_robot(cfg.robot)
+    check_config(cfg, label, robot.joint_map.n)
+    T = config_tool_count(cfg)
+    device = torch.device(cfg.device)
+    run_dir = make_run_dir(Path(out) if out is not None else Path(cfg.out).with_name("fleets"))
+    atomic_write_text(run_dir / "config.yaml", to_yaml(cfg))
+    write_json(run_dir / "versions.json", collect_versions(device))
+    result = FleetRunResult(run_dir)
+    with run_log(run_dir):
+        log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}")
+        loaded, rows = [], {}
+        with task("reading the units' files", total=len(files)) as bar:
+            for name, fi, fv in files:
+                notes: list[str] = []
+                try:
+                    ident, val = read_sets(cfg, robot, T, fi, fv, notes, torch.device("cpu"), label)
+                except Exception as exc:  # a broken file is this unit's failure, not the fleet's
+                    rows[name] = {"unit": name, "status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+                    log.warning("unit %s: not fitted: %s", name, exc)
+                else:
+                    for note in notes:
+                        log.warning("unit %s: %s", name, note)
+                    loaded.append((name, ident, val))
+                bar.advance(note=name)
+        if not loaded:
+            raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
+        size = int(cfg.fleet.cell)
+        cells = [[(n, i) for n, i, _ in loaded[c:c + size]] for c in range(0, len(loaded), size)]
+        config_yaml = to_yaml(cfg)
+        ts = time.perf_counter()
+        with task(f"fitting {len(loaded)} units in {len(cells)} batched solve(s) ({cfg.fleet.engine})", total=None):
+            outs = _run_cells(cfg, cells, config_yaml)
+        result.solve_time = time.perf_counter() - ts
+        vals = {n: v for n, _, v in loaded}
+        idents = {n: i for n, i, _ in loaded}
+        from ..pipeline import config_frame, config_tools, model_factory
+        from ..pipeline_common import config_backlash, config_compliance, config_error_variable
+
+        fitted = []
+        for cell, got in zip(cells, outs):
+            if isinstance(got, Exception):
+                for name, _ in cell:
+                    rows[name] = {"unit": name, "status": "failed", "reason": f"{type(got).__name__}: {got}"}
+                continue
+            for u in got:
+                mode, base = config_frame(cfg)
+                make = model_factory(robot, config_tools(cfg), u["backlash"], device, base, config_compliance(cfg),
+                                     config_error_variable(cfg), cfg.model.kind)
+                model = make(u["orders"])
+                model.load_state_dict(u["state"])
+                fitted.append((u, model))
+        from .. import threads
+
+        n_threads = int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()
+        with threads.limit_threads(n_threads):  # the same sums whatever the engine left in this process
+            for u, model in fitted:
+                _evaluate(u, model, idents, vals, rows, device)
+        if len(fitted) >= 3:
+            fake = FleetFit([m for _, m in fitted], None)
+            score, findings = parameter_outliers(fake, float(cfg.fleet.threshold))
+            result.findings = findings
+            for k, (u, _) in enumerate(fitted):
+                mine = [str(f) for f in findings if f.unit == k]
+                rows[u["name"]].update(outlier_score=float(score[k]), flagged=bool(mine), findings="; ".join(
+                    s.split(": ", 1)[1] for s in mine))
+            for f in findings:
+                log.warning("flagged: unit %s: %s", fitted[f.unit][0]["name"], str(f).split(": ", 1)[1])
+        by_name = {name: (str(fi), None if fv is None else str(fv)) for name, fi, fv in files}
+        for u, model in fitted:
+            name = u["name"]
+            d = run_dir / "units" / name
+            d.mkdir(parents=True, exist_ok=True)
+            ucfg = cfg.copy()
+            ucfg.data.identification, ucfg.data.validation = by_name[name]
+            ucfg.out = str(d)
+            atomic_write_text(d / "config.yaml", to_yaml(ucfg))
+            save_model(d, model, orders=u["orders"], config_file=str(d / "config.yaml"), fit=u["fit"])
+            write_json(d / "metrics.json", {"units": "mm", "unit": name, **{k2: v for k2, v in rows[name].items()
+                                                                            if k2 != "unit"}})
+        result.rows = [rows[name] for name, _, _ in files]
+        result.time = time.perf_counter() - t0
+        _write_summary(run_dir, result, cfg)
+        failed = [r["unit"] for r in result.rows if r["status"] == "failed"]
+        log.info(f"fleet done in {result.time:.1f} s (solve {result.solve_time:.1f} s): {len(fitted)} fitted, "
+                 f"{len(failed)} failed{' ' + str(failed) if failed else ''}, "
+                 f"{len({f.unit for f in result.findings})} flagged; {run_dir / 'summary.csv'}")
+    return result
+
+
+def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device) -> None:
+    """A fitted unit's row: identification (and validation) residual statistics in mm."""
+    from ..analysis.stats import point_residuals, residual_stats
+
+    name = u["name"]
+    ident = idents[name].to(device)
+    s = residual_stats(point_residuals(model, ident).cpu()).scaled(units.m_to_mm(1.0))
+    row = {"unit": name, "status": "fitted", "rows": len(ident), "converged": bool(u["fit"]["converged"]),
+           "iterations": int(u["fit"]["iterations"]), "identification_mean_mm": s.mean,
+           "identification_max_mm": s.max}
+    if vals[name] is not None:
+        v = residual_stats(point_residuals(model, vals[name].to(device)).cpu()).scaled(units.m_to_mm(1.0))
+        row.update(validation_mean_mm=v.mean, validation_max_mm=v.max, validation_gamma99_mm=v.gamma99)
+    rows[name] = row
+
+
+def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
+    import pandas as pd
+
+    from ..io.rundir import write_json
+
+    df = pd.DataFrame(result.rows)
+    with atomic_path(run_dir / "summary.csv") as tmp:
+        df.to_csv(tmp, index=False, float_format="%.6g")
+    write_json(run_dir / "fleet.json", {"time_s": result.time, "solve_time_s": result.solve_time,
+                                        "engine": cfg.fleet.engine, "cell": int(cfg.fleet.cell),
+                                        "units": result.rows, "findings": [str(f) for f in result.findings]})
+
+
+__all__ = ["FleetRunResult", "fit_cell", "run_fleet", "unit_files"]

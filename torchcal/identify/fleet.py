@@ -1,0 +1,339 @@
+"""A fleet: many units of one robot type, each with its own measurements, fitted in one batched solve.
+
+A plant calibrates every unit of a type with the same measurement program;
+each fit is small and there are many. :func:`fit_fleet` stacks the units along
+the model axis of :func:`~torchcal.identify.batched.solve_batched` (the model
+batch dimension): every unit has its own data rows (padded to the longest
+unit, the padding masked out), its own noise, its own damping and its own
+convergence, and a converged unit stops costing work. Each unit's result is
+its own maximum-likelihood fit (Paper II (26)); nothing is shared between
+units but the model's structure and the gauge (the redundant constants of
+Paper II (18), which no data set can determine, judged on the pooled rows
+of the first units).
+
+:func:`fleet_prior` turns the fitted fleet into a Gaussian prior (mean and
+spread of every parameter over the units) for a new unit measured with few
+poses; :func:`parameter_outliers` flags units whose parameters lie far from
+the fleet's (a damaged gearbox, a bad measurement).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import torch
+from torch.func import functional_call, vmap
+
+from ..measurements import Measurements
+from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
+from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
+from .lm import MU0
+from .problem import CalibrationProblem, NoiseModel, Prior, _prefixed
+
+
+def stack_units(units: Sequence[Measurements]) -> dict:
+    """Pad the units' rows to the longest and stack them on a leading unit axis.
+
+    -> dict with q (M, R, n), tool (M, R) long, direction (M, R, n), xyz (M, R, 3),
+    rows (M, R) bool (the real rows); a padding row repeats its unit's first
+    row (finite predictions), masked out of every cost and Jacobian.
+    """
+    if not units:
+        raise ValueError("fleet: no units")
+    n = units[0].q.shape[1]
+    for k, u in enumerate(units):
+        if u.q.shape[1] != n:
+            raise ValueError(f"fleet: unit {k} ({u.source or 'data'}) has {u.q.shape[1]} joints, unit 0 has {n}")
+        if len(u) == 0:
+            raise ValueError(f"fleet: unit {k} ({u.source or 'data'}) has no rows")
+        if bool(torch.isnan(u.xyz).any()):
+            r = int(torch.isnan(u.xyz).any(1).nonzero()[0])
+            raise ValueError(f"fleet: unit {k} ({u.source or 'data'}), data row {int(u.rows[r])}: no measured x, y, z")
+    if len({bool(u.has_direction) for u in units}) > 1:
+        raise ValueError("fleet: some units have approach directions (dir columns) and some do not")
+    R = max(len(u) for u in units)
+
+    def pad(t: torch.Tensor) -> torch.Tensor:
+        extra = R - t.shape[0]
+        return t if extra == 0 else torch.cat([t, t[:1].expand(extra, *t.shape[1:])])
+
+    return {
+        "q": torch.stack([pad(u.q) for u in units]),
+        "tool": torch.stack([pad(u.tool) for u in units]),
+        "direction": torch.stack([pad(u.direction) for u in units]),
+        "xyz": torch.stack([pad(u.xyz) for u in units]),
+        "rows": torch.stack([torch.arange(R, device=u.q.device) < len(u) for u in units]),
+        "has_direction": bool(units[0].has_direction),
+    }
+
+
+class FleetProblem(BatchedProblem):
+    """The implicit-loop MLE of M units, each its own model and its own data, stacked on a leading axis.
+
+    make: () -> a fresh model of the type (every unit's model and the
+    superset come from it); units: M :class:`Measurements` (tracker points,
+    SI); noise: one :class:`NoiseModel` or M of them; prior, fixed, gauge: as
+    for :func:`torchcal.fit`. gauge_units: how many units' rows are pooled to
+    judge the gauge (the structural redundancy is the same for every unit).
+    The models start at zero error (or at ``start``: (P,) values in the
+    superset's layout, e.g. a fleet mean).
+    """
+
+    def __init__(self, make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
+                 prior: Prior | None = Prior(), fixed=(), gauge: bool = True, gauge_units: int = 3,
+                 models: Sequence[torch.nn.Module] | None = None):
+        from .fit import resolve_noise
+
+        M = len(units)
+        if M == 0:
+            raise ValueError("fit_fleet: no units")
+        superset = make()
+        models = [make() for _ in range(M)] if models is None else list(models)
+        if len(models) != M:
+            raise ValueError(f"fit_fleet: {len(models)} models for {M} units")
+        dev = superset.device
+        units = [u.to(dev) for u in units]
+        noises = list(noise) if isinstance(noise, (list, tuple)) else [noise] * M
+        if len(noises) != M:
+            raise ValueError(f"fit_fleet: {len(noises)} noise models for {M} units")
+        noises = [resolve_noise(superset, nz) for nz in noises]
+        self.superset, self.models, self.units = superset, models, units
+        self.problem = CalibrationProblem(superset, units[0], noises[0], prior, fixed)
+        p = self.problem
+        weight = getattr(p.instrument, "weight", None)
+        if getattr(weight, "sigma", None) is None:
+            raise ValueError("fit_fleet: every unit needs an isotropic tracker sigma (noise.sigma_m); per-row "
+                             "covariances are not stacked")
+        self.layout, self.instrument, self.data = p.layout, p.instrument, p.data
+        st = stack_units(units)
+        self.stack = st
+        M, R, n = st["q"].shape
+        self.M, self.R, self.n, self.d = M, R, n, p.dim
+        rows = st["rows"]
+        self.rows = rows
+        dt = torch.float64
+        sig0 = noises[0].sigma_m
+        self.scale = torch.tensor([sig0 / nz.sigma_m for nz in noises], dtype=dt, device=dev)[:, None] * rows.to(dt)
+        w_v = torch.stack([1.0 / nz.joint_variance(st["direction"][m]) for m, nz in enumerate(noises)]).to(dev)
+        if not bool(torch.isfinite(w_v).all()):
+            raise ValueError("fit_fleet: every unit needs positive joint variances (noise.joint_var_fwd / _bwd)")
+        self.w_v = w_v
+        self.w_v_cost = w_v * rows[..., None].to(dt)
+        self.lam = p.prior_precision.to(dev)
+        self.mean = p.prior_mean.to(dev)
+        keep = torch.ones(M, self.layout.size, dtype=torch.bool, device=dev)
+        if gauge:
+            keep = keep & ~self._pins(keep, noises[0], prior, fixed, gauge_units)
+        self.keep = keep
+
+    def _pins(self, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
+        """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units."""
+        x0 = torch.zeros(self.layout.size, dtype=torch.float64, device=self.rows.device)
+        blocks = []
+        for u in self.units[:max(1, int(gauge_units))]:
+            prob = CalibrationProblem(self.superset, u, noise, prior, fixed)
+            blocks.append(prob.linearize(x0, torch.zeros_like(prob.data.q))[1].reshape(-1, self.layout.size))
+        basis = gauge_basis(torch.cat(blocks), gauge_priority(self.layout.roles()))
+        return dependent_columns_masked(basis, keep)
+
+    @torch.no_grad()
+    def linearize(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor):
+        """Whitened residual f (m, R, d), parameter Jacobian A (m, R, d, P) and joint-error Jacobian C
+        (m, R, d, n) of the units ``which`` (m,) at X (m, P), V (m, R, n), each on its own rows."""
+        wrapper = _Predict(self.superset, self.instrument)
+        inst, layout, R, st = self.instrument, self.layout, self.R, self.stack
+        w = which.to(st["q"].device)
+        q, tool, obs = st["q"][w], st["tool"][w], st["xyz"][w]
+
+        if st["has_direction"]:
+            def one(params, q, tool, direction, obs, v):
+                pred, J = functional_call(wrapper, _prefixed(params), (q, tool, direction, v))
+                return inst.whiten(inst.residual(pred, obs)), inst.whiten(layout.flatten_jacobian(J, R)), inst.whiten(J["v"])
+
+            f, A, C = vmap(one)(self._params(X), q, tool, st["direction"][w], obs, V)
+        else:
+            def one(params, q, tool, obs, v):
+                pred, J = functional_call(wrapper, _prefixed(params), (q, tool, None, v))
+                return inst.whiten(inst.residual(pred, obs)), inst.whiten(layout.flatten_jacobian(J, R)), inst.whiten(J["v"])
+
+            f, A, C = vmap(one)(self._params(X), q, tool, obs, V)
+        s = self.scale[which][:, :, None]
+        kf = self.keep[which].to(A)
+        return f * s, A * s[..., None] * kf[:, None, None, :], C * s[..., None]
+
+
+@dataclass
+class FleetFit:
+    """Outcome of :func:`fit_fleet`: the fitted models (one per unit, in order) and the batched solve."""
+
+    models: list
+    batch: BatchedFitResult
+    layout: object = None  # the full ParameterLayout of the type's model (before gauge fixing)
+
+    @property
+    def results(self):
+        return self.batch.results
+
+
+def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
+              prior: Prior | None = Prior(), fixed=(), gauge: bool = True, max_iter: int = 100, ftol: float = 1e-8,
+              xtol: float = 1e-10, mu0: float = MU0, chunk: int | None = None, gauge_units: int = 3) -> FleetFit:
+    """Fit one model per unit, every unit on its own data, in one batched Levenberg-Marquardt solve.
+
+    make: () -> a fresh model of the robot type (e.g. ``lambda: RobotModel(robot,
+    tools, orders=6, backlash=True)``); units: (M,) :class:`Measurements`, one
+    per unit (tracker points, SI; any number of rows each); noise: one
+    :class:`NoiseModel` (None: the robot's) or M of them; prior, fixed, gauge,
+    max_iter, ftol, xtol, mu0: as for :func:`torchcal.fit` (``method='lm'``);
+    chunk: units linearized together (memory: chunk x R x 3 x P doubles;
+    None: 8 on the CPU, on a GPU as many as ~1 GB of Jacobians holds).
+    Each unit's result is its own fit's (the same optimum, up to the stopping
+    tolerance). -> :class:`FleetFit` (each unit's model fitted in place).
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> tools = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161]], dtype=torch.float64)
+        >>> q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 40, 0)
+        >>> noise = torchcal.NoiseModel.from_robot(robot)
+        >>> units = [torchcal.simulate(torchcal.TruthRobot.fanuc_paper2(robot, tools, s), q, [0, 1], noise, s)
+        ...          for s in range(3)]
+        >>> out = fit_fleet(lambda: torchcal.RobotModel(robot, tools, orders=1), units)
+        >>> [r.success for r in out.results]
+        [True, True, True]
+    """
+    t0 = time.perf_counter()
+    fp = FleetProblem(make, units, noise, prior, fixed, gauge, gauge_units)
+    if chunk is None:
+        per_unit = fp.R * fp.d * fp.layout.size * 8 * 3  # f, A, C and the step's temporaries, roughly
+        chunk = 8 if fp.rows.device.type == "cpu" else max(1, min(fp.M, int(1e9 // per_unit)))
+    batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label="fitting the fleet's units together", t0=t0)
+    return FleetFit(fp.models, batch, fp.layout)
+
+
+# ------------------------------------------------------------------ the fleet's distribution
+def _shrunk_covariance(Z: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """Covariance (k, k) of the rows of Z (M, k), shrunk towards its diagonal (Schaefer and Strimmer 2005,
+    target D: the optimal weight on the diagonal from the sampling variance of the correlations) -> (cov, weight).
+    With fewer units than parameters the sample covariance is singular; the shrunk one is not."""
+    M = Z.shape[0]
+    Zc = Z - Z.mean(0)
+    sd = Zc.pow(2).sum(0).div(M - 1).sqrt().clamp(min=1e-300)
+    Y = Zc / sd
+    W = Y[:, :, None] * Y[:, None, :]  # (M, k, k)
+    Wm = W.mean(0)
+    R = Wm * M / (M - 1)
+    var_r = (W - Wm).pow(2).sum(0) * M / (M - 1) ** 3
+    off = ~torch.eye(Z.shape[1], dtype=torch.bool, device=Z.device)
+    lam = float((var_r[off].sum() / R[off].pow(2).sum().clamp(min=1e-300)).clamp(0.0, 1.0))
+    Rs = (1.0 - lam) * R
+    Rs.diagonal().fill_(1.0)
+    return Rs * sd[:, None] * sd[None, :], lam
+
+
+def fleet_prior(fit: FleetFit, exclude: Sequence[int] = (), inflate: float = 1.0, floor: float = 1e-3):
+    """A Gaussian prior for a new unit of the type: the fleet's mean and covariance of every parameter.
+
+    The covariance is the units' sample covariance shrunk towards its
+    diagonal (:func:`_shrunk_covariance`): it carries how the parameters vary
+    *together* from unit to unit (a strain-wave error of random phase moves
+    a joint's Chebyshev coefficients along a few directions only), which is
+    what lets a unit measured with a few poses borrow the fleet's knowledge.
+    exclude: units left out (the flagged outliers); inflate: factor on the
+    standard deviations; floor: each variance is at least (floor x the
+    default :class:`Prior`'s sigma)^2, so no entry is pinned by a fleet
+    that happens to agree on it. Entries the fleet's gauge pinned are left
+    to the unit's own gauge. -> (:class:`~torchcal.identify.blocks.GaussianPrior`
+    to pass as ``blocks=[...]`` to :func:`torchcal.fit`, mean (P,) in the
+    full layout: a start for the unit's model).
+    """
+    from .blocks import GaussianPrior
+
+    X, keep, names = fit.batch.x, fit.batch.keep, fit.batch.names
+    skip = set(int(e) for e in exclude)
+    use = torch.tensor([m not in skip for m in range(X.shape[0])], device=X.device)
+    if int(use.sum()) < 3:
+        raise ValueError(f"fleet_prior: {int(use.sum())} units left; at least 3 are needed for a spread")
+    free = keep[use].all(0)
+    Z = X[use][:, free]
+    cov, _ = _shrunk_covariance(Z)
+    cov = cov * float(inflate) ** 2
+    base = Prior().sigma(fit.layout).to(X)[free] * float(floor)
+    d = cov.diagonal()
+    grow = (base.pow(2) - d).clamp(min=0.0)
+    cov = cov + torch.diag(grow)
+    mean = torch.zeros(X.shape[1], dtype=X.dtype, device=X.device)
+    mean[free] = Z.mean(0)
+    kept = [nm for nm, f in zip(names, free.tolist()) if f]
+    return GaussianPrior(kept, Z.mean(0).cpu(), cov.cpu()), mean
+
+
+@dataclass
+class Outlier:
+    """A flagged unit: which joint and which feature lie far from the fleet, and by how much."""
+
+    unit: int
+    joint: str
+    feature: str
+    ratio: float
+    z: float
+
+    def __str__(self) -> str:
+        return f"unit {self.unit}: {self.joint} {self.feature} {self.ratio:.1f}x the fleet median (robust z {self.z:.1f})"
+
+
+def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:
+    """Per joint (n,): 'angle error' (RMS over the joint's range of its modeled error about its own axis, the
+    transmission error, rad or m) and 'backlash' (mean half difference between the two approach directions)."""
+    je = model.joint_errors
+    with torch.no_grad():
+        lo, hi = je.ranges[:, 0], je.ranges[:, 1]
+        t = torch.linspace(0.0, 1.0, samples, dtype=lo.dtype, device=lo.device)[:, None]
+        u = lo + t * (hi - lo)
+        ones = torch.ones_like(u)
+        fwd, bwd = je.twists(u, ones), je.twists(u, -ones)  # (S, n, 6): rotation, translation
+        axis = torch.where(model.prismatic.to(u.device)[None, :], fwd[..., 5], fwd[..., 2])
+        axis_b = torch.where(model.prismatic.to(u.device)[None, :], bwd[..., 5], bwd[..., 2])
+        ang = (axis - axis.mean(0)).pow(2).mean(0).sqrt()
+        back = (0.5 * (axis - axis_b)).abs().mean(0)
+    return {"angle error": ang, "backlash": back}
+
+
+def parameter_outliers(fit: FleetFit, threshold: float = 5.0, min_ratio: float = 3.0) -> tuple[torch.Tensor, list[Outlier]]:
+    """Units whose joints lie far from the fleet's: a damaged gearbox, a bad measurement.
+
+    For every joint, two features of each unit's fitted model
+    (:func:`joint_features`: the transmission error's RMS over the range,
+    the backlash); each feature is standardized by the fleet's median and
+    MAD (robust to the outliers themselves; the modified z-score
+    of Iglewicz and Hoaglin, whose 3.5 flags a healthy fleet's tails here:
+    measured, healthy units reach 3.5, damaged ones 7-14). A unit's joint is
+    flagged where its z exceeds ``threshold`` (5) and its feature is at least ``min_ratio`` times the fleet
+    median: outlying and large enough to matter (a healthy fleet's backlash
+    spans 4x from unit to unit; a worn gear adds several times the type's
+    clearance). One-sided, since damage and bad measurements add error (a
+    unit whose joint is better than the fleet's is not a finding).
+    -> (score (M,): the largest z of each unit, the findings, largest first).
+    """
+    feats = [joint_features(m) for m in fit.models]
+    names = list(fit.models[0].joint_errors.joint_names)
+    M = len(feats)
+    score = torch.zeros(M, dtype=torch.float64)
+    found: list[Outlier] = []
+    for key in feats[0]:
+        F = torch.stack([f[key] for f in feats]).cpu().clamp(min=1e-15)  # (M, n)
+        med = F.median(0).values
+        mad = (F - med).abs().median(0).values.clamp(min=1e-15)
+        z = 0.6745 * (F - med) / mad
+        ratio = F / med
+        score = torch.maximum(score, z.max(1).values)
+        for m, j in ((z > threshold) & (ratio >= min_ratio)).nonzero().tolist():
+            found.append(Outlier(m, names[j], key, float(ratio[m, j]), float(z[m, j])))
+    found.sort(key=lambda o: -o.z)
+    return score, found
+
+
+__all__ = ["FleetFit", "FleetProblem", "Outlier", "fit_fleet", "fleet_prior", "joint_features", "parameter_outliers",
+           "stack_units"]

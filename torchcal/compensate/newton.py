@@ -365,6 +365,9 @@ updates): the size :func:`torchcal.threads.threads_for` gives threads by."""
 
 FUSED_MIN_POSES = 1024
 
+GPU_CHUNK = 4_000_000
+"""Poses per chunk on a GPU (a few GB of work space in float64)."""
+
 FLOAT32_TOL = 1e-5
 FLOAT32_RESIDUAL_TOL = 1e-6
 """The least ``tol`` / ``residual_tol`` used for float32 commands (float64's defaults are below float32's
@@ -402,7 +405,7 @@ def compensate(
     tol: ||dq|| stopping tolerance (51), rad / m (joint-space step norm).
     max_iter: fixed-Jacobian iterations before a row is handed to the damped path.
     damping: initial Levenberg-Marquardt damping, relative to max diag(J^T J).
-    chunk_size: poses solved together on the fast path; None: up to 262 144
+    chunk_size: poses solved together on the fast path; None: up to 262 144 (on a GPU :data:`GPU_CHUNK`)
         (bounded memory, ~300 bytes a pose). Fewer chunks mean fewer tail
         iterations over a handful of slow rows, each paying the full per-op
         dispatch cost; cache locality on the CPU comes from the kernel's own
@@ -492,7 +495,9 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
     # sets up LLVM), more than the torch ops take for a few thousand poses (the fit's compensation check)
     kernel = FlangeKernel(model, fused=None if B >= FUSED_MIN_POSES else False)
     if chunk_size is None:
-        chunk_size = min(max(B, 1), 262144)
+        # a GPU is bound by kernel launches (~25 000 per call, whatever the batch): one chunk of every pose
+        # (measured on an H200: 1.4e6 poses/s in chunks of 262 144, 2.5e6 in one chunk of 10^6)
+        chunk_size = min(max(B, 1), GPU_CHUNK if q_nom.device.type == "cuda" else 262144)
     chunk_size = max(int(chunk_size), 1)
 
     q_out = torch.empty(B, n, dtype=dtype, device=device)

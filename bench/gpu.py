@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     t_g, c4f = timed(lambda: compensate(m32, q4f, s4f), gpu, 2)
     rows.append((f"compensation float32, {4 * N:.0e} poses (poses/s)", "", f"{4 * N / t_g:.3g}", "",
                  f"converged {float(c4f.converged.float().mean()):.4f}"))
-    del q4, s4, c4, q4f, s4f, c4f
+    q4 = s4 = c4 = q4f = s4f = c4f = None  # free the GPU memory before the fleet
     # fleet
     fleet = fleet_truths(robot, TOOLS, args.units, 0, [u for u in (7, 23, 42, 61, 88) if u < args.units])
     g = torch.Generator().manual_seed(0)

@@ -22,7 +22,6 @@ was flagged) and ``units/<name>/`` with the unit's own ``config.yaml`` (a
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -218,7 +217,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         vals = {n: v for n, _, v in loaded}
         idents = {n: i for n, i, _ in loaded}
         from ..pipeline import config_frame, config_tools, model_factory
-        from ..pipeline_common import config_backlash, config_compliance, config_error_variable
+        from ..pipeline_common import config_compliance, config_error_variable
 
         fitted = []
         for cell, got in zip(cells, outs):
@@ -242,13 +241,15 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if len(fitted) >= 3:
             fake = FleetFit([m for _, m in fitted], None)
             score, findings = parameter_outliers(fake, float(cfg.fleet.threshold))
+            for f in findings:  # the unit by its name, not its place among the fitted units
+                f.unit = fitted[f.unit][0]["name"]
             result.findings = findings
             for k, (u, _) in enumerate(fitted):
-                mine = [str(f) for f in findings if f.unit == k]
+                mine = [str(f) for f in findings if f.unit == u["name"]]
                 rows[u["name"]].update(outlier_score=float(score[k]), flagged=bool(mine), findings="; ".join(
                     s.split(": ", 1)[1] for s in mine))
             for f in findings:
-                log.warning("flagged: unit %s: %s", fitted[f.unit][0]["name"], str(f).split(": ", 1)[1])
+                log.warning("flagged: %s", f)
         by_name = {name: (str(fi), None if fv is None else str(fv)) for name, fi, fv in files}
         for u, model in fitted:
             name = u["name"]

@@ -105,28 +105,33 @@ class BatchedProblem:
         self.problem = CalibrationProblem(superset, data, noises[0], prior, fixed, instrument)
         p = self.problem
         self.layout, self.instrument, self.data = p.layout, p.instrument, p.data
-        dev, dt = superset.device, torch.float64
+        dev = superset.device
         R, n = self.data.q.shape
         self.M, self.R, self.n, self.d = M, R, n, p.dim
         rows = torch.ones(M, R, dtype=torch.bool, device=dev) if rows is None else torch.as_tensor(rows).to(dev)
         if rows.shape != (M, R):
             raise ValueError(f"fit_batch: rows must be an ({M}, {R}) bool mask, got {tuple(rows.shape)}")
-        self.rows = rows
-        # per-model whitening scale (the shared instrument whitens with the first model's sigma) and row mask
-        sig0 = noises[0].sigma_m
-        self.scale = torch.tensor([sig0 / nz.sigma_m for nz in noises], dtype=dt, device=dev)[:, None] * rows.to(dt)
-        w_v = torch.stack([1.0 / nz.joint_variance(self.data.direction) for nz in noises]).to(dev)  # (M, R, n)
-        if not bool(torch.isfinite(w_v).all()):
-            raise ValueError("fit_batch: every model needs positive joint variances (noise.joint_var_fwd / _bwd)")
-        self.w_v = w_v
-        self.w_v_cost = w_v * rows[..., None].to(dt)
-        self.lam = p.prior_precision.to(dev)
-        self.mean = p.prior_mean.to(dev)
+        self._set_weights(noises, [self.data.direction] * M, rows, "fit_batch: every model")
         keep = torch.stack([structure_mask(superset, m, self.layout) for m in models]).to(dev)
         if gauge:
             keep = keep & ~self._pins(keep)
         self.keep = keep
         self._f = self._kf = None
+
+    def _set_weights(self, noises, directions, rows: torch.Tensor, who: str) -> None:
+        """Per-model whitening scale (the shared instrument whitens with the first model's sigma), joint-error
+        weights (M, R, n) from each model's noise and rows' directions, the row mask, the prior."""
+        p, dev, dt = self.problem, rows.device, torch.float64
+        self.rows = rows
+        sig0 = noises[0].sigma_m
+        self.scale = torch.tensor([sig0 / nz.sigma_m for nz in noises], dtype=dt, device=dev)[:, None] * rows.to(dt)
+        w_v = torch.stack([1.0 / nz.joint_variance(d) for nz, d in zip(noises, directions)]).to(dev)
+        if not bool(torch.isfinite(w_v).all()):
+            raise ValueError(f"{who} needs positive joint variances (noise.joint_var_fwd / _bwd)")
+        self.w_v = w_v
+        self.w_v_cost = w_v * rows[..., None].to(dt)
+        self.lam = p.prior_precision.to(dev)
+        self.mean = p.prior_mean.to(dev)
 
     def _pins(self, keep: torch.Tensor) -> torch.Tensor:
         """(M, P) entries each model's own cold fit would pin (fix_gauge on its rows, at the zero-error model)."""

@@ -30,7 +30,7 @@ from ..measurements import Measurements
 from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
-from .problem import CalibrationProblem, NoiseModel, Prior, _prefixed
+from .problem import CalibrationProblem, Prior, _prefixed
 
 
 def stack_units(units: Sequence[Measurements]) -> dict:
@@ -111,18 +111,7 @@ class FleetProblem(BatchedProblem):
         self.stack = st
         M, R, n = st["q"].shape
         self.M, self.R, self.n, self.d = M, R, n, p.dim
-        rows = st["rows"]
-        self.rows = rows
-        dt = torch.float64
-        sig0 = noises[0].sigma_m
-        self.scale = torch.tensor([sig0 / nz.sigma_m for nz in noises], dtype=dt, device=dev)[:, None] * rows.to(dt)
-        w_v = torch.stack([1.0 / nz.joint_variance(st["direction"][m]) for m, nz in enumerate(noises)]).to(dev)
-        if not bool(torch.isfinite(w_v).all()):
-            raise ValueError("fit_fleet: every unit needs positive joint variances (noise.joint_var_fwd / _bwd)")
-        self.w_v = w_v
-        self.w_v_cost = w_v * rows[..., None].to(dt)
-        self.lam = p.prior_precision.to(dev)
-        self.mean = p.prior_mean.to(dev)
+        self._set_weights(noises, list(st["direction"]), st["rows"], "fit_fleet: every unit")
         keep = torch.ones(M, self.layout.size, dtype=torch.bool, device=dev)
         if gauge:
             keep = keep & ~self._pins(keep, noises[0], prior, fixed, gauge_units)
@@ -272,16 +261,17 @@ def fleet_prior(fit: FleetFit, exclude: Sequence[int] = (), inflate: float = 1.0
 
 @dataclass
 class Outlier:
-    """A flagged unit: which joint and which feature lie far from the fleet, and by how much."""
+    """A flagged unit (its index in the fleet, or its name): which joint and feature lie far from the fleet."""
 
-    unit: int
+    unit: int | str
     joint: str
     feature: str
     ratio: float
     z: float
 
     def __str__(self) -> str:
-        return f"unit {self.unit}: {self.joint} {self.feature} {self.ratio:.1f}x the fleet median (robust z {self.z:.1f})"
+        who = self.unit if isinstance(self.unit, str) else f"unit {self.unit}"
+        return f"{who}: {self.joint} {self.feature} {self.ratio:.1f}x the fleet median (robust z {self.z:.1f})"
 
 
 def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:

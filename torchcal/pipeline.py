@@ -774,15 +774,21 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     -> the number of rows written. Raises RunDirError / DataError naming the folder or file.
     """
     from .io.csv import points_to_file, read_table
-    from .io.rundir import load_model
+    from .io.rundir import RunDirError, load_model
 
     with progress_task(f"loading the run {run_dir}"):
         model = load_model(run_dir, device=device)
-    if hasattr(model, "sensor_pose"):  # a sensor run (Paper III): modeled x, y, z, r11..r33
-        from .pipeline_sensor import predict_pose_file
+    from .contract import PredictsPoints, require
+
+    if not isinstance(model, PredictsPoints) and hasattr(model, "sensor_pose"):
+        from .pipeline_sensor import predict_pose_file  # a sensor run (Paper III): modeled x, y, z, r11..r33
 
         with progress_task(f"predicting the sensor poses of {input}"):
             return predict_pose_file(run_dir, input, output, model)
+    try:
+        require(model, "predict points", f"torchcal predict {run_dir}")
+    except TypeError as exc:
+        raise RunDirError(str(exc)) from None
     with progress_task(f"reading {input}"):
         data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
     _refuse_radians(input, data, model.robot, units_checked)
@@ -846,17 +852,15 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     from .io.csv import joint_columns, joints_to_file, read_table, write_table
     from .io.rundir import load_model
 
+    from .contract import require
     from .io.rundir import RunDirError
-    from .model import RobotModel
 
     with progress_task(f"loading the run {run_dir}"):
         model = load_model(run_dir, device=device)
-    if not isinstance(model, RobotModel):  # machine tools and sensor rigs have no joint-error Newton solve here
-        what = ("a machine-tool model (model.kind axis_perturbation); export its compensation tables with "
-                f"'torchcal export-tables {run_dir} OUT'") if hasattr(model, "axis_errors") else \
-               "a sensor-rig model (Paper III, 6-DOF sensor)"
-        raise RunDirError(f"{run_dir}: compensate supports robot runs fitted from point measurements (Paper II "
-                          f"(46)-(52)); this run holds {what}")
+    try:  # the model contract: machine tools and sensor rigs have no joint-error Newton solve
+        require(model, "compensate commands", f"torchcal compensate {run_dir}")
+    except TypeError as exc:
+        raise RunDirError(str(exc)) from None
     robot = model.robot
     with progress_task(f"reading {input}"):
         data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)

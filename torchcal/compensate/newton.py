@@ -46,6 +46,7 @@ import torch
 from ..kinematics.transforms import homogeneous
 from ..measurements import first_invalid_direction
 from ..progress import task as progress_task
+from ..contract import require
 from ..threads import threads_for_work
 from .damped import damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
@@ -290,10 +291,7 @@ def fixed_jacobian_iterations(
 
 
 def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
-    if not (hasattr(model, "joint_errors") and hasattr(model, "robot")):
-        raise TypeError(f"compensate: {type(model).__name__} has no joint-error series on a robot chain; compensate "
-                        "solves Paper II (46)-(52) for a RobotModel (a machine tool is compensated by its tables: "
-                        "torchcal.compensate.tables, `torchcal export-tables`)")
+    require(model, "compensate commands", "compensate")  # the model contract (torchcal.contract)
     if not isinstance(q_nom, torch.Tensor) or q_nom.ndim != 2 or q_nom.shape[1] != model.n:
         shape = tuple(q_nom.shape) if isinstance(q_nom, torch.Tensor) else type(q_nom).__name__
         raise ValueError(f"compensate: q_nom must be a (B, {model.n}) tensor of commands, got {shape}")

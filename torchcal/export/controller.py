@@ -411,10 +411,13 @@ def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None,
 
     if fmt not in FORMATS:
         raise TableError(f"unknown table format {fmt!r}; choose from {', '.join(FORMATS)}")
+    from ..contract import require
+
     model = load_model(run_dir)
-    if getattr(model, "axis_errors", None) is None:
-        raise RunDirError(f"{run_dir}: its model has no axis perturbation tables (fit it with model.kind: "
-                          "axis_perturbation)")
+    try:  # the model contract: only an axis perturbation model has tables
+        require(model, "export tables", f"torchcal export-tables {run_dir}")
+    except TypeError as exc:
+        raise RunDirError(str(exc)) from None
     k = int(points) if points is not None else DEFAULT_POINTS
     if fmt in ("siemens-cec", "all"):
         if points is not None and k > int(siemens_max_points):

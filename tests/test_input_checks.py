@@ -186,11 +186,15 @@ def test_config_key_given_twice_is_refused(fitted, tmp_path):
 
 # ------------------------------------------------------------------------- 6. export-tables --points
 def test_export_tables_points_above_the_siemens_cap_is_refused(tmp_path, monkeypatch):
-    import types
-
     import torchcal.io.rundir as rundir
 
-    monkeypatch.setattr(rundir, "load_model", lambda run_dir, **kw: types.SimpleNamespace(axis_errors=object()))
+    import torch
+
+    import torchcal
+    from torchcal.machine import MachineModel
+
+    machine = MachineModel(torchcal.load_robot("five_axis_xyzcb"), torch.zeros(1, 3, dtype=torch.float64), orders=1)
+    monkeypatch.setattr(rundir, "load_model", lambda run_dir, **kw: machine)
     r = invoke("export-tables", tmp_path, tmp_path / "t.mpf", "--format", "siemens-cec", "--points", 3000)
     assert r.exit_code == 2 and "--points 3000" in r.output and "2000" in r.output and "--max-points" in r.output
 

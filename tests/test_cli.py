@@ -632,3 +632,34 @@ def test_confounded_directions_are_reported(tmp_path):
     r = invoke("fit", shuf / "fit.yaml", "plots=false", "data.truth=null", f"out={tmp_path / 'run2'}", "--quiet")
     metrics = json.loads((tmp_path / "run2" / "metrics.json").read_text())
     assert not any("backlash and position are confounded" in w for w in metrics["warnings"])
+
+
+def test_predict_a_commands_only_file_gives_every_tool(e2e, fanuc):
+    """`plan-poses` writes pose, q1..qN only: predict answers for every tool of the run, tool by tool."""
+    root = e2e["root"]
+    val = pd.read_csv(e2e["sim"] / "validation.csv")
+    inp = val.drop(columns=["tool", "x", "y", "z"]).drop_duplicates("pose").reset_index(drop=True)
+    inp.to_csv(root / "commands_only.csv", index=False)
+    r = invoke("predict", e2e["run"], root / "commands_only.csv", root / "predicted_all.csv")
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(root / "predicted_all.csv")
+    model = e2e["result"].model
+    T = model.tools.count
+    assert len(out) == T * len(inp) and list(out.columns[:2]) == ["pose", "tool"]
+    assert out.tool.tolist() == [t for t in range(T) for _ in range(len(inp))]
+    q = torch.tensor(np.radians(inp[[f"q{i}" for i in range(1, 7)]].to_numpy()), dtype=torch.float64)
+    d = torch.tensor(inp[[f"dir{i}" for i in range(1, 7)]].to_numpy(), dtype=torch.float64) \
+        if "dir1" in inp.columns else None
+    with torch.no_grad():
+        want = torch.cat([model.points(q, torch.full((len(inp),), t), d) for t in range(T)]) * 1000.0
+    assert np.allclose(out[["x", "y", "z"]].to_numpy(), want.numpy(), rtol=0, atol=1e-6)
+
+
+def test_written_files_print_one_per_line_not_as_a_python_dict():
+    from pathlib import Path
+
+    from torchcal.cli import _written_lines
+
+    lines = _written_lines({"linuxcnc": {"X": Path("/o/x.comp"), "Y": Path("/o/y.comp")}, "csv": Path("/o/t.csv")})
+    assert lines == ["wrote linuxcnc: X: /o/x.comp", "wrote linuxcnc: Y: /o/y.comp", "wrote csv: /o/t.csv"]
+    assert _written_lines(Path("/o/t.csv")) == ["wrote /o/t.csv"]

@@ -267,3 +267,13 @@ def test_local_folder_named_like_a_bundled_robot(tmp_path, monkeypatch):
     (tmp_path / "ur10" / "mine.urdf").write_text("<robot name='x'/>")
     with pytest.raises(URDFError, match=r"local folder .*mine\.urdf.*bundled 'ur10'"):
         load_robot("ur10")
+
+
+def test_an_experiments_config_without_its_data_says_which_script_writes_them(tmp_path):
+    """`torchcal fit experiments/X/fit.yaml` before `python experiments/X/run.py`: the message says to run it."""
+    (tmp_path / "run.py").write_text("# writes the data\n")
+    cfg = tmp_path / "fit.yaml"
+    cfg.write_text("robot: fanuc_lrmate200i\ntools: [[0, 0, 100]]\ndata: {identification: data/ident.csv}\n")
+    r = invoke("fit", cfg)
+    assert r.exit_code == 2
+    assert "file not found" in r.output and f"python {tmp_path / 'run.py'}" in r.output.replace("\n", "")

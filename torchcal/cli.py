@@ -516,7 +516,17 @@ def export_tables_cmd(
         if str(w.message) not in seen:
             seen.add(str(w.message))
             typer.echo(f"warning: {w.message}", err=True)
-    typer.echo(f"wrote {written}")
+    for line in _written_lines(written):
+        typer.echo(line)
+
+
+def _written_lines(written, prefix: str = "") -> list[str]:
+    """'wrote PATH' lines for what a writer returned: a path, {name: path}, or {format: either}."""
+    if isinstance(written, dict):
+        return [line for k, v in written.items() for line in _written_lines(v, f"{prefix}{k}: ")]
+    if isinstance(written, (list, tuple)):
+        return [line for v in written for line in _written_lines(v, prefix)]
+    return [f"wrote {prefix}{written}"]
 
 
 def _check_table_outputs(run_dir: Path, out: Path, fmt: str, force: bool) -> None:

@@ -50,7 +50,7 @@ from .analysis.stats import percent_decrease, point_residuals, residual_stats
 from .identify import FitResult, NoiseModel, Prior, fit
 from .io.config import ConfigError, check_config
 from .kinematics.transforms import homogeneous, rpy_to_matrix
-from .io.csv import read_measurements, write_table
+from .io.csv import DataError, read_measurements, write_table
 from .io.rundir import make_run_dir, run_log, save_model, write_json
 from .kinematics import load_robot
 from .measurements import Measurements
@@ -298,7 +298,14 @@ def load_inputs(cfg) -> FitInputs:
     torch.manual_seed(int(cfg.seed))
     T = config_tool_count(cfg)
     noise = config_noise(cfg, robot, label)
-    ident, val = read_sets(cfg, robot, T, cfg.data.identification, cfg.data.validation, notes, device, label)
+    try:
+        ident, val = read_sets(cfg, robot, T, cfg.data.identification, cfg.data.validation, notes, device, label)
+    except DataError as exc:
+        script = Path(cfg.config_file).parent / "run.py" if cfg.config_file else None
+        missing = [f for f in (cfg.data.identification, cfg.data.validation) if f and not Path(f).exists()]
+        if missing and script is not None and script.is_file():  # an experiment's config: its script writes the data
+            exc.args = (f"{exc}\n  this config's data are written by its experiment: run `python {script}` first",)
+        raise
     if cfg.model.kind == "axis_perturbation":
         for key, bad, why in (("model.order", isinstance(cfg.model.order, str) and int(cfg.model.folds) > 0,
                                "auto on a machine tool chooses by leave-one-pose-out or the validation set "
@@ -770,6 +777,8 @@ def _refuse_radians(path, data: Measurements, robot, units_checked: bool) -> Non
 def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> int:
     """``torchcal predict``: the points x, y, z (mm, measurement frame) an identified model predicts for
     the commands of a CSV (tool, q1..qN [, dir1..dirN]); other columns are kept, measured x, y, z replaced.
+    A file without a 'tool' column (``torchcal plan-poses`` writes commands only) gets every tool of the
+    run for every row, tool by tool, with the 'tool' column added.
 
     -> the number of rows written. Raises RunDirError / DataError naming the folder or file.
     """
@@ -789,18 +798,34 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
         require(model, "predict points", f"torchcal predict {run_dir}")
     except TypeError as exc:
         raise RunDirError(str(exc)) from None
+    import pandas as pd
+
+    from .io.csv import parse_table
+
+    T = model.tools.count
     with progress_task(f"reading {input}"):
-        data, df = read_table(input, model.robot, model.tools.count, require_xyz=False)
+        data, df = read_table(input, model.robot, None, require_xyz=False)
+        per_tool = "tool" not in df.columns
+        if not per_tool:  # the rows name their tools: checked against the run's
+            data = parse_table(df, input, model.robot, T, require_xyz=False)
     _refuse_radians(input, data, model.robot, units_checked)
     data = data.to(model.device)
-    with torch.no_grad(), progress_task(f"predicting {len(df)} rows"):
-        p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
-    mm = points_to_file(p)
-    out = df.copy()
-    for i, c in enumerate(("x", "y", "z")):
-        out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
+    # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
+    tools = range(T) if per_tool else [None]
+    parts = []
+    with torch.no_grad(), progress_task(f"predicting {len(df) * len(tools)} rows"):
+        for t in tools:
+            tool = data.tool if t is None else torch.full_like(data.tool, t)
+            mm = points_to_file(model.points(data.q, tool, data.direction if data.has_direction else None))
+            out = df.copy()
+            if t is not None:
+                out.insert(1 if "pose" in out.columns else 0, "tool", t)
+            for i, c in enumerate(("x", "y", "z")):
+                out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
+            parts.append(out)
+    out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
     write_table(output, out)
-    return len(df)
+    return len(out)
 
 
 @dataclass

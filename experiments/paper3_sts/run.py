@@ -421,7 +421,7 @@ def main(argv=None) -> int:
     if a.json:
         with open(a.json, "w") as f:
             json.dump(out, f, indent=1, default=float)
-    return 0
+    return 0 if all(verdicts) else 1  # a FAIL is a failure for scripts and CI too
 
 
 if __name__ == "__main__":

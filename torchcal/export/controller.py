@@ -359,7 +359,7 @@ def read_linuxcnc_comp(path, axis: int, name: str, prismatic: bool) -> Compensat
 
 
 def export_tables(folder, tables, siemens_max_points: int = SIEMENS_MAX_POINTS, machine_axes=None,
-                  modulo_axes=()) -> dict:
+                  modulo_axes=(), slope_limit_mm: float = 0.4) -> dict:
     """All three formats into ``folder``: tables.csv, cec_tables.mpf (840D), linuxcnc/ (same-axis tables).
 
     Returns {'csv': path, 'siemens': path, 'linuxcnc': {axis: path}}. Formats
@@ -371,7 +371,7 @@ def export_tables(folder, tables, siemens_max_points: int = SIEMENS_MAX_POINTS, 
     from ..compensate.tables import TableSlopeWarning
 
     folder = Path(folder)
-    warn_end_slopes(tables)
+    warn_end_slopes(tables, slope_limit_mm)
     out: dict = {"csv": write_tables_csv(folder / "tables.csv", tables, warn_slopes=False)}
     errors = []
     with warnings.catch_warnings():
@@ -428,13 +428,31 @@ def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None,
         k = min(k, int(siemens_max_points))
     tables = compensation_tables(model, k, pairs)
     modulo = ()
+    limit = run_slope_limit_mm(run_dir)
+    if fmt != "all":
+        warn_end_slopes(tables, limit)
     if fmt == "csv":
-        return write_tables_csv(out, tables)
+        return write_tables_csv(out, tables, warn_slopes=False)
     if fmt == "siemens-cec":
-        return write_siemens_cec(out, tables, max_points=siemens_max_points, modulo_axes=modulo)
+        return write_siemens_cec(out, tables, max_points=siemens_max_points, modulo_axes=modulo, warn_slopes=False)
     if fmt == "linuxcnc":
-        return write_linuxcnc_comp(out, tables)
-    return export_tables(out, tables, siemens_max_points)
+        return write_linuxcnc_comp(out, tables, warn_slopes=False)
+    return export_tables(out, tables, siemens_max_points, slope_limit_mm=limit)
+
+
+def run_slope_limit_mm(run_dir, default_mm: float = 0.4) -> float:
+    """The end-slope limit the tables of a run are judged against: the slope constraint c the run's fit chose
+    or was given (``constraint.json``, mm; 5 % above it, the fit's own check tolerance), else Paper I's
+    0.4 mm."""
+    import json
+    import math
+
+    path = Path(run_dir) / "constraint.json"
+    try:
+        c = json.loads(path.read_text(encoding="utf-8")).get("c")
+    except (OSError, ValueError):
+        return default_mm
+    return float(c) * 1.05 if isinstance(c, (int, float)) and math.isfinite(c) and c > 0 else default_mm
 
 
 __all__ = [

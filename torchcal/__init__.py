@@ -67,6 +67,9 @@ _LAZY = {
     "backlash_confounding": ("torchcal.analysis.confounding", "backlash_confounding"),
     # compensation, simulation, planning
     "compensate": ("torchcal.compensate", None),  # the subpackage, callable as its compensate()
+    "compensate_targets": ("torchcal.compensate.targets", "compensate_targets"),
+    # fleets: many units of one type
+    "fit_fleet": ("torchcal.identify.fleet", "fit_fleet"),
     "CompensationResult": ("torchcal.compensate", "CompensationResult"),
     "simulate": ("torchcal.sim", "simulate"),
     "TruthRobot": ("torchcal.sim", "TruthRobot"),

@@ -381,7 +381,9 @@ def update_cmd(
 @app.command("compensate")
 def compensate_cmd(
     run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit`.")],
-    input: Annotated[Path, typer.Argument(help="CSV with nominal commands q1..qN [, dir1..dirN] (deg / mm); other columns are kept.")],
+    input: Annotated[Path, typer.Argument(help="CSV with nominal commands q1..qN [, dir1..dirN] (deg / mm), or Cartesian targets "
+                                               "x, y, z (mm) + rx, ry, rz (deg, URDF roll-pitch-yaw) or qw, qx, qy, qz in the "
+                                               "robot base frame with q1..qN the controller's seeds [, tool]; other columns are kept.")],
     output: Annotated[Path, typer.Argument(help="CSV to write: q1..qN compensated (deg / mm) plus converged, iterations, within_limits, "
                                                 "max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside].")],
     tol_deg: Annotated[Optional[float], typer.Option(help="Newton tolerance on |dq| (deg); default: the run's compensation.tol_deg.")] = None,
@@ -395,6 +397,12 @@ def compensate_cmd(
                                                                     ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).
+
+    A file of Cartesian targets (a robot program's poses) gets the calibrated
+    joint commands and, in x_cmd .. rz_cmd, the corrected target to send to a
+    controller that keeps its nominal inverse kinematics (a program filter);
+    q1..qN there are the seeds that pick the controller's branch, and 'reason'
+    says why a row is flagged (out of reach, joint limit, correction bound).
 
     Rows that do not converge or leave the controller's joint range are
     flagged (converged / within_limits = false), never dropped. A row whose

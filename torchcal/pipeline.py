@@ -890,6 +890,10 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     with progress_task(f"reading {input}"):
         data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
     _refuse_radians(input, data, robot, units_checked)
+    from .io.csv import target_kind
+
+    if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
+        return _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg)
     data = data.to(model.device)
     with progress_task(f"compensating {len(df)} commands"):
         res = compensate(model, data.q, data.direction if data.has_direction else None,
@@ -910,6 +914,45 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
     return CompensationFile(len(df), nc, ol, int((~res.converged | ~res.within_limits).sum()),
                             0 if res.direction_outside is None else int(res.direction_outside.sum()), res)
+
+
+def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,
+                             max_correction_deg) -> CompensationFile:
+    """``torchcal compensate`` on Cartesian targets (x, y, z mm; rx, ry, rz deg or qw, qx, qy, qz; robot base
+    frame; q1..qN the seeds on the controller's branch; tool optional, default 0): writes q1..qN calibrated,
+    x_cmd .. rz_cmd the corrected target for a controller that runs nominal IK with its nominal tool data,
+    converged, within_limits, max_dq (against the nominal IK's commands) and reason (empty when converged)."""
+    from .compensate.targets import compensate_targets, pose_rpy, target_poses
+    from .io.csv import joint_columns, joints_to_file, parse_table, read_targets
+
+    robot = model.robot
+    if "tool" in df.columns:  # checked against the run's tools
+        data = parse_table(df, input, robot, model.tools.count, require_xyz=False, require_pose=False)
+    _, pos, ori = read_targets(df, input)
+    T = target_poses(pos, ori).to(model.device)
+    data = data.to(model.device)
+    with progress_task(f"compensating {len(df)} Cartesian targets"):
+        res = compensate_targets(model, T, data.q, data.tool, data.direction if data.has_direction else None,
+                                 **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg,
+                                                            robot.joint_map.prismatic))
+    q_file = joints_to_file(res.q, robot)
+    out = df.copy()
+    for i, c in enumerate(joint_columns(robot.joint_map.n)):
+        out[c] = q_file[:, i]
+    cmd = pose_rpy(res.command_target).cpu()
+    for i, c in enumerate(("x_cmd", "y_cmd", "z_cmd")):
+        out[c] = units.m_to_mm(cmd[:, i]).numpy()
+    for i, c in enumerate(("rx_cmd", "ry_cmd", "rz_cmd")):
+        out[c] = units.rad_to_deg(cmd[:, 3 + i]).numpy()
+    comp = res.compensation
+    out["converged"] = res.converged.cpu().numpy()
+    out["within_limits"] = comp.within_limits.cpu().numpy()
+    out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
+    out["reason"] = res.reason
+    write_table(output, out)
+    flagged = int((~res.converged).sum())
+    return CompensationFile(len(df), int((~comp.converged).sum()), int((~comp.within_limits).sum()), flagged,
+                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp)
 
 
 def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:

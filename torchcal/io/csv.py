@@ -428,6 +428,50 @@ def read_measurements(path, robot, n_tools: int | None, require_xyz: bool = True
     return read_table(path, robot, n_tools, require_xyz)[0]
 
 
+TARGET_RPY = ("rx", "ry", "rz")
+TARGET_QUAT = ("qw", "qx", "qy", "qz")
+"""Orientation columns of a Cartesian target file: URDF roll-pitch-yaw in degrees (fixed axes X, then Y, then
+Z: R = Rz(rz) Ry(ry) Rx(rx)), or a unit quaternion (w, x, y, z)."""
+
+
+def target_kind(df: pd.DataFrame) -> str | None:
+    """'rpy' or 'quaternion' when the table holds Cartesian targets (x, y, z and an orientation), else None."""
+    cols = set(df.columns)
+    if not set(XYZ) <= cols:
+        return None
+    if set(TARGET_RPY) <= cols:
+        return "rpy"
+    if set(TARGET_QUAT) <= cols:
+        return "quaternion"
+    return None
+
+
+def read_targets(df: pd.DataFrame, path) -> tuple[str, torch.Tensor, torch.Tensor]:
+    """Cartesian target columns of a raw table (see :func:`target_kind`), SI -> (kind, positions (R, 3) m,
+    orientations: (R, 3) roll-pitch-yaw rad, or (R, 4) unit quaternions w, x, y, z).
+
+    Raises :class:`DataError` listing every empty or non-numeric cell and every quaternion that is not of
+    unit length (within 1e-6), by row and column. :func:`torchcal.compensate.targets.target_poses` turns
+    them into poses.
+    """
+    kind = target_kind(df)
+    if kind is None:
+        raise DataError(path, [Problem(None, None, "no Cartesian target columns: x, y, z (mm) and rx, ry, rz "
+                                                   "(deg) or qw, qx, qy, qz")])
+    problems: list[Problem] = []
+    p = np.stack([_numbers(df, c, problems) for c in XYZ], 1)
+    names = TARGET_RPY if kind == "rpy" else TARGET_QUAT
+    o = np.stack([_numbers(df, c, problems) for c in names], 1)
+    if kind == "quaternion":
+        norm = np.linalg.norm(o, axis=1)
+        for r in np.flatnonzero(np.isfinite(norm) & (np.abs(norm - 1.0) > 1e-6)):
+            problems.append(Problem(int(r) + 1, "qw", f"the quaternion has length {norm[r]:.6g}, not 1"))
+    if problems:
+        raise DataError(path, problems)
+    orientation = torch.from_numpy(o)
+    return kind, units.mm_to_m(torch.from_numpy(p)), units.deg_to_rad(orientation) if kind == "rpy" else orientation
+
+
 # ---------------------------------------------------------------------------- writing
 def joints_to_file(q: torch.Tensor, robot) -> np.ndarray:
     """Controller commands (R, n) SI -> (R, n) float64 numpy in file units (deg / mm)."""

@@ -1,0 +1,108 @@
+"""Cartesian targets in: calibrated commands reach the target on the model; the corrected target round-trips
+through the controller's nominal IK; the nominal IK recovers the controller's own command."""
+
+from __future__ import annotations
+
+import torch
+from conftest import random_commands, randomize
+
+from torchcal.compensate import damped_least_squares, nominal_sigma_min
+from torchcal.compensate.targets import compensate_targets
+from torchcal.kinematics.transforms import homogeneous, pose_error
+from torchcal.model import RobotModel
+
+
+def _tool_pose(F, t):
+    return homogeneous(F[:, :3, :3], F[:, :3, 3] + (F[:, :3, :3] @ t[..., None])[..., 0])
+
+
+def test_targets_reach_the_model_and_round_trip(fanuc, tools_m):
+    model = randomize(RobotModel(fanuc, tools_m, orders=3, backlash=True), 5)
+    with torch.no_grad():  # identified tool corrections, so the real tool differs from the controller's
+        model.tools.delta.copy_(torch.tensor([[1e-4, -2e-4, 3e-4], [0.0, 1e-4, 0.0], [-1e-4, 0.0, 2e-4]],
+                                             dtype=torch.float64))
+    B = 200
+    q_ctrl = random_commands(fanuc, B, 7)  # what the controller's nominal IK chooses for each target
+    tool = torch.arange(B) % 3
+    with torch.no_grad():
+        T = _tool_pose(model.nominal_flange(q_ctrl), model.tools.nominal[tool])  # the program's targets
+    g = torch.Generator().manual_seed(8)
+    seed = q_ctrl + 0.02 * torch.randn(B, 6, generator=g, dtype=torch.float64)  # a seed near the branch
+    s = torch.ones(B, 6, dtype=torch.float64)
+    res = compensate_targets(model, T, seed, tool, s)
+    ok = res.converged
+    assert ok.double().mean() > 0.9
+    assert all((r == "") == bool(c) for r, c in zip(res.reason, ok.tolist()))
+    # the nominal IK found the controller's own commands (same branch), away from singularities (there two
+    # solutions of one pose lie close together, and any of them is the controller's)
+    clear = ok & (nominal_sigma_min(model, q_ctrl) > 0.02)  # m/rad: 0.35 mm/deg
+    assert int(clear.sum()) > 100
+    assert float((res.q_nominal[clear] - q_ctrl[clear]).abs().max()) < 1e-8
+    with torch.no_grad():
+        # the calibrated commands put the model's identified tool on the target
+        reach = _tool_pose(model.flange(res.q, s, base=False), model.tools()[tool])
+        assert float(pose_error(reach[ok], T[ok]).norm(dim=-1).max()) < 1e-9
+        # the corrected target, through the controller's nominal IK (nominal tool), gives the calibrated commands
+        nominal = RobotModel(fanuc, tools_m, orders=0, backlash=None)
+        t_nom = model.tools.nominal[tool]
+        goal = homogeneous(res.command_target[:, :3, :3],
+                           res.command_target[:, :3, 3] - (res.command_target[:, :3, :3] @ t_nom[..., None])[..., 0])
+        back = damped_least_squares(nominal, seed, goal, None)
+    assert float((back.q[ok] - res.q[ok]).abs().max()) < 1e-8
+    # and the correction matters: the uncorrected target sends the tool off by the model's error
+    with torch.no_grad():
+        off = _tool_pose(model.flange(q_ctrl, s, base=False), model.tools()[tool])
+    assert float(pose_error(off, T)[:, 3:].norm(dim=-1).mean()) > 1e-4
+
+
+def test_an_unreachable_target_says_so(fanuc, tools_m):
+    model = randomize(RobotModel(fanuc, tools_m, orders=1), 2, rot=5e-4, trans=5e-5)
+    q = random_commands(fanuc, 2, 3)
+    with torch.no_grad():
+        T = _tool_pose(model.nominal_flange(q), model.tools.nominal[[0, 0]])
+    T[1, :3, 3] += 5.0  # 5 m away
+    res = compensate_targets(model, T, q, 0)
+    assert bool(res.converged[0]) and not bool(res.converged[1])
+    assert res.reason[0] == "" and res.reason[1].startswith("out of reach")
+
+
+def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
+    """`torchcal compensate RUN targets.csv out.csv`: rpy targets with seeds in q1..q6; the calibrated commands
+    and the corrected targets come back per row; the commands reach the target on the run's model."""
+    import numpy as np
+    import pandas as pd
+    from typer.testing import CliRunner
+
+    from torchcal.cli import app
+    from torchcal.compensate.targets import pose_rpy
+    from torchcal.io.rundir import save_model
+
+    model = randomize(RobotModel(fanuc, tools_m, orders=2, backlash=True), 9, rot=5e-4, trans=5e-5)
+    run = tmp_path / "run"
+    run.mkdir()
+    save_model(run, model)
+    q = random_commands(fanuc, 20, 4)
+    tool = torch.arange(20) % 3
+    with torch.no_grad():
+        T = _tool_pose(model.nominal_flange(q), model.tools.nominal[tool])
+    xyzrpy = pose_rpy(T)
+    df = pd.DataFrame({"label": [f"P{i}" for i in range(20)], "tool": tool.numpy()})
+    for i, c in enumerate("xyz"):
+        df[c] = xyzrpy[:, i].numpy() * 1000.0
+    for i, c in enumerate(("rx", "ry", "rz")):
+        df[c] = np.degrees(xyzrpy[:, 3 + i].numpy())
+    for j in range(6):
+        df[f"q{j + 1}"] = np.degrees(q[:, j].numpy())
+    df.to_csv(tmp_path / "targets.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "targets.csv"), str(tmp_path / "out.csv")])
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(tmp_path / "out.csv", keep_default_na=False)
+    assert list(out.label) == list(df.label) and {"x_cmd", "rz_cmd", "reason", "converged"} <= set(out.columns)
+    ok = out.converged.to_numpy().astype(bool)
+    assert ok.mean() > 0.8
+    qc = torch.tensor(np.radians(out[[f"q{j + 1}" for j in range(6)]].to_numpy()), dtype=torch.float64)
+    with torch.no_grad():
+        reach = _tool_pose(model.flange(qc, None, base=False), model.tools()[tool])
+    err = pose_error(reach, T)
+    assert float(err[torch.from_numpy(ok), 3:].norm(dim=-1).max()) < 1e-9  # m (file digits: 1e-10 deg)
+    assert all((reason == "") == bool(c) for reason, c in zip(out.reason, ok))

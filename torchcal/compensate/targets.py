@@ -1,0 +1,156 @@
+"""Cartesian targets in, calibrated joint commands and corrected targets out: a robot program filter.
+
+Robot programs are written as Cartesian targets (a tool pose in the robot's
+base frame) that the controller's *nominal* inverse kinematics turns into
+joint commands. :func:`compensate_targets` gives, for a batch of targets:
+
+- the joint commands that put the tool there on the calibrated model (the
+  target's flange pose for the model's identified tool vector, reached by the
+  nominal IK from the controller's seed, then Paper II's compensation
+  (46)-(52) from that command, :func:`.newton.compensate`);
+- the corrected target to send to a controller that keeps its nominal IK
+  and nominal tool data: the nominal pose of those commands, so that the
+  controller's own IK of it gives them back (on the seed's branch).
+
+The branch is the controller's: every row starts from a seed command (the
+command the controller's IK chooses for the target, or any command near it on
+the same branch: configuration flags become a seed by the controller's own
+program). Rows whose nominal IK cannot reach the target, or whose
+compensation is flagged, say why in ``reason``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from ..contract import require
+from ..kinematics.transforms import homogeneous, matrix_to_rpy, pose_error, rpy_to_matrix
+from .damped import damped_least_squares
+from .newton import CompensationResult, compensate
+
+
+@dataclass
+class TargetResult:
+    """Outcome of :func:`compensate_targets` for B targets.
+
+    q: (B, n) calibrated joint commands (rad / m); q_nominal: (B, n) the
+    nominal IK's commands for the same target and tool (what the controller
+    would run without calibration); command_target: (B, 4, 4) the corrected
+    tool pose to send to a controller that runs nominal IK with the nominal
+    tool; converged: (B,) bool; reason: per row '' or why it is flagged;
+    compensation: the :class:`CompensationResult` of the second stage.
+    """
+
+    q: torch.Tensor
+    q_nominal: torch.Tensor
+    command_target: torch.Tensor
+    converged: torch.Tensor
+    reason: list[str] = field(default_factory=list)
+    compensation: CompensationResult | None = None
+
+
+def target_poses(position: torch.Tensor, orientation: torch.Tensor) -> torch.Tensor:
+    """Poses (B, 4, 4) from positions (B, 3) and orientations: (B, 3) URDF roll-pitch-yaw (fixed X, Y, Z) or
+    (B, 4) unit quaternions (w, x, y, z). SI."""
+    if orientation.shape[-1] == 3:
+        return homogeneous(rpy_to_matrix(orientation), position)
+    w, x, y, z = orientation.unbind(-1)
+    R = torch.stack([
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+    return homogeneous(R, position)
+
+
+def pose_rpy(T: torch.Tensor) -> torch.Tensor:
+    """Poses (B, 4, 4) -> (B, 6): x, y, z and URDF roll-pitch-yaw, SI (the inverse of :func:`target_poses`)."""
+    return torch.cat([T[:, :3, 3], matrix_to_rpy(T[:, :3, :3])], 1)
+
+
+def _tool_pose(F: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Flange poses (B, 4, 4) and tool points (B, 3) in the flange frame -> tool poses (B, 4, 4) (the flange's
+    orientation at the tool point: the run's tools are points)."""
+    return homogeneous(F[:, :3, :3], F[:, :3, 3] + (F[:, :3, :3] @ t[..., None])[..., 0])
+
+
+def _flange_for(T: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Tool poses (B, 4, 4) and tool points (B, 3) -> the flange poses that put the tool there."""
+    return homogeneous(T[:, :3, :3], T[:, :3, 3] - (T[:, :3, :3] @ t[..., None])[..., 0])
+
+
+@torch.no_grad()
+def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, direction: torch.Tensor | None = None,
+                       ik_tol: float = 1e-10, ik_max_iter: int = 100, **options) -> TargetResult:
+    """Calibrated joint commands and corrected Cartesian targets for tool poses in the robot's base frame.
+
+    model: a model that compensates commands (:class:`torchcal.model.RobotModel`,
+    see :mod:`torchcal.contract`); target: (B, 4, 4) tool poses in the
+    robot's nominal base frame, SI; seed: (B, n) commands on the branch the
+    controller uses (rad / m); tool: an index or (B,) indices into the model's
+    tools; direction: (B, n) approach directions or None; ik_tol / ik_max_iter:
+    the nominal IK's step tolerance and iterations; options: for
+    :func:`.newton.compensate` (max_correction, tol, ...). -> :class:`TargetResult`.
+
+    Example:
+        >>> import torch, torchcal
+        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
+        >>> model = torchcal.RobotModel(robot, torch.tensor([[0.0, 0.0, 0.1]], dtype=torch.float64), orders=0)
+        >>> with torch.no_grad():
+        ...     model.joint_errors.coef[:, 2, 0] = 1e-3
+        >>> q = torch.tensor([[0.1, 0.2, 0.3, 0.4, 0.5, 0.6]], dtype=torch.float64)
+        >>> T = model.nominal_flange(q) @ torch.tensor([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.1], [0, 0, 0, 1.0]],
+        ...                                              dtype=torch.float64)      # the tool's pose
+        >>> res = compensate_targets(model, T, seed=q)
+        >>> bool(res.converged[0]), float((res.q_nominal - q).abs().max()) < 1e-9
+        (True, True)
+    """
+    require(model, "compensate commands", "compensate_targets")
+    if target.ndim != 3 or target.shape[1:] != (4, 4):
+        raise ValueError(f"compensate_targets: target must be (B, 4, 4) poses, got {tuple(target.shape)}")
+    B = target.shape[0]
+    if seed.shape != (B, model.n):
+        raise ValueError(f"compensate_targets: seed must be ({B}, {model.n}) commands, got {tuple(seed.shape)}")
+    dev, dt = model.device, seed.dtype
+    tool = torch.as_tensor(tool, device=dev, dtype=torch.long).expand(B)
+    if bool(((tool < 0) | (tool >= model.tools.count)).any()):
+        raise ValueError(f"compensate_targets: tool indices must lie in 0..{model.tools.count - 1}")
+    t_nominal = model.tools.nominal.to(dev, dt)[tool]
+    t_actual = model.tools().to(dev, dt)[tool]
+    nominal = _nominal_model(model)
+    # the controller's view: nominal IK for the nominal tool (reported; the calibrated solve needs the real tool)
+    ik_c = damped_least_squares(nominal, seed, _flange_for(target, t_nominal), None, tol=ik_tol, max_iter=ik_max_iter)
+    # the flange pose that puts the model's identified tool on the target, reached on the nominal chain first
+    goal = _flange_for(target, t_actual)
+    ik = damped_least_squares(nominal, ik_c.q, goal, None, tol=ik_tol, max_iter=ik_max_iter)
+    comp = compensate(model, ik.q, direction, **options)
+    F = model.flange(comp.q, direction, base=False)
+    err = pose_error(F, goal).norm(dim=-1)
+    ok = ik_c.converged & ik.converged & comp.converged & comp.within_limits
+    command = _tool_pose(model.nominal_flange(comp.q), t_nominal)
+    reason = []
+    for i in range(B):
+        if not bool(ik_c.converged[i]):
+            reason.append("out of reach: the nominal IK does not reach the target from the seed")
+        elif not bool(ik.converged[i]):
+            reason.append("out of reach for the identified tool")
+        elif not bool(comp.within_limits[i]):
+            reason.append("joint limit: the calibrated command leaves the joint range")
+        elif not bool(comp.converged[i]):
+            sv = float(comp.sigma_min[i]) if comp.sigma_min is not None else float("nan")
+            reason.append(f"not converged within the correction bound (pose error {float(err[i]) * 1e3:.3g} mm"
+                          + (f", sigma_min {sv:.3g}" if sv == sv else "") + ")")
+        else:
+            reason.append("")
+    return TargetResult(comp.q, ik_c.q, command, ok, reason, comp)
+
+
+def _nominal_model(model):
+    """The model's nominal chain as a model with every error term zero: the controller's kinematics (the
+    model's own class: compensation and the models are sibling layers)."""
+    return type(model)(model.robot, model.tools.nominal, orders=0, backlash=None).to(model.device)
+
+
+__all__ = ["TargetResult", "compensate_targets", "pose_rpy", "target_poses"]

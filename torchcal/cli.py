@@ -385,7 +385,7 @@ def compensate_cmd(
                                                "x, y, z (mm) + rx, ry, rz (deg, URDF roll-pitch-yaw) or qw, qx, qy, qz in the "
                                                "robot base frame with q1..qN the controller's seeds [, tool]; other columns are kept.")],
     output: Annotated[Path, typer.Argument(help="CSV to write: q1..qN compensated (deg / mm) plus converged, iterations, within_limits, "
-                                                "max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside].")],
+                                                "max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside], reason (empty, or why the row is flagged).")],
     tol_deg: Annotated[Optional[float], typer.Option(help="Newton tolerance on |dq| (deg); default: the run's compensation.tol_deg.")] = None,
     max_iter: Annotated[Optional[int], typer.Option(help="Newton iteration limit; default: the run's compensation.max_iter.")] = None,
     max_correction_deg: Annotated[Optional[float], typer.Option(

@@ -910,6 +910,8 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
     if res.direction_outside is not None:
         out["direction_outside"] = res.direction_outside.cpu().numpy()
+    opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
+    out["reason"] = res.reasons(opts.get("max_correction"), robot.joint_map.prismatic)
     write_table(output, out)
     nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
     return CompensationFile(len(df), nc, ol, int((~res.converged | ~res.within_limits).sum()),

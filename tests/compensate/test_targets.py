@@ -106,3 +106,25 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     err = pose_error(reach, T)
     assert float(err[torch.from_numpy(ok), 3:].norm(dim=-1).max()) < 1e-9  # m (file digits: 1e-10 deg)
     assert all((reason == "") == bool(c) for reason, c in zip(out.reason, ok))
+
+
+def test_every_flagged_command_says_why(fanuc, tools_m):
+    """compensate's reasons agree with its flags: '' exactly for converged rows within the range, 'joint limit'
+    for rows outside it, 'needs more than the bound' only where the correction reached the bound."""
+    import math
+
+    from torchcal.compensate import compensate
+
+    model = randomize(RobotModel(fanuc, tools_m, orders=3, backlash=True), 11, rot=3e-3, trans=3e-4)
+    lim = fanuc.joint_map.limits
+    q = random_commands(fanuc, 400, 12)
+    q[:40, 1] = lim[1, 1] - 1e-4  # at the upper limit of joint 2: corrections may leave the range
+    bound = math.radians(2.0)
+    res = compensate(model, q, torch.ones_like(q), max_correction=bound, max_step=bound)
+    why = res.reasons(bound)
+    ok = res.converged & res.within_limits
+    assert all((w == "") == bool(c) for w, c in zip(why, ok.tolist()))
+    assert all(w.startswith("joint limit") for w, inside in zip(why, res.within_limits.tolist()) if not inside)
+    more = torch.tensor([w.startswith("needs more") for w in why])
+    assert bool(more.any()) and bool((res.correction[more] >= 0.999 * bound).all())
+    assert not bool(res.within_limits.all())

@@ -97,6 +97,35 @@ class CompensationResult:
         """(B,) final flange orientation error |de_r| (rad)."""
         return self.pose_error[:, 3:].norm(dim=-1)
 
+    def reasons(self, max_correction=None, prismatic=None, singular: float = 5.73e-4) -> list[str]:
+        """Why each row is flagged, '' for a converged row within the joint range: 'joint limit' (the command
+        leaves the controller's range), 'needs more than the bound' (the correction ran into max_correction:
+        the solution lies farther from the nominal command), 'singular' (sigma_min below ``singular`` m/rad,
+        0.01 mm/deg, when it was computed), else 'not converged' with the pose error left. max_correction:
+        compensate()'s bound (number, (n,) tensor or :data:`DEFAULT_BOUND`; default the default)."""
+        n = self.q.shape[1]
+        bound = per_joint_bound(DEFAULT_BOUND if max_correction is None else max_correction, n, self.q.dtype,
+                                self.q.device, "max_correction", prismatic)
+        out = []
+        at_bound = torch.zeros_like(self.converged)
+        if bound is not None and self.correction is not None:
+            # correction is the largest |dq| over the joints: at the bound of some joint to 0.1 %
+            at_bound = self.correction >= 0.999 * float(bound.min())
+        err_mm = self.pose_error[:, :3].norm(dim=-1) * 1e3
+        for i in range(self.q.shape[0]):
+            if bool(self.converged[i]) and bool(self.within_limits[i]):
+                out.append("")
+            elif not bool(self.within_limits[i]):
+                out.append("joint limit: the compensated command leaves the controller's range")
+            elif bool(at_bound[i]):
+                out.append(f"needs more than the bound: stopped at the correction bound, {float(err_mm[i]):.3g} mm "
+                           "left (raise --max-correction-deg if no branch change is near)")
+            elif self.sigma_min is not None and float(self.sigma_min[i]) < singular:
+                out.append(f"singular: sigma_min {float(self.sigma_min[i]):.3g} m/rad at the nominal command")
+            else:
+                out.append(f"not converged: {float(err_mm[i]):.3g} mm left")
+        return out
+
     def summary(self) -> dict:
         """Counts and worst errors as plain Python numbers."""
         c = self.converged

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..contract import require
-from ..kinematics.transforms import homogeneous, matrix_to_rpy, pose_error, rpy_to_matrix
+from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
 from .damped import damped_least_squares
 from .newton import CompensationResult, compensate
 
@@ -126,24 +126,17 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     goal = _flange_for(target, t_actual)
     ik = damped_least_squares(nominal, ik_c.q, goal, None, tol=ik_tol, max_iter=ik_max_iter)
     comp = compensate(model, ik.q, direction, **options)
-    F = model.flange(comp.q, direction, base=False)
-    err = pose_error(F, goal).norm(dim=-1)
     ok = ik_c.converged & ik.converged & comp.converged & comp.within_limits
     command = _tool_pose(model.nominal_flange(comp.q), t_nominal)
+    stage2 = comp.reasons(options.get("max_correction"), model.robot.joint_map.prismatic)
     reason = []
     for i in range(B):
         if not bool(ik_c.converged[i]):
             reason.append("out of reach: the nominal IK does not reach the target from the seed")
         elif not bool(ik.converged[i]):
             reason.append("out of reach for the identified tool")
-        elif not bool(comp.within_limits[i]):
-            reason.append("joint limit: the calibrated command leaves the joint range")
-        elif not bool(comp.converged[i]):
-            sv = float(comp.sigma_min[i]) if comp.sigma_min is not None else float("nan")
-            reason.append(f"not converged within the correction bound (pose error {float(err[i]) * 1e3:.3g} mm"
-                          + (f", sigma_min {sv:.3g}" if sv == sv else "") + ")")
         else:
-            reason.append("")
+            reason.append(stage2[i])
     return TargetResult(comp.q, ik_c.q, command, ok, reason, comp)
 
 

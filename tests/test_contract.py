@@ -82,3 +82,16 @@ def test_export_tables_refuses_a_robot_run(tmp_path, models):
     save_model(tmp_path, models["robot"])
     with pytest.raises(RunDirError, match="RobotModel cannot export tables"):
         export_run_tables(tmp_path, tmp_path / "t.csv")
+
+
+def test_capabilities_do_not_depend_on_static_lookup(models):
+    """From Python 3.12 isinstance() with a protocol looks members up statically and misses an nn.Module's
+    submodules (joint_errors): the contract looks them up as attribute access does."""
+    import inspect
+
+    from torchcal.contract import CompensatesCommands, implements
+
+    robot = models["robot"]
+    assert implements(robot, CompensatesCommands)
+    with pytest.raises(AttributeError):
+        inspect.getattr_static(robot, "joint_errors")  # what a static lookup sees: nothing

@@ -101,3 +101,27 @@ def test_slope_constraint_on_cuda_matches_cpu():
     assert out[0].success and out[1].success
     assert out[1].max_slope_check == pytest.approx(out[0].max_slope_check, rel=1e-6)
     assert torch.allclose(out[1].x.cpu(), out[0].x, rtol=1e-6, atol=1e-12)
+
+
+def test_cartesian_targets_on_cuda_match_cpu(setup):
+    """compensate_targets (nominal IK from the seed, then compensation) on the GPU lands where the CPU lands."""
+    from torchcal.compensate.targets import compensate_targets
+    from torchcal.kinematics.transforms import homogeneous
+
+    robot, noise, units = setup
+    m = _model(robot)
+    fit(m, units[0], noise)
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 300, 6)
+    tool = torch.arange(300) % 3
+    with torch.no_grad():
+        F = m.nominal_flange(q)
+        t = m.tools.nominal[tool]
+        T = homogeneous(F[:, :3, :3], F[:, :3, 3] + (F[:, :3, :3] @ t[..., None])[..., 0])
+    cpu = compensate_targets(m, T, q, tool)
+    g = _model(robot, "cuda")
+    g.load_state_dict(m.state_dict())
+    gpu = compensate_targets(g, T.cuda(), q.cuda(), tool.cuda())
+    ok = cpu.converged & gpu.converged.cpu()
+    assert ok.float().mean() > 0.9
+    assert torch.allclose(gpu.q.cpu()[ok], cpu.q[ok], atol=1e-10, rtol=0)
+    assert torch.allclose(gpu.command_target.cpu()[ok], cpu.command_target[ok], atol=1e-10, rtol=0)

@@ -96,9 +96,28 @@ def _instead(model, capability: str, has: list[str]) -> str:
     return ""
 
 
+def _members(proto: type) -> set[str]:
+    """The attributes and methods a protocol (and the protocols it extends) declares."""
+    out: set[str] = set()
+    for cls in proto.__mro__:
+        if cls in (Protocol, object) or not getattr(cls, "_is_protocol", False):
+            continue
+        out |= set(getattr(cls, "__annotations__", {}))
+        out |= {k for k, v in vars(cls).items() if callable(v) and not k.startswith("_")}
+    return out
+
+
+def implements(model, proto: type) -> bool:
+    """Whether ``model`` has every member of ``proto``, looked up as attribute access does.
+
+    isinstance() with a runtime-checkable protocol looks members up statically from Python 3.12 on, and so
+    misses what an ``nn.Module`` keeps in its registries (a submodule such as ``joint_errors``)."""
+    return all(hasattr(model, name) for name in _members(proto))
+
+
 def capabilities(model) -> list[str]:
     """The capabilities (:data:`CAPABILITIES`) ``model`` implements, in that order."""
-    return [name for name, proto in CAPABILITIES.items() if isinstance(model, proto)]
+    return [name for name, proto in CAPABILITIES.items() if implements(model, proto)]
 
 
 def require(model, capability: str, who: str | None = None) -> None:
@@ -116,7 +135,7 @@ def require(model, capability: str, who: str | None = None) -> None:
         proto = CAPABILITIES[capability]
     except KeyError:
         raise ValueError(f"require: unknown capability {capability!r}; one of {', '.join(CAPABILITIES)}") from None
-    if isinstance(model, proto):
+    if implements(model, proto):
         return
     has = capabilities(model)
     raise TypeError(f"{who or 'torchcal'}: {type(model).__name__} cannot {capability} (it can: "
@@ -124,4 +143,4 @@ def require(model, capability: str, who: str | None = None) -> None:
 
 
 __all__ = ["CAPABILITIES", "CalibratedModel", "CompensatesCommands", "ExportsTables", "PredictsPoints",
-           "capabilities", "require"]
+           "capabilities", "implements", "require"]

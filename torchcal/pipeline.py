@@ -787,9 +787,9 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
 
     with progress_task(f"loading the run {run_dir}"):
         model = load_model(run_dir, device=device)
-    from .contract import PredictsPoints, require
+    from .contract import PredictsPoints, implements, require
 
-    if not isinstance(model, PredictsPoints) and hasattr(model, "sensor_pose"):
+    if not implements(model, PredictsPoints) and hasattr(model, "sensor_pose"):
         from .pipeline_sensor import predict_pose_file  # a sensor run (Paper III): modeled x, y, z, r11..r33
 
         with progress_task(f"predicting the sensor poses of {input}"):

@@ -895,10 +895,9 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
         return _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg)
     data = data.to(model.device)
+    opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
     with progress_task(f"compensating {len(df)} commands"):
-        res = compensate(model, data.q, data.direction if data.has_direction else None,
-                         **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg,
-                                                    robot.joint_map.prismatic))
+        res = compensate(model, data.q, data.direction if data.has_direction else None, **opts)
     q_file = joints_to_file(res.q, robot)
     out = df.copy()
     for i, c in enumerate(joint_columns(robot.joint_map.n)):
@@ -910,7 +909,6 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
     if res.direction_outside is not None:
         out["direction_outside"] = res.direction_outside.cpu().numpy()
-    opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
     out["reason"] = res.reasons(opts.get("max_correction"), robot.joint_map.prismatic)
     write_table(output, out)
     nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())

@@ -85,6 +85,24 @@ def _check_fleet_config(cfg) -> None:
         raise ConfigError(f"{label}: key 'tools': a fleet needs the tool vectors listed (mm)")
 
 
+def _factory(cfg, robot, device, backlash):
+    """The fleet's model factory (pipeline.model_factory from the config) with the given backlash orders."""
+    from ..pipeline import config_frame, config_tools, model_factory
+    from ..pipeline_common import config_compliance, config_error_variable
+
+    _, base = config_frame(cfg)
+    return model_factory(robot, config_tools(cfg), backlash, device, base, config_compliance(cfg),
+                         config_error_variable(cfg), cfg.model.kind)
+
+
+def _solve_threads(cfg) -> int:
+    """CPU threads of every cell's solve and of the evaluation: the config's, else this process's usable CPUs
+    (one count for every engine: another count sums in another order)."""
+    from .. import threads
+
+    return int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()
+
+
 def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -> list[dict]:
     """One cell's batched solve: what an engine runs. config_yaml: the fleet's resolved config; cell: (name,
     :class:`Measurements`) per unit; n_threads: the CPU threads of the solve, the same wherever it runs (the
@@ -94,16 +112,14 @@ def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -
 
     from ..identify.fleet import fit_fleet
     from ..kinematics import load_robot
-    from ..pipeline import config_frame, config_noise, config_prior, config_tools, model_factory
-    from ..pipeline_common import config_backlash, config_compliance, config_error_variable, solver_options
+    from ..pipeline import config_noise, config_prior
+    from ..pipeline_common import config_backlash, solver_options
     from .. import threads
 
     cfg = OmegaConf.create(config_yaml)
     robot = load_robot(cfg.robot)
     device = torch.device(cfg.device)
-    mode, base = config_frame(cfg)
-    make = model_factory(robot, config_tools(cfg), config_backlash(cfg), device, base, config_compliance(cfg),
-                         config_error_variable(cfg), cfg.model.kind)
+    make = _factory(cfg, robot, device, config_backlash(cfg))
     n = robot.joint_map.n
     order = cfg.model.order
     orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
@@ -129,9 +145,7 @@ def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -
 
 def _run_cells(cfg, cells: list[list], config_yaml: str) -> list:
     """Every cell through the configured engine -> per cell its list of unit dicts, or the exception it raised."""
-    from .. import threads
-
-    n_threads = int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()
+    n_threads = _solve_threads(cfg)
     if cfg.fleet.engine == "local":
         out = []
         for cell in cells:
@@ -178,7 +192,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     from ..io.config import check_config
 
     label = cfg.config_file or "config"
-    check_config(cfg, label)
+    check_config(cfg, label)  # required keys first: before the robot and the folder are read
     _check_fleet_config(cfg)
     files = unit_files(cfg)
     robot = load_robot(cfg.robot)
@@ -216,9 +230,6 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         result.solve_time = time.perf_counter() - ts
         vals = {n: v for n, _, v in loaded}
         idents = {n: i for n, i, _ in loaded}
-        from ..pipeline import config_frame, config_tools, model_factory
-        from ..pipeline_common import config_compliance, config_error_variable
-
         fitted = []
         for cell, got in zip(cells, outs):
             if isinstance(got, Exception):
@@ -226,16 +237,12 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     rows[name] = {"unit": name, "status": "failed", "reason": f"{type(got).__name__}: {got}"}
                 continue
             for u in got:
-                mode, base = config_frame(cfg)
-                make = model_factory(robot, config_tools(cfg), u["backlash"], device, base, config_compliance(cfg),
-                                     config_error_variable(cfg), cfg.model.kind)
-                model = make(u["orders"])
+                model = _factory(cfg, robot, device, u["backlash"])(u["orders"])
                 model.load_state_dict(u["state"])
                 fitted.append((u, model))
         from .. import threads
 
-        n_threads = int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()
-        with threads.limit_threads(n_threads):  # the same sums whatever the engine left in this process
+        with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
                 _evaluate(u, model, idents, vals, rows, device)
         if len(fitted) >= 3:

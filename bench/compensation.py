@@ -47,8 +47,8 @@ from harness import ROOT, Context, Row, at_least, main as harness_main, need
 from torchcal.compensate import compensate, nominal_sigma_min
 from torchcal.kinematics import load_robot
 from torchcal.kinematics.transforms import pose_error
-from torchcal.model import RobotModel
-from torchcal.units import deg_to_rad, mm_to_m
+from torchcal.models.robot import RobotModel
+from torchcal.core.units import deg_to_rad, mm_to_m
 
 NAME = "compensation"
 TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]

@@ -33,7 +33,7 @@ def _done(path: Path) -> bool:
 
 def fanuc(ctx: Context, identification: int = 250) -> Path:
     """Folder with identification.csv, validation.csv, truth.json, fit.yaml (``torchcal simulate``, seed 0)."""
-    from torchcal.sim.dataset import simulate_dataset
+    from torchcal.app.simulate import simulate_dataset
 
     out = ctx.workdir / ("fanuc" if identification == 250 else f"fanuc{identification}")
     if not _done(out):

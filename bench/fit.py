@@ -26,12 +26,12 @@ def fanuc_fit_setup(ctx: Context, order: int = 6):
     """(make_model, ident, noise, prior, opts) of the bench's FANUC config."""
     import torch
 
-    from torchcal import units
-    from torchcal.io.config import load_config
+    from torchcal.core import units
+    from torchcal.app.config import load_config
     from torchcal.io.csv import read_measurements
     from torchcal.kinematics import load_robot
-    from torchcal.model import RobotModel
-    from torchcal.pipeline import config_noise, config_prior, solver_options
+    from torchcal.models.robot import RobotModel
+    from torchcal.app.fit import config_noise, config_prior, solver_options
 
     folder = bench_data.fanuc(ctx)
     cfg = load_config(folder / "fit.yaml")

@@ -22,12 +22,12 @@ import time
 import torch
 
 import torchcal.sim
-from torchcal import units as U
+from torchcal.core import units as U
 from torchcal.compensate import compensate
 from torchcal.identify import fit
 from torchcal.identify.fleet import fit_fleet
 from torchcal.sim.fleet import fleet_truths
-from torchcal.threads import set_threads
+from torchcal.core.threads import set_threads
 
 TOOLS = U.mm_to_m(torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]],
                                dtype=torch.float64))

@@ -1,7 +1,7 @@
 """Probe (device): where GPU compensation time goes — chunk sizes, float64 / float32, fast vs damped path."""
 import time, sys
 import torch, torchcal, torchcal.sim
-from torchcal import units as U
+from torchcal.core import units as U
 from torchcal.compensate import compensate
 from torchcal.identify import fit
 TOOLS = U.mm_to_m(torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]], dtype=torch.float64))

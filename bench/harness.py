@@ -23,7 +23,7 @@ Missing optional packages or data raise :class:`Skip`: the table gets a
 
 from __future__ import annotations
 
-import torchcal  # noqa: F401  first: sets OMP_WAIT_POLICY=PASSIVE before anything loads torch (torchcal/threads.py)
+import torchcal  # noqa: F401  first: sets OMP_WAIT_POLICY=PASSIVE before anything loads torch (torchcal/core/threads.py)
 
 import argparse
 import contextlib
@@ -374,7 +374,7 @@ def need(module: str, why: str = ""):
 
 
 def machine_state() -> dict:
-    from torchcal.threads import usable_cpus
+    from torchcal.core.threads import usable_cpus
 
     import torch
 

@@ -68,7 +68,7 @@ def scipy_fit(make, ident, noise, prior, ftol: float, V_target: float | None = N
     from torchcal.identify.fit import problem_work
     from torchcal.identify.gauge import fix_gauge
     from torchcal.identify.problem import CalibrationProblem
-    from torchcal.threads import threads_for_work
+    from torchcal.core.threads import threads_for_work
 
     model = make()
     t0 = time.perf_counter()
@@ -270,11 +270,11 @@ def run_torchcal_irb(robot, ident, val_complete) -> dict:
     """Order 4 + backlash + gravity compliance (J2, J3, J5), unconstrained: align + fit, as experiments/irb120_faro/run.py."""
     import torch
 
-    from torchcal import units
+    from torchcal.core import units
     from torchcal.analysis.stats import point_residuals
     from torchcal.identify import NoiseModel, Prior, fit
     from torchcal.identify.alignment import align
-    from torchcal.model import RobotModel
+    from torchcal.models.robot import RobotModel
 
     noise = NoiseModel.from_robot(robot, sigma_m=units.mm_to_m(0.005))
     t0 = time.perf_counter()

@@ -54,7 +54,7 @@ def fit_case(ctx: Context) -> Row:
 
     from torchcal.identify import NoiseModel, fit
     from torchcal.kinematics import load_robot
-    from torchcal.model import RobotModel
+    from torchcal.models.robot import RobotModel
     from torchcal.sim import TruthRobot, quasi_random_commands, simulate
 
     robot = load_robot("fanuc_lrmate200i")
@@ -91,7 +91,7 @@ def compensation_case(ctx: Context) -> Row:
 
     from compensation import realistic_model, uniform_commands
     from torchcal.compensate import compensate
-    from torchcal.units import deg_to_rad
+    from torchcal.core.units import deg_to_rad
 
     model = realistic_model(0)
     bound = deg_to_rad(5.0)

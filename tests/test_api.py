@@ -26,8 +26,8 @@ def test_main_api_is_at_the_top_level():
     from torchcal.identify import NoiseModel, Prior, fit
     from torchcal.io.csv import read_measurements
     from torchcal.kinematics import load_robot
-    from torchcal.measurements import Measurements
-    from torchcal.model import RobotModel
+    from torchcal.core.measurements import Measurements
+    from torchcal.models.robot import RobotModel
 
     assert torchcal.load_robot is load_robot and torchcal.RobotModel is RobotModel and torchcal.fit is fit
     assert torchcal.NoiseModel is NoiseModel and torchcal.Prior is Prior and torchcal.Measurements is Measurements
@@ -60,25 +60,25 @@ def test_version_comes_from_the_package_metadata():
 
 def test_plan_poses_when_the_planner_exists():
     try:
-        planning = importlib.import_module("torchcal.planning")
+        planning = importlib.import_module("torchcal.analysis.planning")
     except ImportError:
-        pytest.skip("torchcal.planning not available")
+        pytest.skip("torchcal.analysis.planning not available")
     assert torchcal.plan_poses is planning.plan_poses
 
 
 def test_import_is_light():
     """`import torchcal` (what the console script does first) loads neither torch nor the submodules,
-    except torchcal.threads, which must set the OpenMP wait policy before torch loads."""
+    except torchcal.core.threads, which must set the OpenMP wait policy before torch loads."""
     code = ("import os; os.environ.pop('OMP_WAIT_POLICY', None); import sys, torchcal; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'torchcal'))); "
             "print(os.environ.get('OMP_WAIT_POLICY'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
     modules, policy = out.splitlines()
-    assert eval(modules) == ["torchcal", "torchcal.exceptions", "torchcal.threads"]
+    assert eval(modules) == ["torchcal", "torchcal.core", "torchcal.core.exceptions", "torchcal.core.threads"]
     assert policy == "PASSIVE"
 
 
-@pytest.mark.parametrize("module, cls", [("torchcal.kinematics.urdf", "URDFError"), ("torchcal.io.config", "ConfigError"),
+@pytest.mark.parametrize("module, cls", [("torchcal.kinematics.urdf", "URDFError"), ("torchcal.app.config", "ConfigError"),
                                          ("torchcal.io.rundir", "RunDirError"), ("torchcal.io.csv", "DataError")])
 def test_every_error_is_a_torchcal_error_and_a_value_error(module, cls):
     err = getattr(importlib.import_module(module), cls)
@@ -117,8 +117,8 @@ def test_facade_calibrates_a_simulated_robot(fanuc, tools_m, one_thread):
     assert modeled < 0.5 * nominal
 
 
-@pytest.mark.parametrize("module", ["torchcal.exceptions", "torchcal.io.csv", "torchcal.io.config", "torchcal.io.rundir",
-                                    "torchcal.pipeline", "torchcal.analysis.cpa"])
+@pytest.mark.parametrize("module", ["torchcal.core.exceptions", "torchcal.io.csv", "torchcal.app.config", "torchcal.io.rundir",
+                                    "torchcal.app.fit", "torchcal.analysis.cpa"])
 def test_docstring_examples_run(module):
     result = doctest.testmod(importlib.import_module(module), optionflags=doctest.ELLIPSIS)
     assert result.failed == 0
@@ -148,7 +148,7 @@ def test_every_torchcal_exception_derives_from_torchcalerror():
 def test_fit_path_modules_do_not_import_scipy_stats():
     """scipy.stats costs 1-3 s to import on a 2-core machine: the modules every `torchcal fit` loads (truth
     files, the simulators' package, the pipeline) must not pull it in at import."""
-    code = ("import sys, torchcal, torchcal.sim, torchcal.io.truth, torchcal.pipeline, torchcal.pipeline_sensor; "
+    code = ("import sys, torchcal, torchcal.sim, torchcal.io.truth, torchcal.app.fit, torchcal.app.sensor; "
             "print('scipy.stats' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout
     assert out.strip() == "False"

@@ -3,7 +3,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchcal.basis import chebyshev, chebyshev_with_derivative, normalize, series
+from torchcal.core.basis import chebyshev, chebyshev_with_derivative, normalize, series
 
 
 @settings(max_examples=50, deadline=None)

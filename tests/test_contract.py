@@ -1,4 +1,4 @@
-"""The model contract (torchcal.contract): which model can do what, and a clear refusal otherwise."""
+"""The model contract (torchcal.core.contract): which model can do what, and a clear refusal otherwise."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import pytest
 import torch
 
 import torchcal
-from torchcal.contract import CalibratedModel, PredictsPoints, capabilities, require
-from torchcal.machine import MachineModel
-from torchcal.measure.rig import SensorRig
+from torchcal.core.contract import CalibratedModel, PredictsPoints, capabilities, require
+from torchcal.models.machine import MachineModel
+from torchcal.models.sensor_rig import SensorRig
 
 Z = torch.zeros(1, 3, dtype=torch.float64)
 
@@ -86,12 +86,34 @@ def test_export_tables_refuses_a_robot_run(tmp_path, models):
 
 def test_capabilities_do_not_depend_on_static_lookup(models):
     """From Python 3.12 isinstance() with a protocol looks members up statically and misses an nn.Module's
-    submodules (joint_errors): the contract looks them up as attribute access does."""
+    submodules (a machine's axis_errors): the contract looks them up as attribute access does."""
     import inspect
 
-    from torchcal.contract import CompensatesCommands, implements
+    from torchcal.core.contract import ExportsTables, implements
 
-    robot = models["robot"]
-    assert implements(robot, CompensatesCommands)
+    machine = models["machine"]
+    assert implements(machine, ExportsTables)
     with pytest.raises(AttributeError):
-        inspect.getattr_static(robot, "joint_errors")  # what a static lookup sees: nothing
+        inspect.getattr_static(machine, "axis_errors")  # what a static lookup sees: nothing
+
+
+def test_compensation_backends_read_only_the_snapshot_the_model_hands_out():
+    """The flange backend is built from ``flange_snapshot()`` alone: a snapshot gives the numbers the model gives,
+    and changing the model afterwards does not change a kernel built before (the snapshot is a copy)."""
+    from torchcal.compensate.kernel import FlangeKernel
+
+    robot = torchcal.RobotModel(torchcal.load_robot("fanuc_lrmate200i"), Z, orders=1)
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        robot.joint_errors.coef.normal_(0.0, 1e-3, generator=g)
+    q = (torch.rand(64, robot.n, generator=g, dtype=torch.float64) - 0.5) * 2.0
+    snap = robot.flange_snapshot()
+    kernel = FlangeKernel(snap, fused=False)
+    R, p = kernel.flange(q.T.contiguous())
+    F = robot.flange(q, base=False)
+    assert torch.allclose(R.permute(2, 0, 1), F[:, :3, :3], atol=1e-12)
+    assert torch.allclose(p.T, F[:, :3, 3], atol=1e-12)
+    with torch.no_grad():
+        robot.joint_errors.coef.add_(1e-2)
+    R2, p2 = kernel.flange(q.T.contiguous())
+    assert torch.equal(p2, p) and not torch.allclose(robot.flange(q, base=False)[:, :3, 3], F[:, :3, 3])

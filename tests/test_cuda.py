@@ -84,7 +84,7 @@ def test_compensation_on_cuda_float64_and_float32(setup):
 def test_slope_constraint_on_cuda_matches_cpu():
     """Paper I's constrained fit (the slope penalty's QP steps) on CUDA lands where the CPU's lands."""
     from torchcal.identify.constrained import fit_constrained
-    from torchcal.machine import MachineModel
+    from torchcal.models.machine import MachineModel
 
     robot = torchcal.load_robot("five_axis_xyzcb")
     tools = torch.tensor([[0.0, 0.0, 0.4029], [0.0, 0.0, 0.5009]], dtype=torch.float64)

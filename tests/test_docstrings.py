@@ -6,27 +6,27 @@ import importlib
 import pytest
 
 MODULES = [
-    "torchcal.exceptions",
-    "torchcal.params",
+    "torchcal.core.exceptions",
+    "torchcal.core.params",
     "torchcal.kinematics.robot",
-    "torchcal.model",
+    "torchcal.models.robot",
     "torchcal.error_models.joint",
-    "torchcal.measurements",
+    "torchcal.core.measurements",
     "torchcal.identify.fit",
     "torchcal.identify.problem",
     "torchcal.compensate.newton",
     "torchcal.sim.measure",
     "torchcal.sim.truth",
-    "torchcal.planning",
+    "torchcal.analysis.planning",
     "torchcal.analysis.identifiability",
     "torchcal.analysis.cpa",
     "torchcal.io.csv",
-    "torchcal.io.config",
+    "torchcal.app.config",
     "torchcal.io.rundir",
     "torchcal.measure.tracker",
     "torchcal.measure.triangle",
     "torchcal.analysis.orientation",
-    "torchcal.measure.rig",
+    "torchcal.models.sensor_rig",
     "torchcal.measure.sts",
     "torchcal.measure.pose",
     "torchcal.io.sensor_csv",
@@ -38,7 +38,7 @@ MODULES = [
     "torchcal.compensate.tables",
     "torchcal.export.controller",
     "torchcal.analysis.border",
-    "torchcal.progress",
+    "torchcal.core.progress",
 ]
 
 

@@ -16,7 +16,7 @@ from torchcal.cli import app
 from torchcal.io.csv import DataError, read_measurements
 from torchcal.kinematics import load_robot
 from torchcal.kinematics.urdf import URDFError, load_urdf
-from torchcal.measurements import Measurements
+from torchcal.core.measurements import Measurements
 
 runner = CliRunner()
 POSES = 20
@@ -75,7 +75,7 @@ def test_radian_joints_refused_by_predict_and_compensate_warned_by_fit(fitted, t
 
 
 def test_import_tracker_warns_on_radian_joints(tmp_path, fanuc):
-    from torchcal.model import RobotModel
+    from torchcal.models.robot import RobotModel
     from tests.conftest import random_commands
 
     q = random_commands(fanuc, 15, 3)
@@ -191,7 +191,7 @@ def test_export_tables_points_above_the_siemens_cap_is_refused(tmp_path, monkeyp
     import torch
 
     import torchcal
-    from torchcal.machine import MachineModel
+    from torchcal.models.machine import MachineModel
 
     machine = MachineModel(torchcal.load_robot("five_axis_xyzcb"), torch.zeros(1, 3, dtype=torch.float64), orders=1)
     monkeypatch.setattr(rundir, "load_model", lambda run_dir, **kw: machine)

@@ -9,11 +9,11 @@ import torch
 import torchcal
 import torchcal.sim
 from conftest import XYZCB_TOOLS, assert_point_jacobians_match_autograd
-from torchcal import units
+from torchcal.core import units
 from torchcal.identify import NoiseModel, fit
 from torchcal.io.rundir import load_model, save_model
-from torchcal.machine import MachineModel
-from torchcal.measurements import Measurements
+from torchcal.models.machine import MachineModel
+from torchcal.core.measurements import Measurements
 
 TOOLS = XYZCB_TOOLS  # Paper I (32)
 

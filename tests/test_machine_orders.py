@@ -6,8 +6,8 @@ import json
 
 import torch
 
-from torchcal.io.config import make_config
-from torchcal.pipeline import run_fit
+from torchcal.app.config import make_config
+from torchcal.app.fit import run_fit
 from torchcal.sim.machine_truth import MachineTruth, simulate_machine_dataset, write_machine_csv
 
 

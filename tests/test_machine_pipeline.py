@@ -9,9 +9,9 @@ from typer.testing import CliRunner
 from torchcal.cli import app
 from torchcal.compensate.tables import compensation_tables
 from torchcal.export.controller import read_tables_csv
-from torchcal.io.config import make_config
+from torchcal.app.config import make_config
 from torchcal.io.rundir import load_model
-from torchcal.pipeline import run_fit
+from torchcal.app.fit import run_fit
 from torchcal.sim.machine_truth import MachineTruth, simulate_machine_dataset, write_machine_csv
 
 

@@ -4,7 +4,7 @@ import torch
 
 from conftest import assert_point_jacobians_match_autograd, random_commands, randomize
 from torchcal.kinematics.transforms import pose_error, twist_to_transform
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 
 def test_zero_model_is_nominal(fanuc, tools_m):
@@ -64,7 +64,7 @@ def test_flange_jacobian_matches_finite_differences(fanuc, tools_m, error_variab
 
 
 def test_so3_right_jacobian_definition():
-    from torchcal.jacobian import so3_right_jacobian
+    from torchcal.models.jacobian import so3_right_jacobian
     from torchcal.kinematics.transforms import so3_exp, so3_log
 
     w = torch.tensor([0.4, -0.3, 0.2])

@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from torchcal.cli import app
 from torchcal.io.csv import read_table
-from torchcal.planning import PlanningError, decorrelating_order, plan_poses
+from torchcal.analysis.planning import PlanningError, decorrelating_order, plan_poses
 from torchcal.sim.sampling import approach_directions
 
 runner = CliRunner()

@@ -10,7 +10,7 @@ import textwrap
 import pytest
 import torch
 
-from torchcal import threads
+from torchcal.core import threads
 
 
 def _run(code: str, env=None) -> str:
@@ -27,7 +27,7 @@ def test_usable_cpus_follows_the_affinity_mask():
     code = f"""
         import os
         os.sched_setaffinity(0, {{{cpu}}})
-        from torchcal.threads import usable_cpus
+        from torchcal.core.threads import usable_cpus
         print(usable_cpus())
     """
     assert _run(code) == "1"
@@ -50,7 +50,7 @@ def test_import_torchcal_before_torch_makes_openmp_wait_passively():
     # a user's own choice is kept
     assert _run("import torchcal, os; print(os.environ['OMP_WAIT_POLICY'])", {**env, "OMP_WAIT_POLICY": "active"}) == "active"
     # and torch loaded first is reported: its runtime has read the environment already
-    assert _run("import torch, torchcal.threads as t, os; os.environ.pop('OMP_WAIT_POLICY', None); "
+    assert _run("import torch, torchcal.core.threads as t, os; os.environ.pop('OMP_WAIT_POLICY', None); "
                 "print(t.configure_openmp())", env) == "False"
 
 

@@ -9,10 +9,10 @@ import torch
 from typer.testing import CliRunner
 
 from torchcal.cli import app
-from torchcal.io.config import load_config
+from torchcal.app.config import load_config
 from torchcal.io.csv import read_measurements
 from torchcal.io.rundir import load_model
-from torchcal.pipeline import run_compensation_options
+from torchcal.app.files import run_compensation_options
 
 runner = CliRunner()
 POSES, VAL_POSES, FIRST, SECOND = 36, 20, 24, 30

@@ -25,21 +25,21 @@ import sys
 import types
 from importlib import import_module
 
-from .threads import configure_openmp as _configure_openmp
+from .core.threads import configure_openmp as _configure_openmp
 
-# before anything loads torch: OpenMP threads that wait sleep instead of spinning (torchcal.threads says why)
+# before anything loads torch: OpenMP threads that wait sleep instead of spinning (torchcal.core.threads says why)
 _configure_openmp()
 
-from .exceptions import TorchcalError as TorchcalError  # noqa: E402  (re-exported)
+from .core.exceptions import TorchcalError as TorchcalError  # noqa: E402  (re-exported)
 
 _LAZY = {
     # robots and models
     "load_robot": ("torchcal.kinematics", "load_robot"),
     "Robot": ("torchcal.kinematics", "Robot"),
     "Repeatability": ("torchcal.kinematics", "Repeatability"),
-    "RobotModel": ("torchcal.model", "RobotModel"),
+    "RobotModel": ("torchcal.models.robot", "RobotModel"),
     # data
-    "Measurements": ("torchcal.measurements", "Measurements"),
+    "Measurements": ("torchcal.core.measurements", "Measurements"),
     "read_measurements": ("torchcal.io.csv", "read_measurements"),
     "write_measurements": ("torchcal.io.csv", "write_measurements"),
     # identification
@@ -50,20 +50,20 @@ _LAZY = {
     "identifiability": ("torchcal.analysis.identifiability", "identifiability"),
     "PointTargets": ("torchcal.measure", "PointTargets"),
     # Paper III: 6-DOF measurement and online identification
-    "SensorRig": ("torchcal.measure", "SensorRig"),
+    "SensorRig": ("torchcal.models.sensor_rig", "SensorRig"),
     "STSInstrument": ("torchcal.measure", "STSInstrument"),
     "PoseInstrument": ("torchcal.measure", "PoseInstrument"),
     "TrackerNoise": ("torchcal.measure", "TrackerNoise"),
     "read_pose_measurements": ("torchcal.io.sensor_csv", "read_pose_measurements"),
     "OnlineCalibration": ("torchcal.identify.online", "OnlineCalibration"),
     # Paper I: machine tools, the slope constraint, compensation tables
-    "MachineModel": ("torchcal.machine", "MachineModel"),
+    "MachineModel": ("torchcal.models.machine", "MachineModel"),
     "fit_constrained": ("torchcal.identify.constrained", "fit_constrained"),
     "auto_constraint": ("torchcal.identify.constrained", "auto_constraint"),
     "compensation_tables": ("torchcal.compensate.tables", "compensation_tables"),
-    "ParamGroup": ("torchcal.params", "ParamGroup"),
+    "ParamGroup": ("torchcal.core.params", "ParamGroup"),
     # backlash: what the data cover, how far direction and position are confounded
-    "DirectionCoverage": ("torchcal.coverage", "DirectionCoverage"),
+    "DirectionCoverage": ("torchcal.core.coverage", "DirectionCoverage"),
     "backlash_confounding": ("torchcal.analysis.confounding", "backlash_confounding"),
     # compensation, simulation, planning
     "compensate": ("torchcal.compensate", None),  # the subpackage, callable as its compensate()
@@ -73,15 +73,15 @@ _LAZY = {
     "CompensationResult": ("torchcal.compensate", "CompensationResult"),
     "simulate": ("torchcal.sim", "simulate"),
     "TruthRobot": ("torchcal.sim", "TruthRobot"),
-    "plan_poses": ("torchcal.planning", "plan_poses"),
+    "plan_poses": ("torchcal.analysis.planning", "plan_poses"),
     # config-driven runs
-    "load_config": ("torchcal.io.config", "load_config"),
-    "run_fit": ("torchcal.pipeline", "run_fit"),
+    "load_config": ("torchcal.app.config", "load_config"),
+    "run_fit": ("torchcal.app.fit", "run_fit"),
     "load_model": ("torchcal.io.rundir", "load_model"),
     # errors
     "URDFError": ("torchcal.kinematics.urdf", "URDFError"),
     "DataError": ("torchcal.io.csv", "DataError"),
-    "ConfigError": ("torchcal.io.config", "ConfigError"),
+    "ConfigError": ("torchcal.app.config", "ConfigError"),
     "RunDirError": ("torchcal.io.rundir", "RunDirError"),
 }
 """Top-level name -> (module, attribute), imported on first access."""

@@ -1,5 +1,7 @@
 """``torchcal``: calibrate from CSV files, predict, compensate, simulate.
 
+Why one module: one typer command per CLI command, each only parsing, checking the overwrite policy and printing (the work is in :mod:`torchcal.app`); a newcomer finds every command's options in one file.
+
 Thin on purpose: parse, call the library, write files. Every file and value
 on this side is in mm and degrees (see :mod:`torchcal.io.csv`).
 
@@ -38,7 +40,7 @@ except KeyboardInterrupt:  # Ctrl-C while the console script starts: one line, n
     sys.stderr.write("\ninterrupted\n")
     raise SystemExit(130) from None
 
-from .exceptions import TorchcalError
+from .core.exceptions import TorchcalError
 
 INTERRUPTED = 130
 """Exit status after Ctrl-C (128 + SIGINT), as shells report it."""
@@ -105,7 +107,7 @@ def _progress(console=None, stage: str | None = None):
     exception (Ctrl-C included) propagates: nothing is printed after it.
     """
     from .io.progress_view import ProgressView
-    from .progress import task
+    from .core.progress import task
 
     _imports_done()
     with ProgressView(console):
@@ -150,7 +152,7 @@ def _device(name: str):
     """A usable torch device, or a ConfigError naming the option."""
     import torch
 
-    from .io.config import ConfigError
+    from .app.config import ConfigError
 
     try:
         dev = torch.device(name)
@@ -185,7 +187,7 @@ def _positive_option(value, option: str, unit: str):
     """None, or a positive finite number; else a ConfigError naming the option and the value in its unit."""
     import math
 
-    from .io.config import ConfigError
+    from .app.config import ConfigError
 
     if value is not None and not (math.isfinite(value) and value > 0):
         raise ConfigError(f"{option} {value:g}: must be a positive number of {unit}")
@@ -233,7 +235,7 @@ def results_table(rows: list[dict], title: str) -> Table:
 
 @app.command("fit")
 def fit_cmd(
-    config: Annotated[Path, typer.Argument(help="YAML config (see torchcal.io.config; `torchcal simulate` writes one).")],
+    config: Annotated[Path, typer.Argument(help="YAML config (see torchcal.app.config; `torchcal simulate` writes one).")],
     overrides: Annotated[Optional[list[str]], typer.Argument(
         help="Dotted overrides, e.g. model.order=4 data.validation=val.csv solver.method=lbfgs.")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
@@ -243,8 +245,8 @@ def fit_cmd(
 ):
     """Identify a model from a config and write a run directory (model, metrics, plots, log)."""
     with _user_errors():
-        from .io.config import load_config, to_yaml
-        from .pipeline import run_fit
+        from .app.config import load_config, to_yaml
+        from .app.fit import run_fit
 
         cfg = load_config(config, [*(overrides or []), *(["data.units_checked=true"] if units_checked else [])])
         if dry_run:
@@ -342,7 +344,7 @@ def predict_cmd(
 ):
     """Predict measured points x, y, z (mm) for joint commands with an identified model."""
     with _user_errors():
-        from .pipeline import predict_file
+        from .app.files import predict_file
 
         _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
@@ -364,7 +366,7 @@ def update_cmd(
 ):
     """Online adaptive identification (Paper III (33)): add new measurements to a run without refitting the old ones."""
     with _user_errors():
-        from .update import run_update
+        from .app.update import run_update
 
         console = None if quiet else _console(stderr=True)
         with _progress(console):
@@ -389,8 +391,13 @@ def compensate_cmd(
     tol_deg: Annotated[Optional[float], typer.Option(help="Newton tolerance on |dq| (deg); default: the run's compensation.tol_deg.")] = None,
     max_iter: Annotated[Optional[int], typer.Option(help="Newton iteration limit; default: the run's compensation.max_iter.")] = None,
     max_correction_deg: Annotated[Optional[float], typer.Option(
-        help="Largest correction |q_new - q_nom| of any joint (deg, mm for prismatic joints; also the step bound); "
-             "rows that need more are flagged, not converged. Default 5.")] = None,
+        help="Largest correction |q_new - q_nom| of any joint (deg, mm for prismatic joints); rows that need more are "
+             "flagged, not converged. Default 30 (an outer guard: a solution on another branch of the arm, i.e. "
+             "other configuration flags, is refused whatever its size).")] = None,
+    free_tool_axis: Annotated[bool, typer.Option("--free-tool-axis", help="5-DOF compensation for axisymmetric tools "
+                                                 "(drill, spindle, torch, reflector): the rotation about the tool axis "
+                                                 "is left free.")] = False,
+    tool_axis: Annotated[str, typer.Option(help="The tool axis X,Y,Z in the flange frame (with --free-tool-axis).")] = "0,0,1",
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
     units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
@@ -407,13 +414,13 @@ def compensate_cmd(
     Rows that do not converge or leave the controller's joint range are
     flagged (converged / within_limits = false), never dropped. A row whose
     exact solution lies more than --max-correction-deg from its nominal
-    command (next to a singularity) is not converged: it keeps a bounded
-    best-effort command. direction_outside (when the run's model records the
+    command, or on another branch of the arm, is not converged: it keeps a
+    bounded best-effort command, and 'reason' says which. direction_outside (when the run's model records the
     identification data's coverage and the file has dir1..dirN) marks rows
     whose approach directions the identification never saw.
     """
     with _user_errors():
-        from .pipeline import compensate_file
+        from .app.files import compensate_file
 
         # the library reads these in radians: a bad value is named here, in the unit the user typed
         _positive_option(max_correction_deg, "--max-correction-deg", "degrees (mm for prismatic joints)")
@@ -423,7 +430,7 @@ def compensate_cmd(
         _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
             out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg,
-                                  units_checked)
+                                  units_checked, _tool_axis(tool_axis) if free_tool_axis else None)
     typer.echo(f"compensated {out.rows} commands -> {output}")
     if out.flagged:
         _console(stderr=True).print(
@@ -454,7 +461,7 @@ def simulate_cmd(
 ):
     """Simulated measurements of a robot with known errors (Paper II's protocol) and a ready-to-run fit.yaml."""
     with _user_errors():
-        from .sim.dataset import simulate_dataset
+        from .app.simulate import simulate_dataset
 
         with _progress(_console(stderr=True), f"simulating {identification} + {validation} poses -> {out_dir}"):
             paths = simulate_dataset(out_dir, robot, identification, validation, validation_tool, seed, order, force,
@@ -483,15 +490,11 @@ def import_tracker_cmd(
     readings (that reflector's row dropped, reported); base reflectors give
     the per-pose drift (checked against the threshold, or corrected).
     """
-    from .io.csv import write_table
-    from .io.tracker import import_tracker
-    from .kinematics import load_robot
-
     with _user_errors(), _progress(_console(stderr=True), f"importing the tracker exports -> {output}"):
+        from .app.commands import import_tracker_file
+
         _check_output(output, force, joints, *target, *(base or []), _robot_file(robot))
-        rob = load_robot(robot) if robot else None
-        res = import_tracker(joints, list(target), list(base or []), rob, drift_threshold_mm, correct_drift, outlier_mm)
-        write_table(output, res.table)
+        res = import_tracker_file(output, joints, target, base, robot, drift_threshold_mm, correct_drift, outlier_mm)
     out = _console()
     out.print(res.summary_table())
     for line in res.report:
@@ -503,8 +506,8 @@ def import_tracker_cmd(
 @app.command("export-tables")
 def export_tables_cmd(
     run_dir: Annotated[Path, typer.Argument(help="Run directory of a machine fit (model.kind: axis_perturbation).")],
-    out: Annotated[Path, typer.Argument(help="File (csv, siemens-cec) or folder (linuxcnc, all) to write.")],
-    format: Annotated[str, typer.Option("--format", help="csv | siemens-cec | linuxcnc | all")] = "csv",
+    out: Annotated[Path, typer.Argument(help="File (csv, siemens-cec) or folder (linuxcnc, linuxcnc-volumetric, all) to write.")],
+    format: Annotated[str, typer.Option("--format", help="csv | siemens-cec | linuxcnc (same-axis joint tables) | linuxcnc-volumetric (all 25 tables, a HAL component) | all")] = "csv",
     points: Annotated[Optional[int], typer.Option(help="Grid points per table (equally spaced over the input axis's range).")] = None,
     max_points: Annotated[int, typer.Option(help="Siemens MD18342 $MN_MM_CEC_MAX_POINTS of the controller.")] = 2000,
     force: Annotated[bool, typer.Option("--force", help="Overwrite the files already there.")] = False,
@@ -514,11 +517,11 @@ def export_tables_cmd(
 
     with _user_errors(), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        from .export.controller import export_run_tables
+        from .app.commands import export_tables
 
         _check_table_outputs(run_dir, out, format, force)
         with _progress(_console(stderr=True), f"exporting the compensation tables of {run_dir} ({format})"):
-            written = export_run_tables(run_dir, out, format, points, max_points)
+            written = export_tables(run_dir, out, format, points, max_points)
     seen = set()
     for w in caught:  # the end-slope warnings, once each (every writer checks them)
         if str(w.message) not in seen:
@@ -538,17 +541,17 @@ def _written_lines(written, prefix: str = "") -> list[str]:
 
 
 def _check_table_outputs(run_dir: Path, out: Path, fmt: str, force: bool) -> None:
-    """export-tables' overwrite policy: a file format checks its file; linuxcnc / all, the files they put in the folder."""
+    """export-tables' overwrite policy: a file format checks its file; the folder formats, the files they put there."""
+    from .app.commands import table_output_names
     from .io.atomic import OutputExistsError
 
-    if fmt not in ("linuxcnc", "all"):
+    names = table_output_names(fmt)
+    if names is None:
         if fmt in ("csv", "siemens-cec"):  # an unknown format is the library's message
             _check_output(out, force, *_run_files(run_dir))
         return
     if out.exists() and not out.is_dir():
         raise OutputExistsError(f"{out}: already exists and is a file; --format {fmt} writes a folder, give a folder name")
-    names = ["*.comp", "linuxcnc_comp.ini"] if fmt == "linuxcnc" else \
-        ["tables.csv", "cec_tables.mpf", "linuxcnc/*.comp", "linuxcnc/linuxcnc_comp.ini"]
     existing = sorted(str(p.relative_to(out)) for pattern in names for p in out.glob(pattern))
     if existing and not force:
         shown = ", ".join(existing[:5]) + (f" and {len(existing) - 5} more" if len(existing) > 5 else "")
@@ -556,6 +559,25 @@ def _check_table_outputs(run_dir: Path, out: Path, fmt: str, force: bool) -> Non
 
 
 # ------------------------------------------------------------------ import-tmac
+# ---------------------------------------------------------------------- report
+@app.command("report")
+def report_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`.")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="HTML file to write (default: RUN_DIR/report.html).")] = None,
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
+):
+    """The calibration report: one self-contained HTML page (plots embedded, opens offline, prints to PDF)."""
+    with _user_errors():
+        from .app.commands import write_report
+
+        target = out if out is not None else run_dir / "report.html"
+        if out is not None:  # the default file is the run's own report: rewriting it is what the command is for
+            _check_output(target, force, *_run_files(run_dir))
+        with _progress(_console(stderr=True), f"writing the report of {run_dir}"):
+            path = write_report(run_dir, out)
+    typer.echo(f"wrote {path}")
+
+
 @app.command("import-tmac")
 def import_tmac_cmd(
     source: Annotated[Path, typer.Argument(help="T-Mac export (';'-separated, decimal commas: joints in rad, measurement_x/y/z mm, measurement_rx/ry/rz deg).")],
@@ -566,24 +588,35 @@ def import_tmac_cmd(
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """Convert a UR10 + Leica T-Mac export (ipa-robot-accuracy format) into the sensor CSV contract."""
-    from .io.tmac import convert_tmac
-    from .kinematics import load_robot
-
     with _user_errors(), _progress(_console(stderr=True), f"converting {source}"):
+        from .app.commands import import_tmac_file
+
         _check_output(output, force, source, _robot_file(robot))
-        path = convert_tmac(source, output, load_robot(robot), convention, exclude or ())
+        path = import_tmac_file(source, output, robot, convention, exclude or ())
     if exclude:
         typer.echo(f"left out data rows {sorted(set(exclude))}")
     typer.echo(f"wrote {path}")
 
 
 # ------------------------------------------------------------------ plan-poses
+def _tool_axis(text: str) -> list[float]:
+    """'X,Y,Z' -> a nonzero direction [x, y, z] (flange frame); a ConfigError naming --tool-axis otherwise."""
+    from .app.config import ConfigError
+
+    try:
+        v = [float(x) for x in text.replace(";", ",").split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 3 or not all(x == x and abs(x) != float("inf") for x in v) or not any(v):
+        raise ConfigError(f"--tool-axis '{text}': expected a nonzero direction X,Y,Z in the flange frame")
+    return v
+
+
 def _parse_xyz_mm(text: str | None, option: str):
-    """'X,Y,Z' in mm -> (3,) list in m, or None; a ConfigError naming the option otherwise."""
+    """'X,Y,Z' in mm -> [x, y, z] (mm), or None; a ConfigError naming the option otherwise."""
     if text is None:
         return None
-    from . import units
-    from .io.config import ConfigError
+    from .app.config import ConfigError
 
     try:
         xyz = [float(v) for v in text.replace(";", ",").split(",")]
@@ -591,7 +624,7 @@ def _parse_xyz_mm(text: str | None, option: str):
         xyz = []
     if len(xyz) != 3 or any(v != v or v in (float("inf"), float("-inf")) for v in xyz):
         raise ConfigError(f"{option} '{text}': expected three numbers X,Y,Z in mm (robot base frame)")
-    return [units.mm_to_m(v) for v in xyz]
+    return xyz
 
 
 @app.command("plan-poses")
@@ -611,22 +644,16 @@ def plan_poses_cmd(
 
     Prints, per joint, the correlation and R² (cubic Chebyshev basis) between
     the approach direction and the position in the planned order, next to the
-    Sobol sequence's own order (see torchcal.planning).
+    Sobol sequence's own order (see torchcal.analysis.planning).
     """
     with _user_errors():
-        from . import units
-        from .kinematics import load_robot
-        from .planning import MAX_POSES, PlanningError, plan_poses
+        from .app.commands import plan_poses_file
 
-        if not 1 <= count <= MAX_POSES:  # before the robot loads: a huge count used to die in numpy's allocator
-            raise PlanningError(f"COUNT {count}: plan between 1 and {MAX_POSES} poses")
+        tracker_mm = _parse_xyz_mm(tracker, "--tracker")
         _check_output(output, force, _robot_file(robot))
         with _progress(_console(stderr=True)):
-            rob = load_robot(robot)
-            plan = plan_poses(rob, count, seed=seed, tracker=_parse_xyz_mm(tracker, "--tracker"),
-                              min_tool_distance=units.mm_to_m(min_distance_mm), min_height=units.mm_to_m(min_height_mm),
-                              max_incidence_deg=max_incidence_deg, order=order)
-            plan.to_csv(output, rob)
+            plan, rob = plan_poses_file(robot, count, output, seed, tracker_mm, min_distance_mm, min_height_mm,
+                                        max_incidence_deg, order)
     st = plan.stats
     table = Table(title=f"approach direction vs position, {len(plan)} poses, order={order}")
     for col in ("joint", "corr", "R²", "one-sided bins", "corr (Sobol order)", "R² (Sobol order)"):

@@ -16,7 +16,7 @@ import torch
 
 import torchcal
 import torchcal.sim
-from torchcal import units as U
+from torchcal.core import units as U
 from torchcal.io.csv import write_measurements
 from torchcal.sim.fleet import fleet_truths
 

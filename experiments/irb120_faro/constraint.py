@@ -30,18 +30,18 @@ import sys
 import time
 from pathlib import Path
 
-import torchcal  # noqa: F401  (before torch: OpenMP threads that wait sleep, torchcal.threads)
+import torchcal  # noqa: F401  (before torch: OpenMP threads that wait sleep, torchcal.core.threads)
 import torch
 from rich.console import Console
 from rich.table import Table
 
-from torchcal import units
+from torchcal.core import units
 from torchcal.analysis.stats import point_residuals, residual_stats
 from torchcal.identify import NoiseModel, Prior
 from torchcal.identify.alignment import align
 from torchcal.identify.constrained import auto_constraint, fit_constrained
 from torchcal.kinematics import load_robot
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 sys.path.insert(0, str(Path(__file__).parent))
 from run import load, split  # noqa: E402  (the same import and split as run.py)

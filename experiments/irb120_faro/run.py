@@ -30,14 +30,14 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from torchcal import units
+from torchcal.core import units
 from torchcal.analysis.stats import point_residuals, residual_stats
 from torchcal.identify import NoiseModel, Prior, fit
 from torchcal.identify.alignment import align
 from torchcal.io.csv import read_measurements, write_measurements, write_table
 from torchcal.io.tracker import import_tracker
 from torchcal.kinematics import load_robot
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 console = Console(highlight=False, width=140)
 MM = units.m_to_mm(1.0)

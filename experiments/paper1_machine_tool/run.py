@@ -29,10 +29,10 @@ import time
 import warnings
 from pathlib import Path
 
-import torchcal  # noqa: F401  (before torch: OpenMP threads that wait sleep, torchcal.threads)
+import torchcal  # noqa: F401  (before torch: OpenMP threads that wait sleep, torchcal.core.threads)
 import torch
 
-from torchcal import units
+from torchcal.core import units
 from torchcal.compensate.tables import (
     TableSlopeWarning,
     apply_tables,
@@ -49,7 +49,7 @@ from torchcal.identify.constrained import (
 from torchcal.identify.problem import row_errors
 from torchcal.identify.slope import slope_norms, slope_points
 from torchcal.kinematics import load_robot
-from torchcal.machine import MachineModel
+from torchcal.models.machine import MachineModel
 from torchcal.sim.machine_truth import (
     PAPER1_TOOLS_MM,
     MachineTruth,

@@ -20,16 +20,16 @@ from __future__ import annotations
 
 import argparse
 
-import torchcal  # noqa: F401  (before torch: OpenMP threads sleep when they wait, see torchcal.threads)
+import torchcal  # noqa: F401  (before torch: OpenMP threads sleep when they wait, see torchcal.core.threads)
 import torch
 from rich.console import Console
 from rich.table import Table
 
-from torchcal import units
+from torchcal.core import units
 from torchcal.identify import NoiseModel, Prior, fit
 from torchcal.identify.backlash import default_backlash_orders
 from torchcal.kinematics import load_robot
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 from torchcal.sim import TruthRobot, quasi_random_commands, simulate
 from torchcal.sim.sampling import approach_directions
 

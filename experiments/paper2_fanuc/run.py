@@ -41,7 +41,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from torchcal import units
+from torchcal.core import units
 from torchcal.analysis.cpa import cpa_sweep_commands, cpa_validation_commands, fit_cpa
 from torchcal.analysis.stats import percent_decrease, point_residuals, residual_stats
 from torchcal.compensate import compensate, damped_least_squares, nominal_sigma_min
@@ -49,9 +49,9 @@ from torchcal.identify import NoiseModel, Prior, fit
 from torchcal.identify.backlash import select_backlash_orders
 from torchcal.identify.order import select_orders
 from torchcal.kinematics import load_robot
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
-from torchcal.pipeline import compensation_check, compensation_targets
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
+from torchcal.app.fit import compensation_check, compensation_targets
 from torchcal.sim import TruthRobot, quasi_random_commands, simulate
 
 TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]  # Table 4
@@ -369,9 +369,9 @@ def compensation_robustness(S: Setup, model: RobotModel, poses: int, check_rows:
 
 
 def planned_session(S: Setup, model: RobotModel, poses: int = 250, random_poses: int = 3000):
-    """The same robot measured in a session planned by torchcal.planning.plan_poses (decorrelated visiting order):
+    """The same robot measured in a session planned by torchcal.analysis.planning.plan_poses (decorrelated visiting order):
     model error at poses approached in random directions, against the sequence-ordered identification's model."""
-    from torchcal.planning import plan_poses
+    from torchcal.analysis.planning import plan_poses
 
     plan = plan_poses(S.robot, poses, seed=S.seed, min_height=-1.0, min_tool_distance=0.0)  # FANUC base at the shoulder
     ident = simulate(S.truth, plan.q, [0, 1, 2], S.noise, S.seed, directions=plan.directions)

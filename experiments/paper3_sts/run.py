@@ -32,7 +32,7 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from torchcal import units
+from torchcal.core import units
 from torchcal.analysis.orientation import orientation_repeatability
 from torchcal.analysis.repeatability import iso9283_repeatability
 from torchcal.analysis.stats import percent_decrease, point_residuals, residual_stats
@@ -40,12 +40,12 @@ from torchcal.identify import NoiseModel, Prior, fit
 from torchcal.identify.online import OnlineCalibration
 from torchcal.kinematics import load_robot
 from torchcal.measure import PointTargets
-from torchcal.measure.rig import SensorRig
+from torchcal.models.sensor_rig import SensorRig
 from torchcal.measure.sts import STSInstrument, level_sigma_deg, sts_angles
 from torchcal.measure.tracker import TrackerNoise, covariance_check
 from torchcal.measure.triangle import triangle_frame
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 from torchcal.sim.sensor_truth import SensorTruth
 
 MM = units.m_to_mm(1.0)

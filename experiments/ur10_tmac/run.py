@@ -32,9 +32,9 @@ from torchcal.identify.hand_eye import hand_eye
 from torchcal.io.tmac import read_tmac, read_trafo
 from torchcal.measure import PointTargets
 from torchcal.measure.pose import PoseInstrument, rotation_error, rotation_log
-from torchcal.measure.rig import SensorRig
-from torchcal.model import RobotModel
-from torchcal.pipeline_sensor import measured_poses
+from torchcal.models.sensor_rig import SensorRig
+from torchcal.models.robot import RobotModel
+from torchcal.app.sensor import measured_poses
 
 SERIES = {"A": "measurements_grid.csv", "B": "measurements_joint_configurations.csv",
           "C": "measurements_random_poses.csv", "D": "measurements_iso_cubes.csv"}
@@ -60,7 +60,7 @@ NO_JOINT_NOISE = NoiseModel(POINT_SIGMA, torch.zeros(6, dtype=torch.float64), to
 TARGETS = {"C pos mean": 0.10, "C pos p99": 0.30, "C rot mean": 0.015, "B/D pos mean": 0.45}
 
 
-# hand-eye (torchcal.identify.hand_eye) and the measured poses (torchcal.pipeline_sensor), as torchcal fit uses them
+# hand-eye (torchcal.identify.hand_eye) and the measured poses (torchcal.app.sensor), as torchcal fit uses them
 
 
 # ---------------------------------------------------------------- evaluation

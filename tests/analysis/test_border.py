@@ -12,7 +12,7 @@ from torchcal.analysis.border import (
     knn,
     reverse_knn_counts,
 )
-from torchcal.exceptions import TorchcalError
+from torchcal.core.exceptions import TorchcalError
 
 # Coordinates laid out like Figure 7 (the figure gives no numbers): two pairs around p2, p3,
 # a triangle p5, p6, p7 apart, p8 between the clusters; they reproduce Table 1 exactly.

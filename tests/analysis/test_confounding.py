@@ -7,8 +7,8 @@ import torch
 
 from torchcal.analysis.confounding import backlash_confounding, direction_position_dependence
 from torchcal.identify import NoiseModel
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 from torchcal.sim.sampling import approach_directions, quasi_random_commands
 
 

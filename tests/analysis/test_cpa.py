@@ -23,8 +23,8 @@ from torchcal.analysis import (
     point_residuals,
 )
 from torchcal.kinematics.transforms import transform_to_twist
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 F64 = torch.float64
 

@@ -17,8 +17,8 @@ from torchcal.analysis.identifiability import (
     reduced_jacobian,
 )
 from torchcal.identify import CalibrationProblem, NoiseModel, Prior
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 
 def simulate(truth, q, seed, noise, tools=(0, 1, 2)):

@@ -15,8 +15,8 @@ from torchcal.analysis import (
     joint_variances,
     pair_angular_errors,
 )
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 F64 = torch.float64
 

@@ -11,7 +11,7 @@ from scipy import stats
 
 from torchcal.analysis import gamma99, percent_decrease, point_residuals, residual_stats, stats_table
 from torchcal.analysis.stats import ResidualStats, grouped_stats
-from torchcal.measurements import Measurements
+from torchcal.core.measurements import Measurements
 
 
 def test_gamma99_matches_true_quantile_of_a_large_gamma_sample():
@@ -69,7 +69,7 @@ def test_point_residuals_equal_known_offsets():
 
 
 def test_point_residuals_on_robot_model_ignore_joint_errors(fanuc, tools_m):
-    from torchcal.model import RobotModel
+    from torchcal.models.robot import RobotModel
 
     model = RobotModel(fanuc, tools_m, orders=1)
     g = torch.Generator().manual_seed(1)
@@ -134,7 +134,7 @@ def test_gamma99_equals_scipy_stats_gamma_fit(shape, scale, n, seed):
 
 
 def test_gamma_density_and_fit_match_scipy_stats():
-    from torchcal.gamma_fit import gamma_mle, gamma_pdf
+    from torchcal.core.gamma_fit import gamma_mle, gamma_pdf
 
     x = np.random.default_rng(3).gamma(2.5, 0.04, size=300)
     a, scale = gamma_mle(x)
@@ -151,6 +151,6 @@ def test_gamma_ppf_inverts_scipy_special_gammainc(a, q, scale):
     """The Newton / bisection quantile (torch.special) equals scipy's inverse of the regularized incomplete gamma."""
     from scipy import special
 
-    from torchcal.gamma_fit import gamma_ppf
+    from torchcal.core.gamma_fit import gamma_ppf
 
     assert gamma_ppf(q, a, scale) == pytest.approx(float(special.gammaincinv(a, q)) * scale, rel=1e-8)

@@ -7,9 +7,9 @@ import json
 import pytest
 
 from torchcal.app.sweep import parse_grid, run_sweep
-from torchcal.io.config import ConfigError, load_config
-from torchcal.pipeline import run_fit
-from torchcal.sim import simulate_dataset
+from torchcal.app.config import ConfigError, load_config
+from torchcal.app.fit import run_fit
+from torchcal.app.simulate import simulate_dataset
 
 
 def test_parse_grid_axes_ranges_and_plain_overrides():

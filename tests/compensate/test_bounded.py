@@ -16,9 +16,9 @@ import torch
 from conftest import random_commands, randomize
 from torchcal.compensate import FlangeKernel, compensate
 from torchcal.kinematics.transforms import pose_error
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
-BOUND = math.radians(5.0)
+BOUND = math.radians(30.0)  # compensate()'s default max_correction
 
 
 def actual_error(model, q_new, q_nom, s):
@@ -83,17 +83,19 @@ def test_wrist_near_singular_rows_stay_within_the_bound(model, fanuc, q5_deg):
     free = compensate(model, q, s, max_step=None, max_correction=None, null_damping=0.0)
     far = ~free.converged | (free.correction > BOUND)
     if q5_deg >= 0.01:
-        assert far[~c].all()
-        assert torch.allclose(res.q[c & free.converged], free.q[c & free.converged], atol=1e-10, rtol=0)
+        from torchcal.compensate.result import BRANCH
+        assert far[~c & (res.status != BRANCH)].all()  # (a branch change may be near: refused on purpose)
+        near = c & free.converged & (free.correction <= math.radians(5.0))  # one calibration-sized solution
+        assert torch.allclose(res.q[near], free.q[near], atol=1e-10, rtol=0)
     if q5_deg >= 2.0:
         assert c.double().mean() > 0.5  # typical wrist-near poses still compensate
 
 
 def test_huge_model_error_is_flagged_and_kept(fanuc, tools_m):
-    """Backlash of 0.3 rad on joint 1: rows approaching it from +/- would need a 17 deg correction."""
+    """Backlash of 0.8 rad on joint 1: rows approaching it from +/- would need a 46 deg correction."""
     m = RobotModel(fanuc, tools_m, orders=2, backlash=True)
     with torch.no_grad():
-        m.joint_errors.backlash[0, 0] = 0.3
+        m.joint_errors.backlash[0, 0] = 0.8
     q = random_commands(fanuc, 30, 52)
     s = directions(30, 53)
     s[::3, 0] = 0.0  # every third row: direction unknown, no backlash term, a zero correction
@@ -108,10 +110,10 @@ def test_huge_model_error_is_flagged_and_kept(fanuc, tools_m):
     assert torch.allclose(res.pose_error, de, atol=1e-14, rtol=0)
     assert (res.residual[huge] > 1e-3).all()
     # with room for the correction the same rows converge, turning joint 1 back by the backlash
-    wide = compensate(m, q, s, max_step=math.radians(30), max_correction=math.radians(30))
+    wide = compensate(m, q, s, max_step=math.radians(30), max_correction=math.radians(60))
     w = wide.converged & huge
     assert w.sum() >= 0.8 * huge.sum()
-    assert torch.allclose((wide.q - q)[w, 0], -0.3 * s[w, 0], atol=2e-2)
+    assert torch.allclose((wide.q - q)[w, 0], -0.8 * s[w, 0], atol=5e-2)
     assert (wide.correction[w] > BOUND).all()
     assert (actual_error(m, wide.q, q, s)[w].norm(dim=-1) <= 1e-12).all()
     # the flagged rows alone give the same answer as in the mixed batch
@@ -180,7 +182,8 @@ def test_cli_writes_the_correction_and_coverage_columns(fanuc, tools_m, tmp_path
         df[f"dir{i + 1}"] = s[:, i].numpy()
     df["id"] = [f"r{i}" for i in range(6)]
     df.to_csv(tmp_path / "in.csv", index=False)
-    r = CliRunner().invoke(app, ["compensate", str(tmp_path), str(tmp_path / "in.csv"), str(tmp_path / "out.csv")])
+    r = CliRunner().invoke(app, ["compensate", str(tmp_path), str(tmp_path / "in.csv"), str(tmp_path / "out.csv"),
+                                 "--max-correction-deg", "5"])
     assert r.exit_code == 0, r.output
     out = pd.read_csv(tmp_path / "out.csv")
     assert list(out.id) == list(df.id)  # every row kept, in order
@@ -190,9 +193,8 @@ def test_cli_writes_the_correction_and_coverage_columns(fanuc, tools_m, tmp_path
     assert (out.max_dq[:3] > 0.04).all() and (out.max_dq[:3] < 0.1).all()
     assert (out.max_dq[3:] <= 5.0 + 1e-9).all()
     assert list(out.direction_outside) == [False, True, False, False, True, False]
-    # a wider bound on the command line lets the large corrections through
-    r = CliRunner().invoke(app, ["compensate", str(tmp_path), str(tmp_path / "in.csv"), str(tmp_path / "out2.csv"),
-                                 "--max-correction-deg", "30"])
+    # the default bound (30 deg, with the branch test) lets the large corrections through
+    r = CliRunner().invoke(app, ["compensate", str(tmp_path), str(tmp_path / "in.csv"), str(tmp_path / "out2.csv")])
     assert r.exit_code == 0, r.output
     out2 = pd.read_csv(tmp_path / "out2.csv")
     assert out2.converged.all() and (out2.max_dq[3:] > 10.0).all()
@@ -203,7 +205,9 @@ def test_per_joint_bounds(model, fanuc):
     from torchcal.compensate import per_joint_bound
 
     b = per_joint_bound("default", 3, torch.float64, "cpu", prismatic=[False, True, False])
-    assert torch.allclose(b, torch.tensor([math.radians(5.0), 5e-3, math.radians(5.0)], dtype=torch.float64))
+    assert torch.allclose(b, torch.tensor([math.radians(30.0), 5e-3, math.radians(30.0)], dtype=torch.float64))
+    step = per_joint_bound("default", 3, torch.float64, "cpu", "max_step", prismatic=[False, True, False])
+    assert torch.allclose(step, torch.tensor([math.radians(5.0), 5e-3, math.radians(5.0)], dtype=torch.float64))
     assert torch.equal(per_joint_bound(0.1, 2, torch.float64, "cpu"), torch.tensor([0.1, 0.1], dtype=torch.float64))
     with pytest.raises(ValueError, match="one value per joint"):
         per_joint_bound(torch.ones(3), 2, torch.float64, "cpu")
@@ -212,7 +216,7 @@ def test_per_joint_bounds(model, fanuc):
     q = random_commands(fanuc, 200, 70)
     s = directions(200, 71)
     scalar = compensate(model, q, s)
-    same = compensate(model, q, s, max_step=torch.full((6,), BOUND), max_correction=torch.full((6,), BOUND))
+    same = compensate(model, q, s, max_step=torch.full((6,), math.radians(5.0)), max_correction=torch.full((6,), BOUND))
     assert torch.equal(scalar.q, same.q) and torch.equal(scalar.converged, same.converged)
     tight = torch.full((6,), BOUND, dtype=torch.float64)
     tight[3] = math.radians(0.5)  # J4 may move half a degree, the others 5

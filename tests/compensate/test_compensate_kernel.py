@@ -9,7 +9,7 @@ from torchcal.compensate.damped import pose_residual, residual_jacobian
 from torchcal.compensate.kernel import FlangeKernel, pose_error_soa
 from torchcal.kinematics import load_robot
 from torchcal.kinematics.transforms import pose_error
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 # both evaluations of the flange: the torch ops (any device) and the numba-compiled CPU kernel
 BACKENDS = [False, pytest.param(True, marks=pytest.mark.skipif(not fused.HAVE_NUMBA, reason="numba unavailable (not installed, or TORCHCAL_NO_NUMBA set)"))]

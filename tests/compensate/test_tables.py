@@ -16,7 +16,7 @@ from torchcal.compensate.tables import (
     warn_end_slopes,
 )
 from torchcal.error_models.axis_perturbation import AxisPerturbation
-from torchcal.exceptions import TorchcalError
+from torchcal.core.exceptions import TorchcalError
 
 LIM = torch.tensor([[0.08, 6.08], [0.04, 2.56], [0.007, 0.988], [-4.7, 4.7], [-1.91, 1.92]], dtype=torch.float64)
 PRIS = torch.tensor([True, True, True, False, False])

@@ -6,7 +6,7 @@ import torch
 from numpy.polynomial import chebyshev as npcheb
 
 from torchcal.error_models.axis_perturbation import AxisPerturbation, order_table
-from torchcal.params import ANGLE, LENGTH
+from torchcal.core.params import ANGLE, LENGTH
 
 LIM = torch.tensor([[0.0832, 6.0811], [0.0372, 2.5571], [0.0074, 0.9882], [-4.7072, 4.7106], [-1.9111, 1.9181]])
 PRISMATIC = torch.tensor([True, True, True, False, False])

@@ -12,8 +12,8 @@ from torchcal.error_models.compliance import GravityCompliance, arm_angle_functi
 from torchcal.identify import NoiseModel, ParameterLayout, Prior, fit
 from torchcal.kinematics import load_robot
 from torchcal.kinematics.fk import chain_frames
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 # A small arm with inertials: vertical joint 1, two parallel horizontal joints (2, 3), a wrist roll (4),
 # a fixed flange link carrying a mass, and a static base with a mass (which must not count).

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 import torchcal
 from torchcal.error_models import FineJointErrors, SmoothnessPenalty, hat_weights
 from torchcal.identify import ParameterLayout
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 D = torch.float64
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchcal.basis import chebyshev
+from torchcal.core.basis import chebyshev
 from torchcal.error_models.joint import JointErrors
 from torchcal.error_models.frame import FrameCorrection, ToolSet
 

@@ -8,8 +8,8 @@ from conftest import random_commands, randomize
 from torchcal.export import compare_urdf, constant_origins, export_urdf, urdf_only_model
 from torchcal.kinematics import load_robot, urdf_dir, validate_urdf
 from torchcal.kinematics.transforms import so3_exp, so3_log
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 
 def pose_gap(A, B):

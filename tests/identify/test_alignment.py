@@ -9,7 +9,7 @@ from torchcal.identify import NoiseModel, fit
 from torchcal.identify.alignment import AlignmentError, _lifted_start, _nominal_flange, align, kabsch, solve_tools
 from torchcal.io.rundir import load_model, save_model
 from torchcal.kinematics.transforms import homogeneous, rpy_to_matrix, so3_exp, so3_log
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 from torchcal.sim import TruthRobot, quasi_random_commands, simulate
 
 # reflectors somewhere on the flange, not Paper II's Table 4 (the alignment never sees these)
@@ -183,8 +183,8 @@ def test_aligned_model_persists_through_the_run_directory(tmp_path, fanuc, paper
 
 
 def test_pipeline_estimates_only_what_the_config_leaves_out(fanuc, tmp_path):
-    from torchcal.io.config import ConfigError, make_config
-    from torchcal.pipeline import config_alignment
+    from torchcal.app.config import ConfigError, make_config
+    from torchcal.app.fit import config_alignment
 
     truth = TruthRobot(fanuc, TOOLS_M, base_nominal=far_frame())
     data = simulate(truth, quasi_random_commands(fanuc.joint_map.limits, 15, 9), [0, 1, 2], None, 0)

@@ -3,8 +3,8 @@ import torch
 from conftest import random_commands, randomize
 from torchcal.identify import NoiseModel, Prior
 from torchcal.identify.backlash import select_backlash_orders
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 
 def _data(truth, robot, poses, seed, noise):

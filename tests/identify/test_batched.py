@@ -9,8 +9,8 @@ from conftest import random_commands, randomize
 from torchcal.identify import NoiseModel, Prior, fit
 from torchcal.identify.batched import fit_batch, fit_structures
 from torchcal.identify.problem import row_errors
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 
 def _data(truth, robot, poses, seed, noise):

@@ -14,8 +14,8 @@ from torchcal.identify import NoiseModel, Prior, fit
 from torchcal.identify.backlash import default_backlash_orders
 from torchcal.identify.candidates import SharedLinearization, StructureSearch, copy_overlap, structure_mask
 from torchcal.identify.order import held_out_errors
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 
 def _data(truth, robot, poses, seed, noise, directions="sequence"):

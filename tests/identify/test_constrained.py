@@ -9,14 +9,14 @@ import torch
 import torchcal
 from conftest import XYZCB_TOOLS
 import torchcal.sim
-from torchcal.exceptions import TorchcalError
+from torchcal.core.exceptions import TorchcalError
 from torchcal.identify import NoiseModel, fit
 from torchcal.identify.constrained import (ConstraintError, SlopePenalty, SweepResult, constraint_sweep,
                                            fit_constrained, pick_knee, solve_qp)
 from torchcal.identify.layout import ParameterLayout
 from torchcal.identify.slope import slope_norms, slope_points
-from torchcal.machine import MachineModel
-from torchcal.measurements import Measurements
+from torchcal.models.machine import MachineModel
+from torchcal.core.measurements import Measurements
 
 TOOLS = XYZCB_TOOLS  # Paper I (32)
 
@@ -215,7 +215,7 @@ def test_sqp_stops_on_its_own_tolerance_with_a_least_squares_ftol(machine, datas
 def test_sweep_is_warm_started_and_reports_progress(machine, dataset, one_thread):
     """Each c of the sweep starts from the previous c's model: the same fit (residuals, cost) as a cold fit from
     the zero model with the same penalty points; the sweep advances one progress task per c."""
-    from torchcal import progress
+    from torchcal.core import progress
 
     truth, data = dataset
     noise = NoiseModel.from_robot(machine)

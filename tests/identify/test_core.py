@@ -14,7 +14,7 @@ from torchcal.identify.gauge import gauge_priority
 from torchcal.identify.lm import _schur_step
 from torchcal.kinematics.robot import Robot
 from torchcal.measure import Instrument, IsotropicWeight, PointTargets
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

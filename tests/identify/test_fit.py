@@ -6,8 +6,8 @@ import torch
 from conftest import random_commands, randomize
 from torchcal.identify import CalibrationProblem, NoiseModel, Prior, fit, fix_gauge
 from torchcal.identify.lm import _schur_step
-from torchcal.measurements import Measurements
-from torchcal.model import RobotModel
+from torchcal.core.measurements import Measurements
+from torchcal.models.robot import RobotModel
 
 
 def simulate(truth, robot, poses, seed, noise: NoiseModel | None, tools=(0, 1, 2)):

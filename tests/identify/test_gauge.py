@@ -89,7 +89,7 @@ def test_fix_gauge_pins_the_same_names_from_a_warm_start(fanuc, tools_m):
     from conftest import random_commands, randomize
     from torchcal.identify import CalibrationProblem, NoiseModel, Prior
     from torchcal.identify.gauge import fix_gauge
-    from torchcal.model import RobotModel
+    from torchcal.models.robot import RobotModel
 
     fresh = RobotModel(fanuc, tools_m, orders=2, backlash=1)
     warm = randomize(RobotModel(fanuc, tools_m, orders=2, backlash=1), 3)
@@ -97,7 +97,7 @@ def test_fix_gauge_pins_the_same_names_from_a_warm_start(fanuc, tools_m):
     tool = torch.arange(120) % 3
     with torch.no_grad():
         xyz = warm.points(q.repeat(3, 1), tool)
-    from torchcal.measurements import Measurements
+    from torchcal.core.measurements import Measurements
 
     data = Measurements(q.repeat(3, 1), tool, xyz, torch.ones(120, 6), torch.arange(40).repeat(3),
                         torch.arange(1, 121), True, "sim")

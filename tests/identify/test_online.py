@@ -23,8 +23,8 @@ from torchcal.identify.online import (
 )
 from torchcal.measure import PointTargets
 from torchcal.measure.base import concat
-from torchcal.measurements import Measurements
-from torchcal.params import ANGLE, LENGTH, ParamGroup
+from torchcal.core.measurements import Measurements
+from torchcal.core.params import ANGLE, LENGTH, ParamGroup
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

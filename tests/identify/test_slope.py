@@ -11,8 +11,8 @@ from torchcal.identify.slope import (cat_contexts, context_rows, machine_slope_c
                                      machine_slope_terms, model_slopes, modeled_error, robot_context_rows,
                                      robot_slope_context, robot_slope_terms, robot_slopes, robot_slopes_differentiable,
                                      slope_norms, slope_points, tool_vectors, worst_points)
-from torchcal.machine import MachineModel
-from torchcal.model import RobotModel
+from torchcal.models.machine import MachineModel
+from torchcal.models.robot import RobotModel
 
 TOOLS = XYZCB_TOOLS  # Paper I (32)
 
@@ -332,7 +332,7 @@ def test_worst_points_climb_on_a_robot():
 
 def test_sensor_rig_slope_is_its_robots_at_the_sensor_origin(fanuc):
     """A sensor rig (Paper III): the bound is on its robot model's error, the tool point the sensor origin."""
-    from torchcal.measure.rig import SensorRig
+    from torchcal.models.sensor_rig import SensorRig
 
     mount = torch.eye(4, dtype=torch.float64)
     mount[:3, 3] = torch.tensor([0.02, -0.01, 0.15], dtype=torch.float64)

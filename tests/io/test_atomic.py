@@ -12,9 +12,9 @@ from conftest import XYZCB_TOOLS, random_commands
 from torchcal.cli import app
 from torchcal.io.atomic import OutputExistsError, WriteError, atomic_path, atomic_write_text, check_output
 from torchcal.io.rundir import PARTIAL_FILE, load_model, run_log, save_model
-from torchcal.machine import MachineModel
-from torchcal.measure.rig import SensorRig
-from torchcal.model import RobotModel
+from torchcal.models.machine import MachineModel
+from torchcal.models.sensor_rig import SensorRig
+from torchcal.models.robot import RobotModel
 
 runner = CliRunner()
 

@@ -10,7 +10,7 @@ import torch
 
 from torchcal.io.csv import MAX_LISTED, DataError, read_measurements, read_table, write_measurements
 from torchcal.kinematics import load_robot
-from torchcal.measurements import Measurements
+from torchcal.core.measurements import Measurements
 
 HEADER = "pose,tool,q1,q2,q3,q4,q5,q6,dir1,dir2,dir3,dir4,dir5,dir6,x,y,z,label"
 GOOD = [
@@ -231,6 +231,6 @@ def test_one_field_header_says_what_separates_fields(tmp_path, fanuc):
 
 
 def test_data_error_is_a_torchcal_error():
-    from torchcal.exceptions import TorchcalError
+    from torchcal.core.exceptions import TorchcalError
 
     assert issubclass(DataError, TorchcalError) and issubclass(DataError, ValueError)

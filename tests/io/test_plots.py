@@ -6,7 +6,7 @@ import torch
 from torchcal.io.plots import (joint_error_curves, plot_compensation, plot_joint_errors, plot_residual_distribution,
                                plot_residuals)
 from torchcal.analysis.stats import residual_stats
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

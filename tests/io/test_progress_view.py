@@ -9,11 +9,11 @@ import time
 import pytest
 from rich.console import Console
 
-from torchcal import progress
+from torchcal.core import progress
 from torchcal.io import progress_view
 from torchcal.io.progress_view import ProgressView, describe, format_duration, showing
 from torchcal.io.rundir import run_log
-from torchcal.pipeline import _Progress
+from torchcal.app.fit import Progress
 
 
 def plain_console(out):
@@ -126,7 +126,7 @@ def test_run_log_gets_the_pipeline_stages_and_library_tasks(tmp_path):
     out = io.StringIO()
     console = plain_console(out)
     with run_log(tmp_path), ProgressView(console, delay=0.0, min_interval=0.0, heartbeat=0.05):
-        p = _Progress(console)
+        p = Progress(console)
         with p.step("choosing Chebyshev orders"):
             with progress.task("candidate orders", total=3) as t:
                 for k in range(3):
@@ -153,7 +153,7 @@ def test_lines_never_interleave_with_the_pipelines_own(tmp_path):
     out = io.StringIO()
     console = plain_console(out)
     with ProgressView(console, logger=None, delay=0.0, min_interval=0.0, heartbeat=0.001):
-        p = _Progress(console)
+        p = Progress(console)
         with progress.task("busy stage"):
             for k in range(300):
                 p.info(f"pipeline line {k}")

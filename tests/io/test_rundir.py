@@ -9,7 +9,7 @@ import torch
 from conftest import random_commands, randomize
 from torchcal.io.rundir import (RunDirError, collect_versions, load_model, make_run_dir, run_log, save_model,
                                 write_json)
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 
 def test_run_dir_placement(tmp_path):

@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from torchcal.exceptions import TorchcalError
+from torchcal.core.exceptions import TorchcalError
 from torchcal.io.csv import DataError
 from torchcal.io.sensor_csv import (
     R_COLUMNS,
@@ -18,7 +18,7 @@ from torchcal.io.sensor_csv import (
     write_pose_measurements,
 )
 from torchcal.measure.sts import sts_rotation
-from torchcal.measurements import Measurements
+from torchcal.core.measurements import Measurements
 
 DEG = math.pi / 180
 

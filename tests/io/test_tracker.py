@@ -13,7 +13,7 @@ from torchcal.cli import app
 from torchcal.io.csv import DataError, read_measurements, write_table
 from torchcal.io.tracker import import_tracker, read_rows, rigid_to_reference
 from torchcal.kinematics import load_robot
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 
 DEG = math.pi / 180
 TOOLS_MM = [[0.3, 0.3, 119.2], [75.0, 89.0, 214.7], [150.6, -1.9, 122.2]]
@@ -265,7 +265,7 @@ def test_cli(tmp_path, session):
 
 
 def test_tracker_errors_are_torchcal_errors(tmp_path):
-    from torchcal.exceptions import TorchcalError
+    from torchcal.core.exceptions import TorchcalError
 
     joints = tmp_path / "J.txt"
     joints.write_text("0 0 0 0 0 0\n")

@@ -131,7 +131,7 @@ def test_joint_without_axis_is_logged(caplog):
 
 
 def test_urdf_error_is_a_torchcal_error():
-    from torchcal.exceptions import TorchcalError
+    from torchcal.core.exceptions import TorchcalError
 
     with pytest.raises(TorchcalError):
         load_robot("no_such_robot")

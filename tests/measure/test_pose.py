@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 from torchcal.identify import fit
 from torchcal.identify.problem import NoiseModel
 from torchcal.kinematics.transforms import so3_exp, twist_to_transform
-from torchcal.measure import PoseInstrument, SensorRig
+from torchcal.measure import PoseInstrument
+from torchcal.models.sensor_rig import SensorRig
 from torchcal.measure.pose import (
     RotationError,
     euler_from_rotation,
@@ -24,7 +25,7 @@ from torchcal.measure.pose import (
     rotation_from_euler,
     rotation_log,
 )
-from torchcal.measurements import Measurements
+from torchcal.core.measurements import Measurements
 
 CONVENTIONS = [a + b + c for a in "xyz" for b in "xyz" for c in "xyz" if a != b and b != c]
 CONVENTIONS += [c.upper() for c in CONVENTIONS]
@@ -162,7 +163,7 @@ def test_probe_fit_recovers_base_and_mount(fanuc, one_thread):
     assert np.isfinite(result.fun)
 
 
-@pytest.mark.parametrize("module", ["torchcal.measure.pose", "torchcal.measure.rig"])
+@pytest.mark.parametrize("module", ["torchcal.measure.pose", "torchcal.models.sensor_rig"])
 def test_docstring_examples(module):
     import doctest
     import importlib

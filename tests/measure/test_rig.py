@@ -12,9 +12,11 @@ from torchcal.identify.layout import ParameterLayout
 from torchcal.identify.problem import CalibrationProblem, NoiseModel, Prior
 from torchcal.io.rundir import load_model, save_model
 from torchcal.kinematics.transforms import twist_to_transform
-from torchcal.measure import PointTargets, PoseInstrument, SensorRig
-from torchcal.measure.rig import GRAVITY_PRIOR_SIGMA, gravity_from_xy
-from torchcal.measurements import Measurements
+from torchcal.measure import PointTargets, PoseInstrument
+from torchcal.models.sensor_rig import SensorRig
+from torchcal.measure.gravity import gravity_from_xy
+from torchcal.models.sensor_rig import GRAVITY_PRIOR_SIGMA
+from torchcal.core.measurements import Measurements
 
 DEG = math.pi / 180
 

@@ -11,11 +11,12 @@ from conftest import random_commands
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from torchcal.exceptions import TorchcalError
+from torchcal.core.exceptions import TorchcalError
 from torchcal.identify import fit
 from torchcal.identify.problem import CalibrationProblem, NoiseModel, Prior
 from torchcal.kinematics.transforms import twist_to_transform
-from torchcal.measure import SensorRig, STSInstrument
+from torchcal.measure import STSInstrument
+from torchcal.models.sensor_rig import SensorRig
 from torchcal.measure.sts import (
     SensorRangeError,
     STSSelection,
@@ -27,7 +28,7 @@ from torchcal.measure.sts import (
     wrap_angle,
 )
 from torchcal.measure.tracker import TrackerNoise
-from torchcal.measurements import Measurements
+from torchcal.core.measurements import Measurements
 
 DEG = math.pi / 180
 
@@ -386,7 +387,7 @@ def test_closed_form_jacobians_equal_autograd_for_every_group():
     """STSInstrument.predict_jacobians (rig pose Jacobians + closed-form angle derivatives) vs torch.func."""
     import torchcal
     from torchcal.identify import CalibrationProblem, NoiseModel, Prior
-    from torchcal.measure.rig import SensorRig
+    from torchcal.models.sensor_rig import SensorRig
     from torchcal.sim.sensor_truth import SensorTruth
 
     robot = torchcal.load_robot("fanuc_lrmate200i")

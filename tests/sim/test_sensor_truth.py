@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchcal
-from torchcal import units
+from torchcal.core import units
 from torchcal.sim.sensor_truth import (
     SensorTruth,
     from_spherical,

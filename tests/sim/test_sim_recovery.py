@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from torchcal.identify import NoiseModel, fit
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 from torchcal.sim import TruthRobot, noise_free_points, quasi_random_commands, simulate
 
 pytestmark = [

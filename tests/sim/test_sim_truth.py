@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from conftest import PRISMATIC_URDF, fanuc_dh_reference, random_commands
 from torchcal.kinematics import load_robot
 from torchcal.kinematics.transforms import so3_exp, twist_to_transform
-from torchcal.model import RobotModel
+from torchcal.models.robot import RobotModel
 from torchcal.sim import TruthRobot, harmonic_limit, perpendicular_axes, quasi_random_commands
 from torchcal.sim.truth import (
     PAPER2_BETA_DEG, PAPER2_DELTA_A_MM, PAPER2_DELTA_ALPHA_DEG, PAPER2_DELTA_D_MM, PAPER2_THETA_OFFSET_DEG,

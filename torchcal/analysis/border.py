@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import torch
 
-from ..exceptions import TorchcalError
+from ..core.exceptions import TorchcalError
 
 
 class BorderError(TorchcalError, ValueError):

@@ -16,7 +16,7 @@ Two looks at it:
   a high q_k is more likely approached from below. For independent uniform
   positions in random order E[s | q] = 2u - 1 (u the position's quantile), so
   a plain shuffle leaves corr ≈ 0.58, R² ≈ 1/3; sequence-ordered Sobol points
-  reach R² 0.6-0.9 (FANUC, 250 poses). :func:`torchcal.planning.plan_poses`
+  reach R² 0.6-0.9 (FANUC, 250 poses). :func:`torchcal.analysis.planning.plan_poses`
   chooses the order to bring it near 0.
 - with a model (:attr:`ConfoundingReport.parameters`): per backlash coefficient, the
   fraction R² of its (whitened, joint-noise-reduced when a NoiseModel is given)
@@ -32,8 +32,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..basis import chebyshev, normalize
-from ..measurements import Measurements
+from ..core.basis import chebyshev, normalize
+from ..core.measurements import Measurements
 
 R2_THRESHOLD = 0.5
 """Default data R² (direction explained by position) above which :meth:`ConfoundingReport.warnings` warns."""

@@ -1,5 +1,5 @@
-"""Moved to :mod:`torchcal.coverage` (below the model and the solvers, which record it); re-exported here."""
+"""Moved to :mod:`torchcal.core.coverage` (below the model and the solvers, which record it); re-exported here."""
 
-from ..coverage import DirectionCoverage
+from ..core.coverage import DirectionCoverage
 
 __all__ = ["DirectionCoverage"]

@@ -1,5 +1,7 @@
 """Circle Point Analysis (CPA), the constant-error baseline of Paper II, section 6.1.
 
+Why one module: Circle Point Analysis (Paper II 6.1, Tables 8-12) end to end: the single-joint commands, the circle and axis fits, the DH extraction; one method.
+
 Each joint is turned alone while a tool point is measured; the points lie on
 a circle whose centre and plane normal give the joint's actual axis line.
 With every axis known at the home configuration the robot is, for constant
@@ -24,12 +26,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from .. import units
+from ..core import units
 from ..kinematics.fk import chain_frames
 from ..kinematics.robot import Robot
 from ..kinematics.transforms import axis_angle_to_matrix
-from ..measurements import Measurements
-from .stats import _check_xyz
+from ..core.measurements import Measurements
+from .stats import check_xyz
 
 # ----------------------------------------------------------------- commands
 
@@ -76,7 +78,7 @@ PAPER2_TABLE8 = (
 """Paper II, Table 8: CPA identification sweeps of the FANUC LR Mate 200i (deg); 67, 41, 66, 72, 61, 72 points."""
 
 
-def _home(robot: Robot, home) -> torch.Tensor:
+def home_command(robot: Robot, home) -> torch.Tensor:
     n = robot.n
     dev = robot.joint_map.coupling.device
     if home is None:
@@ -97,7 +99,7 @@ def single_joint_commands(robot: Robot, joint: int, values: torch.Tensor, home=N
     (FANUC θ3 = q2 + q3) the other commands follow, e.g. q3 = q3,home - Δq2.
     """
     jm = robot.joint_map
-    home = _home(robot, home)
+    home = home_command(robot, home)
     values = torch.as_tensor(values, dtype=torch.float64, device=home.device)
     theta_home = jm.to_joint(home[None])[0]
     # q(θ) = home + C^-1[:, j] Δθ_j when only θ_j moves; solve its j-th entry for Δθ_j
@@ -344,7 +346,7 @@ class CPAModel(nn.Module):
         self.register_buffer("axis_points", axis_points.clone())
         self.register_buffer("axis_dirs", axis_dirs / norms)
         self.register_buffer("home_points", home_points.clone())
-        self.register_buffer("home", _home(robot, home).to(axis_points.device).clone())
+        self.register_buffer("home", home_command(robot, home).to(axis_points.device).clone())
         self.register_buffer("coupling", jm.coupling.clone())
         self.register_buffer("offset", jm.offset.clone())
         self.register_buffer("theta_home", (self.home @ self.coupling.T.to(self.home) + self.offset.to(self.home)).clone())
@@ -443,12 +445,12 @@ def fit_cpa(robot: Robot, sweeps: list[Measurements], home_points, home=None, to
     if len(sweeps) != n:
         raise ValueError(f"CPA needs one sweep per joint: {n}, got {len(sweeps)}")
     jm = robot.joint_map
-    home_q = _home(robot, home)
+    home_q = home_command(robot, home)
     theta_home = jm.to_joint(home_q[None])[0]
     fits = []
     for i, s in enumerate(sweeps):
         label = s.source or f"sweep of joint {i + 1}"
-        _check_xyz(s)
+        check_xyz(s)
         if s.q.shape[1] != n:
             raise ValueError(f"{label}: commands have {s.q.shape[1]} joints, the robot {n}")
         if torch.unique(s.tool).numel() != 1:
@@ -593,7 +595,7 @@ def nominal_axes(robot: Robot, home=None, base: torch.Tensor | None = None):
     (each joint's frame before it moves), all in the frame ``base`` maps the
     robot base into (identity: the robot base frame).
     """
-    home_q = _home(robot, home)
+    home_q = home_command(robot, home)
     theta = robot.joint_map.to_joint(home_q[None])
     ch = robot.chain
     jR, jp, _ = chain_frames(ch.origins, ch.axes, ch.prismatic, theta, None, None, base)
@@ -628,7 +630,7 @@ def dh_parameters(axes, robot: Robot, home=None, base_nominal: torch.Tensor | No
     if robot.chain.prismatic[:-1].any():
         # a prismatic joint's DH variable is d, not θ: not handled by this table
         raise NotImplementedError("DH extraction handles revolute joints only")
-    home_q = _home(robot, home)
+    home_q = home_command(robot, home)
     n = robot.n
     base = None if base_nominal is None else torch.as_tensor(base_nominal, dtype=torch.float64, device=home_q.device)
     npts, ndirs, nframes = nominal_axes(robot, home_q, base)

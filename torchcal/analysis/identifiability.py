@@ -41,11 +41,11 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .. import units
+from ..core import units
 from ..identify.gauge import fix_gauge
 from ..identify.layout import ParameterLayout
 from ..identify.problem import CalibrationProblem, NoiseModel, Prior
-from ..measurements import Measurements
+from ..core.measurements import Measurements
 
 UNDETERMINED_RTOL = 1e-6
 """Default relative singular-value threshold below which a combination counts as undetermined."""

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..exceptions import TorchcalError
+from ..core.exceptions import TorchcalError
 
 
 class RepeatabilityError(TorchcalError, ValueError):

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import torch
 
-from .. import units
+from ..core import units
 from ..kinematics.robot import Robot
-from ..measurements import Measurements
-from .cpa import CPAModel, _home, fit_circle, single_joint_commands
+from ..core.measurements import Measurements
+from .cpa import CPAModel, home_command, fit_circle, single_joint_commands
 
 
 def iso9283_repeatability(points) -> torch.Tensor:
@@ -175,7 +175,7 @@ def joint_variance_plan(robot: Robot, positions: int = 9, approach: float = unit
     jm = robot.joint_map
     n = robot.n
     joints = list(range(n)) if joints is None else [int(j) for j in joints]
-    lim = (jm.limits if ranges is None else torch.as_tensor(ranges, dtype=torch.float64)).to(_home(robot, home))
+    lim = (jm.limits if ranges is None else torch.as_tensor(ranges, dtype=torch.float64)).to(home_command(robot, home))
     rows = {k: [] for k in ("q", "approach", "direction", "joint", "position", "repeat", "forward")}
     for j in joints:
         lo, hi = lim[j]

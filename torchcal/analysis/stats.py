@@ -17,13 +17,13 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from ..measurements import Measurements
+from ..core.measurements import Measurements
 
 GAMMA_QUANTILE = 0.99
 """Quantile of the fitted Gamma distribution reported as 'Gamma 99 %'."""
 
 
-def _check_xyz(data: Measurements) -> None:
+def check_xyz(data: Measurements) -> None:
     bad = ~torch.isfinite(data.xyz).all(-1)
     if bad.any():
         rows = data.rows[bad.nonzero()[:, 0].cpu()][:5].tolist()
@@ -37,14 +37,14 @@ def point_residuals(model, data: Measurements, nominal: bool = False) -> torch.T
     """Distance between predicted and measured points, (R,) metres.
 
     model: anything with ``points(q, tool, direction=None)`` (a
-    :class:`torchcal.model.RobotModel`, a :class:`torchcal.analysis.cpa.CPAModel`, ...)
+    :class:`torchcal.models.robot.RobotModel`, a :class:`torchcal.analysis.cpa.CPAModel`, ...)
     and, for ``nominal=True``, ``nominal_points(q, tool)``.
     data: measurements with xyz (R, 3) in the measurement frame, metres.
     -> |p_model(q, tool, s) - xyz| per row, with the joint positioning errors
     v left at zero (the honest judge of a model, see the module docstring).
     Approach directions are passed only when the data records them.
     """
-    _check_xyz(data)
+    check_xyz(data)
     with torch.no_grad():
         if nominal:
             p = model.nominal_points(data.q, data.tool)
@@ -79,7 +79,7 @@ def gamma99(residuals, quantile: float = GAMMA_QUANTILE) -> float:
     NaN for fewer than two residuals or any zero residual (the Gamma
     likelihood is zero there, so no fit exists).
     """
-    from ..gamma_fit import gamma_mle, gamma_ppf
+    from ..core.gamma_fit import gamma_mle, gamma_ppf
 
     x = _as_numpy(residuals)
     if x.size < 2 or (x <= 0).any():

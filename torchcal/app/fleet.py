@@ -25,14 +25,15 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from collections.abc import Mapping
 from pathlib import Path
 
 import torch
 
-from .. import units
-from ..exceptions import ConfigError
+from ..core import units
+from ..core.exceptions import ConfigError
 from ..io.atomic import atomic_path, atomic_write_text
-from ..io.config import load_config, to_yaml
+from .config import config_from_text, load_config, to_yaml, updated
 
 log = logging.getLogger("torchcal")
 
@@ -79,16 +80,14 @@ def _check_fleet_config(cfg) -> None:
         if bad:
             raise ConfigError(f"{label}: key '{key}': not supported by `torchcal fleet` (robots of Paper II, "
                               "unconstrained LM fits)")
-    from omegaconf import DictConfig
-
-    if cfg.get("tools") is None or isinstance(cfg.tools, (dict, DictConfig)):
+    if cfg.tools is None or isinstance(cfg.tools, Mapping):
         raise ConfigError(f"{label}: key 'tools': a fleet needs the tool vectors listed (mm)")
 
 
 def _factory(cfg, robot, device, backlash):
     """The fleet's model factory (pipeline.model_factory from the config) with the given backlash orders."""
-    from ..pipeline import config_frame, config_tools, model_factory
-    from ..pipeline_common import config_compliance, config_error_variable
+    from .fit import config_frame, config_tools, model_factory
+    from .common import config_compliance, config_error_variable
 
     _, base = config_frame(cfg)
     return model_factory(robot, config_tools(cfg), backlash, device, base, config_compliance(cfg),
@@ -98,7 +97,7 @@ def _factory(cfg, robot, device, backlash):
 def _solve_threads(cfg) -> int:
     """CPU threads of every cell's solve and of the evaluation: the config's, else this process's usable CPUs
     (one count for every engine: another count sums in another order)."""
-    from .. import threads
+    from ..core import threads
 
     return int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()
 
@@ -108,15 +107,13 @@ def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -
     :class:`Measurements`) per unit; n_threads: the CPU threads of the solve, the same wherever it runs (the
     driver's choice: a different count sums in another order, and a Ray worker starts with one). -> per unit {'name', 'state' (the model's state dict on the CPU),
     'fit' (FitResult.summary()), 'orders', 'backlash'}: plain data, so that any transport carries it."""
-    from omegaconf import OmegaConf
-
     from ..identify.fleet import fit_fleet
     from ..kinematics import load_robot
-    from ..pipeline import config_noise, config_prior
-    from ..pipeline_common import config_backlash, solver_options
-    from .. import threads
+    from .fit import config_noise, config_prior
+    from .common import config_backlash, solver_options
+    from ..core import threads
 
-    cfg = OmegaConf.create(config_yaml)
+    cfg = config_from_text(config_yaml, "the fleet's config")
     robot = load_robot(cfg.robot)
     device = torch.device(cfg.device)
     make = _factory(cfg, robot, device, config_backlash(cfg))
@@ -184,15 +181,14 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     from ..identify.fleet import FleetFit, parameter_outliers
     from ..io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
     from ..kinematics import load_robot
-    from ..pipeline import config_tool_count, read_sets
-    from ..progress import task
+    from .fit import config_tool_count, read_sets
+    from ..core.progress import task
 
     t0 = time.perf_counter()
-    cfg = load_config(config, list(overrides or []))
-    from ..io.config import check_config
+    cfg = load_config(config, list(overrides or []))  # checked: every key's value; the robot's joints below
+    from .config import check_config
 
     label = cfg.config_file or "config"
-    check_config(cfg, label)  # required keys first: before the robot and the folder are read
     _check_fleet_config(cfg)
     files = unit_files(cfg)
     robot = load_robot(cfg.robot)
@@ -240,7 +236,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 model = _factory(cfg, robot, device, u["backlash"])(u["orders"])
                 model.load_state_dict(u["state"])
                 fitted.append((u, model))
-        from .. import threads
+        from ..core import threads
 
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
@@ -262,9 +258,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             name = u["name"]
             d = run_dir / "units" / name
             d.mkdir(parents=True, exist_ok=True)
-            ucfg = cfg.copy()
-            ucfg.data.identification, ucfg.data.validation = by_name[name]
-            ucfg.out = str(d)
+            ident, val = by_name[name]
+            ucfg = updated(cfg, {"data.identification": ident, "data.validation": val, "out": str(d)})
             atomic_write_text(d / "config.yaml", to_yaml(ucfg))
             save_model(d, model, orders=u["orders"], config_file=str(d / "config.yaml"), fit=u["fit"])
             write_json(d / "metrics.json", {"units": "mm", "unit": name, **{k2: v for k2, v in rows[name].items()

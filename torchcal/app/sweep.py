@@ -32,9 +32,9 @@ from pathlib import Path
 
 import torch
 
-from .. import units
+from ..core import units
 from ..io.atomic import atomic_path, atomic_write_text
-from ..io.config import ConfigError, load_config, to_yaml
+from .config import ConfigError, load_config, to_yaml
 
 log = logging.getLogger("torchcal")
 
@@ -110,9 +110,9 @@ def _stackable(cfg) -> bool:
 
 def _group_key(cfg) -> str:
     """The config with the stacked keys removed: cells with equal keys share one batched solve."""
-    from omegaconf import OmegaConf
+    from .config import to_dict
 
-    c = OmegaConf.to_container(cfg, resolve=True)
+    c = to_dict(cfg)
     for key in STACKED_KEYS:
         node = c
         *path, last = key.split(".")
@@ -131,7 +131,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     fitted. -> :class:`SweepResult`.
     """
     from ..io.rundir import collect_versions, make_run_dir, run_log, write_json
-    from ..progress import task
+    from ..core.progress import task
 
     t0 = time.perf_counter()
     plain, axes = parse_grid(list(specs))
@@ -175,10 +175,11 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
     from ..identify.backlash import default_backlash_orders
     from ..identify.batched import fit_batch
     from ..io.rundir import save_model
-    from ..pipeline import align_inputs, config_backlash, config_noise, first_poses, load_inputs, model_factory
+    from .fit import align_inputs, config_backlash, config_noise, first_poses, load_inputs, model_factory
 
-    cfg0 = cfgs[0].copy()
-    cfg0.data.n_poses = None  # the file's every pose; each cell takes its first N
+    from .config import updated
+
+    cfg0 = updated(cfgs[0], {"data.n_poses": None})  # the file's every pose; each cell takes its first N
     inp = load_inputs(cfg0)
     tools_m, base_nominal, alignment = align_inputs(cfg0, inp)
     if alignment is not None:
@@ -231,17 +232,18 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
 
 
 def _compliance(cfg):
-    from ..pipeline import config_compliance
+    from .fit import config_compliance
 
     return config_compliance(cfg)
 
 
 def _fit_alone(cfg, run_dir: Path, cell: int, console) -> dict:
     """A cell the batched solve cannot take: a `torchcal fit` of its own under cells/NN."""
-    from ..pipeline import run_fit
+    from .fit import run_fit
 
-    cfg = cfg.copy()
-    cfg.out = str(run_dir / "cells" / f"{cell:02d}")
+    from .config import updated
+
+    cfg = updated(cfg, {"out": str(run_dir / "cells" / f"{cell:02d}")})
     res = run_fit(cfg, console=None)
     sets = res.metrics.get("sets", {})
     row = {"converged": bool(res.fit.success), "iterations": int(res.fit.nit), "cost": float(res.fit.fun),

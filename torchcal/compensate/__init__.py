@@ -4,16 +4,20 @@
 ``model.flange(q_new, direction, base=False) == model.nominal_flange(q_nom)``
 for many poses at once: the paper's fixed-Jacobian iteration on a fast
 flange-only kernel, damped least squares for the rows that do not contract.
-Every command stays within ``max_correction`` (default 5 deg) of its nominal
-one; rows that would need more (next to singularities) are flagged, not
-swung (``CompensationResult.correction``; ``direction_outside`` when the
-model records its identification data's direction coverage).
+Every command stays within ``max_correction`` (default 30 deg) of its nominal
+one and on its branch (configuration flags, :mod:`.branch`); rows that would need more, another
+branch, or cannot be reached are flagged with a reason, not swung (``CompensationResult.status``,
+``reasons()``; ``direction_outside`` when the model records its identification data's direction
+coverage). ``free_tool_axis`` leaves the rotation about an axisymmetric tool's axis free (:mod:`.axis`).
 """
 
+from .axis import ToolAxis
+from .branch import branch_changed
 from .damped import DampedResult, damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
 from .newton import (
     DEFAULT_BOUND,
+    DEFAULT_CORRECTION_DEG,
     CompensationResult,
     compensate,
     fixed_jacobian_iterations,
@@ -33,6 +37,9 @@ from .tables import (
 
 __all__ = [
     "DEFAULT_BOUND",
+    "DEFAULT_CORRECTION_DEG",
+    "ToolAxis",
+    "branch_changed",
     "CompensationResult",
     "CompensationTable",
     "DampedResult",

@@ -72,7 +72,8 @@ class DampedResult:
     q: (M, n) lowest-error iterate; converged: (M,) bool; iterations: (M,) long;
     pose_error: (M, 6) de at q (m, rad); residual: (M,) weighted norm (m);
     step: (M,) norm of the last step (rad / m); blocked: (M,) bool, stopped at
-    the bound (``stop_at_bound``).
+    the bound (``stop_at_bound``); stationary: (M,) bool, stopped at a stationary point of the cost with
+    error left, inside the bound (an unreachable target's best pose).
     """
 
     q: torch.Tensor
@@ -82,6 +83,7 @@ class DampedResult:
     residual: torch.Tensor
     step: torch.Tensor
     blocked: torch.Tensor | None = None
+    stationary: torch.Tensor | None = None
 
 
 class _Eval:
@@ -119,6 +121,7 @@ def damped_least_squares(
     max_step: float | None = None,
     max_correction: float | None = None,
     stop_at_bound: bool = False,
+    axis=None,
 ) -> DampedResult:
     """Solve model.flange(q, direction, base=False) = target for every row by Levenberg-Marquardt.
 
@@ -162,8 +165,10 @@ def damped_least_squares(
     step_out = torch.full((M,), float("inf"), dtype=dtype, device=device)
     de_out = torch.zeros(M, 6, dtype=dtype, device=device)
     blk_out = torch.zeros(M, dtype=torch.bool, device=device)
+    sta_out = torch.zeros(M, dtype=torch.bool, device=device)
     if M == 0:
-        return DampedResult(q_out, conv_out, it_out, de_out, torch.zeros(0, dtype=dtype, device=device), step_out, blk_out)
+        return DampedResult(q_out, conv_out, it_out, de_out, torch.zeros(0, dtype=dtype, device=device), step_out, blk_out,
+                            sta_out)
     eye = torch.eye(n, dtype=dtype, device=device)
     lam2 = float(lam) ** 2
     ref = q0.clone() if q_ref is None else q_ref.to(dtype)
@@ -178,10 +183,23 @@ def damped_least_squares(
     q = q0.clone()
     s = direction
     Rn, pn = target[:, :3, :3], target[:, :3, 3]
-    Ra, pa, J = ev.flange_jacobian(q, s)
-    de, OR = pose_residual(Ra, pa, Rn, pn)
-    r = weighted(de, length)
-    Jr = residual_jacobian(de, OR, J, length)
+    c = None
+    if axis is not None:
+        c = axis.point
+        pn = axis.shift_rows(Rn, pn, c)
+
+    def evaluate(q, s, c, Rn, pn):
+        """-> de (M, 6), the residual r and its Jacobian (5-DOF: projected)."""
+        Ra, pa, J = ev.flange_jacobian(q, s)
+        if c is not None:
+            pa, J = axis.shift_rows(Ra, pa, c), axis.jacobian_rows(J, c)
+        de, OR = pose_residual(Ra, pa, Rn, pn)
+        r, Jr = weighted(de, length), residual_jacobian(de, OR, J, length)
+        if c is not None:
+            r, Jr = axis.project_rows(r), axis.project_rows(Jr)
+        return de, r, Jr
+
+    de, r, Jr = evaluate(q, s, c, Rn, pn)
     cost = 0.5 * (r * r).sum(-1) + (prior(q, ref) if lam2 else 0.0)
     cost = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf")))
     A = Jr.transpose(1, 2) @ Jr
@@ -213,9 +231,7 @@ def damped_least_squares(
             qt = qb
             dq = qt - q
         # evaluate the trial with its Jacobian: most steps are accepted and need it next
-        Rt, pt, Jt = ev.flange_jacobian(qt, s)
-        de_t, OR_t = pose_residual(Rt, pt, Rn, pn)
-        rt = weighted(de_t, length)
+        de_t, rt, Jr_t = evaluate(qt, s, c, Rn, pn)
         cost_t = 0.5 * (rt * rt).sum(-1) + (prior(qt, ref) if lam2 else 0.0)
         cost_t = torch.where(torch.isfinite(cost_t), cost_t, torch.full_like(cost_t, float("inf")))
         # Nielsen: the decrease the linear model predicts for the step taken (scaled or clipped:
@@ -230,7 +246,7 @@ def damped_least_squares(
         cost = torch.where(acc, cost_t, cost)
         r = torch.where(a1, rt, r)
         de = torch.where(a1, de_t, de)
-        Jr = torch.where(a1[..., None], residual_jacobian(de_t, OR_t, Jt, length), Jr)
+        Jr = torch.where(a1[..., None], Jr_t, Jr)
         mu = torch.where(acc, mu * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu * nu)
         nu = torch.where(acc, torch.full_like(nu, 2.0), 2.0 * nu)
         it += 1
@@ -254,14 +270,17 @@ def damped_least_squares(
             q_out[rows], conv_out[rows], it_out[rows], step_out[rows], de_out[rows] = q[d], conv[d], it[d], step[d], de[d]
             if blocked is not None:
                 blk_out[rows] = blocked[d]
+            sta_out[rows] = (stall & ~conv)[d] & ~blk_out[rows]
             keep = (~done).nonzero()[:, 0]
             idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits = (
                 x[keep] for x in (idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits)
             )
             s = None if s is None else s[keep]
+            c = None if c is None else c[keep]
             if idx.numel() == 0:
                 break
     if idx.numel():  # iteration limit: keep the lowest-error iterate, not converged
         q_out[idx], it_out[idx], step_out[idx], de_out[idx] = q, it, step, de
-    res = weighted(de_out, length).norm(dim=-1)
-    return DampedResult(q_out, conv_out, it_out, de_out, res, step_out, blk_out)
+    res = weighted(de_out, length)
+    res = (res if axis is None else axis.project_rows(res)).norm(dim=-1)
+    return DampedResult(q_out, conv_out, it_out, de_out, res, step_out, blk_out, sta_out)

@@ -301,7 +301,7 @@ class FusedFlange:
         q = qT.detach().to(torch.float64).contiguous().numpy()
         s = q if sT is None else sT.detach().to(torch.float64).contiguous().numpy()
         # numba keeps its own thread pool: follow torch's setting so that a caller's limit holds
-        # (torchcal.threads.limit_threads sets both)
+        # (torchcal.core.threads.limit_threads sets both)
         numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
         # dynamic scheduling, one block of _CHUNK poses at a time: with a static split a thread that shares its
         # core with another process holds up the whole call (a busy neighbour would cost 2x, not 1.33x)

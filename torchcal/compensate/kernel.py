@@ -1,4 +1,4 @@
-"""Flange-only forward kinematics of a :class:`~torchcal.model.RobotModel`, built for many poses.
+"""Flange-only forward kinematics of a :class:`~torchcal.models.robot.RobotModel`, built for many poses.
 
 Compensation evaluates the modeled flange F_a(q, s) of (46) a handful of
 times per pose and needs nothing else: no joint frames, no parameter
@@ -11,9 +11,10 @@ rows, and all joint-local work (Chebyshev series, error rotations, the fixed
 joint origins) is done for all joints at once.
 
 The numbers are those of ``RobotModel.flange(q, direction, base=False)`` and
-``RobotModel.nominal_flange(q)`` to rounding (the tests check both); the
-kernel holds a detached snapshot of the model's parameters taken when it is
-built, so rebuild it after the model changes.
+``RobotModel.nominal_flange(q)`` to rounding (the tests check both). The
+kernel is built from the model contract's frozen snapshot
+(:class:`~torchcal.kinematics.snapshot.ChainSnapshot`, ``model.flange_snapshot()``),
+never from the model's internals, so rebuild it after the model changes.
 
 Layout: ``qT`` (n, B) controller commands (rad / m), ``sT`` (n, B)
 directions, R (3, 3, B) with R[i, j] = row i, column j, p (3, B).
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import torch
 
+from ..kinematics.snapshot import ChainSnapshot
 from ..kinematics.transforms import skew
 
 
@@ -78,8 +80,9 @@ def pose_error_soa(Ra: torch.Tensor, pa: torch.Tensor, Rn: torch.Tensor, pn: tor
 class FlangeKernel:
     """Fast flange pose of a RobotModel (modeled and nominal) in the (3, 3, B) layout.
 
-    model: the RobotModel (its current parameter values are copied, detached;
-        with gravity compliance the modeled flange and its Jacobian are
+    model: a :class:`~torchcal.kinematics.snapshot.ChainSnapshot`, or a model that hands one out
+        (``flange_snapshot()``, e.g. a RobotModel: its current parameter values, copied and detached;
+        with gravity compliance or fine joint tables the modeled flange and its Jacobian are
         evaluated by the model itself, live, and only the nominal chain here).
     general_axes: force the Rodrigues path for every joint (for testing); by
     default joints whose axis is exactly +z use a cheaper column rotation.
@@ -91,38 +94,39 @@ class FlangeKernel:
     """
 
     def __init__(self, model, general_axes: bool = False, block: int | None = None, fused: bool | None = None):
+        # the model contract's frozen snapshot: this backend reads nothing else of the model
+        snap = model if isinstance(model, ChainSnapshot) else model.flange_snapshot()
         # blocks only pay on the CPU (cache); a GPU wants the whole batch at once
-        self.block = block if block is not None else (8192 if model.device.type == "cpu" else None)
-        # gravity compliance deflects each joint by a function of the whole configuration: the modeled
-        # flange then comes from the model itself (slower; its Jacobian carries the deflection's slope)
-        self.model = model if getattr(model, "compliance", None) is not None else None
+        self.block = block if block is not None else (8192 if snap.device.type == "cpu" else None)
+        # gravity compliance and fine joint tables deflect each joint by a function of the whole configuration:
+        # the modeled flange then comes from the model itself (slower; its Jacobian carries the deflection's slope)
+        self.model = snap.live
         with torch.no_grad():
-            je = model.joint_errors
-            self.n = model.n
-            self.dtype, self.device = model.dtype, model.device
-            self.coupling = model.coupling.detach().clone()
-            self.offset = model.offset.detach().clone()[:, None]
+            self.n = snap.n
+            self.dtype, self.device = snap.dtype, snap.device
+            self.coupling = snap.coupling
+            self.offset = snap.offset[:, None]
             # the variable each joint's error series follows: command (Paper II (24)) or URDF joint variable
-            self.error_coupling = model.error_coupling.detach().clone()
-            self.error_offset = model.error_offset.detach().clone()[:, None]
-            lo, hi = je.ranges[:, 0], je.ranges[:, 1]
-            self.lo = lo.detach().clone()[:, None]
-            self.width = (hi - lo).detach().clone()[:, None]
-            coef = (je.coef * je.mask).detach()  # (n, 6, K)
+            self.error_coupling = snap.error_coupling
+            self.error_offset = snap.error_offset[:, None]
+            lo, hi = snap.ranges[:, 0], snap.ranges[:, 1]
+            self.lo = lo[:, None]
+            self.width = (hi - lo)[:, None]
+            coef = snap.coef  # (n, 6, K), masked
             self.K = coef.shape[-1]
-            self.has_backlash = bool(je.has_backlash)
-            self.Kb = je.backlash.shape[-1] if self.has_backlash else 0
+            self.has_backlash = snap.backlash is not None
+            self.Kb = snap.backlash.shape[-1] if self.has_backlash else 0
             self.Km = max(self.K, self.Kb, 1)
             # one series product for all terms: rows 0-5 the six error terms, row 6 the backlash amplitude
             table = torch.zeros(self.n, 7 if self.has_backlash else 6, self.Km, dtype=self.dtype, device=self.device)
             table[:, :6, : self.K] = coef
             if self.has_backlash:
-                table[:, 6, : self.Kb] = (je.backlash * je.backlash_mask).detach()
+                table[:, 6, : self.Kb] = snap.backlash
             self.table = table
-            self.oR = model.origins[:, :3, :3].detach().clone()  # (n, 3, 3)
-            self.op = model.origins[:, :3, 3].detach().clone()  # (n, 3)
-            self.axes = model.axes.detach().clone()
-            self.prismatic = model.prismatic.detach().clone()
+            self.oR = snap.origins[:, :3, :3].clone()  # (n, 3, 3)
+            self.op = snap.origins[:, :3, 3].clone()  # (n, 3)
+            self.axes = snap.axes
+            self.prismatic = snap.prismatic
             self.any_prismatic = bool(self.prismatic.any())
             self.revolute = (~self.prismatic).to(self.dtype)[:, None]  # (n, 1)
             ez = torch.tensor([0.0, 0.0, 1.0], dtype=self.dtype, device=self.device)
@@ -130,10 +134,8 @@ class FlangeKernel:
             Ka = skew(self.axes)  # (n, 3, 3)
             self.Ka, self.Ka2 = Ka, Ka @ Ka
             self.oRa = (self.oR @ self.axes[..., None])[..., 0]  # (n, 3) joint axis in the frame before origin_i
-            tip = model.tip.detach()
-            self.tipR, self.tipp = tip[:3, :3].clone(), tip[:3, 3].clone()
-            base = model.base.correction().detach()
-            self.baseR, self.basep = base[:3, :3].clone(), base[:3, 3].clone()
+            self.tipR, self.tipp = snap.tip[:3, :3].clone(), snap.tip[:3, 3].clone()
+            self.baseR, self.basep = snap.base[:3, :3].clone(), snap.base[:3, 3].clone()
         self.fused = None
         if fused is False:  # numba's import (0.2-0.8 s of a CLI run) only where its kernel may run
             return
@@ -159,7 +161,7 @@ class FlangeKernel:
         """Joint error terms e (n, 6, B) of (23) + backlash (13) at error variables u (n, B).
 
         slopes: also return de/du (n, 6, B) (differentiated recurrence, as
-        :func:`torchcal.basis.chebyshev_with_derivative`).
+        :func:`torchcal.core.basis.chebyshev_with_derivative`).
         """
         n, B = u.shape
         Km = self.Km
@@ -226,7 +228,7 @@ class FlangeKernel:
 
     @staticmethod
     def right_jacobian_apply(eps: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """J_r(eps) v for eps, v (n, 3, B), same series as :func:`torchcal.jacobian.so3_right_jacobian`.
+        """J_r(eps) v for eps, v (n, 3, B), same series as :func:`torchcal.models.jacobian.so3_right_jacobian`.
 
         J_r = I - a S(eps) + b S(eps)^2, so J_r v = v - a eps x v + b eps x (eps x v).
         """

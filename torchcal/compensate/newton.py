@@ -28,7 +28,13 @@ damping toward q_nom: the null space, e.g. the wrist's q4/q6 combination,
 stays at q_nom), then polishes without λ inside the same box. Rows that
 cannot meet the tolerance within the bound are flagged (not converged) with
 that bounded best effort; ``CompensationResult.correction`` is each row's
-largest |q_new - q_nom|.
+largest |q_new - q_nom|. Branches: a solution on another configuration than q_nom's (the sign of det J of
+the nominal kinematics changes between them, :mod:`.branch`) is refused; every flagged row carries a
+status code (:mod:`.result`) that ``reasons()`` turns into words.
+
+Why one module: the fast path (the chord iteration, its refreshes) and the hand-over to the damped path
+share the working set, the bounds and the status bookkeeping of one call; the pieces that stand alone
+live beside it (:mod:`.result`, :mod:`.bounds`, :mod:`.branch`, :mod:`.axis`, :mod:`.damped`, :mod:`.kernel`).
 
 The fast path runs on :class:`.kernel.FlangeKernel` (pose index last; on the
 CPU in float64 its evaluations are the numba-compiled kernel of
@@ -38,115 +44,29 @@ figure can be checked against ``RobotModel.flange`` directly.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import torch
 
 from ..kinematics.transforms import homogeneous
-from ..measurements import first_invalid_direction
-from ..progress import task as progress_task
-from ..contract import require
-from ..threads import threads_for_work
+from ..core.measurements import first_invalid_direction
+from ..core.progress import task as progress_task
+from ..core.contract import require
+from ..core.threads import threads_for_work
+from .axis import tool_axis
+from .bounds import (  # noqa: F401 (re-exported)
+    DEFAULT_BOUND, DEFAULT_CORRECTION_DEG, DEFAULT_PRISMATIC_MM, DEFAULT_STEP_DEG, per_joint_bound,
+)
+from .branch import branch_changed, det_sign_soa, jacobian_lipschitz, surely_same_branch
 from .damped import damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
-
-
-@dataclass
-class CompensationResult:
-    """Compensated commands for B poses (SI: rad / m).
-
-    q: (B, n) compensated commands q_new (52).
-    converged: (B,) bool, ||dq|| < tol (51) reached and the pose error left at q
-        (evaluated) below residual_tol.
-    iterations: (B,) long, updates (50) made, fixed-Jacobian plus damped.
-    pose_error: (B, 6) final error vector (47)-(48) at q: (dx, dy, dz) m and
-        (rx, ry, rz) rad, in the modeled flange frame.
-    residual: (B,) norm of pose_error with orientation times ``length`` (m).
-    step: (B,) norm of the last update ||dq|| (rad / m).
-    damped: (B,) bool, the row needed the damped least-squares path.
-    within_limits: (B,) bool, q inside model.command_limits.
-    sigma_min: (B,) smallest singular value of the nominal Jacobian at q_nom
-        with orientation rows times ``length`` (m / rad), or None when not asked for.
-    correction: (B,) largest |q_new - q_nom| over the joints (rad / m); never
-        above compensate()'s max_correction.
-    direction_outside: (B,) bool, the row's approach directions at q_new lie
-        outside what the identification data covered (``model.coverage``), or
-        None when the model carries no coverage or no directions were given.
-    """
-
-    q: torch.Tensor
-    converged: torch.Tensor
-    iterations: torch.Tensor
-    pose_error: torch.Tensor
-    residual: torch.Tensor
-    step: torch.Tensor
-    damped: torch.Tensor
-    within_limits: torch.Tensor
-    sigma_min: torch.Tensor | None = None
-    correction: torch.Tensor | None = None
-    direction_outside: torch.Tensor | None = None
-
-    @property
-    def position_error(self) -> torch.Tensor:
-        """(B,) final flange position error |de_p| (m)."""
-        return self.pose_error[:, :3].norm(dim=-1)
-
-    @property
-    def orientation_error(self) -> torch.Tensor:
-        """(B,) final flange orientation error |de_r| (rad)."""
-        return self.pose_error[:, 3:].norm(dim=-1)
-
-    def reasons(self, max_correction=None, prismatic=None, singular: float = 5.73e-4) -> list[str]:
-        """Why each row is flagged, '' for a converged row within the joint range: 'joint limit' (the command
-        leaves the controller's range), 'needs more than the bound' (the correction ran into max_correction:
-        the solution lies farther from the nominal command), 'singular' (sigma_min below ``singular`` m/rad,
-        0.01 mm/deg, when it was computed), else 'not converged' with the pose error left. max_correction:
-        compensate()'s bound (number, (n,) tensor or :data:`DEFAULT_BOUND`; default the default)."""
-        n = self.q.shape[1]
-        bound = per_joint_bound(DEFAULT_BOUND if max_correction is None else max_correction, n, self.q.dtype,
-                                self.q.device, "max_correction", prismatic)
-        out = []
-        at_bound = torch.zeros_like(self.converged)
-        if bound is not None and self.correction is not None:
-            # correction is the largest |dq| over the joints: at the bound of some joint to 0.1 %
-            at_bound = self.correction >= 0.999 * float(bound.min())
-        err_mm = self.pose_error[:, :3].norm(dim=-1) * 1e3
-        for i in range(self.q.shape[0]):
-            if bool(self.converged[i]) and bool(self.within_limits[i]):
-                out.append("")
-            elif not bool(self.within_limits[i]):
-                out.append("joint limit: the compensated command leaves the controller's range")
-            elif bool(at_bound[i]):
-                out.append(f"needs more than the bound: stopped at the correction bound, {float(err_mm[i]):.3g} mm "
-                           "left (raise --max-correction-deg if no branch change is near)")
-            elif self.sigma_min is not None and float(self.sigma_min[i]) < singular:
-                out.append(f"singular: sigma_min {float(self.sigma_min[i]):.3g} m/rad at the nominal command")
-            else:
-                out.append(f"not converged: {float(err_mm[i]):.3g} mm left")
-        return out
-
-    def summary(self) -> dict:
-        """Counts and worst errors as plain Python numbers."""
-        c = self.converged
-        return {
-            "poses": int(c.numel()),
-            "converged": int(c.sum()),
-            "damped": int(self.damped.sum()),
-            "within_limits": int(self.within_limits.sum()),
-            "max_iterations": int(self.iterations.max()) if c.numel() else 0,
-            "max_position_error_converged_m": float(self.position_error[c].max()) if c.any() else 0.0,
-            "max_orientation_error_converged_rad": float(self.orientation_error[c].max()) if c.any() else 0.0,
-            "max_correction_converged": float(self.correction[c].max()) if self.correction is not None and c.any() else 0.0,
-            "direction_outside": int(self.direction_outside.sum()) if self.direction_outside is not None else None,
-        }
+from .result import AT_BOUND, BRANCH, CONVERGED, NOT_CONVERGED, OUT_OF_REACH, CompensationResult  # noqa: F401 (re-export)
 
 
 # ---------------------------------------------------------------------------- core
 def nominal_jacobian_inverse(J: torch.Tensor, sigma_floor: float = 0.0, length: float = 1.0):
     """Inverse (n == 6) or pseudo-inverse of nominal body Jacobians.
 
-    J: (6, n, B) -> P: (n, 6, B) with P J = I, and ok: (B,) bool (finite, non-singular).
+    J: (m, n, B) -> P: (n, m, B) with P J = I (m = 6; 5 for a free tool axis), and ok: (B,) bool
+    (finite, non-singular).
     sigma_floor: rows whose smallest singular value (orientation rows times
     ``length``, m / rad) is below this are not ok either; the bound used is
     1 / ||P||_F <= sigma_min, so a row is let through only when it is well
@@ -157,7 +77,7 @@ def nominal_jacobian_inverse(J: torch.Tensor, sigma_floor: float = 0.0, length: 
     always exact), it does not move its fixed point.
     """
     Jb = J.permute(2, 0, 1)  # (B, 6, n)
-    if Jb.shape[-1] == 6:
+    if Jb.shape[-1] == Jb.shape[-2]:
         P, info = torch.linalg.inv_ex(Jb)
         ok = info == 0
     else:
@@ -204,6 +124,8 @@ def fixed_jacobian_iterations(
     broyden: bool = True,
     qref: torch.Tensor | None = None,
     max_correction: torch.Tensor | None = None,
+    axis=None,
+    cT: torch.Tensor | None = None,
 ):
     """Paper II's iteration (47)-(51) with a fixed (pseudo-)inverse Jacobian, all poses at once.
 
@@ -225,6 +147,8 @@ def fixed_jacobian_iterations(
        for failed ones), de (6, B) the error at q for converged rows,
        step (B,) ||dq^r||, iterations (B,) updates made, ok (B,) bool, far (B,)
        bool: reached (51) outside max_correction (not ok).
+    axis, cT: a :class:`.axis.ToolAxis` and the rows' tool points (3, B): 5-DOF, P is (n, 5, B), pn the
+    tool points' targets, de the full error at the tool point.
     Finished rows leave the working set, so a few slow rows do not make the
     whole batch iterate.
 
@@ -252,6 +176,7 @@ def fixed_jacobian_iterations(
         "best_q": qT[:, idx], "best_res": torch.full((idx.numel(),), float("inf"), dtype=dtype, device=device),
         "prev": torch.full((idx.numel(),), float("inf"), dtype=dtype, device=device), "last": None, "idx": idx,
         "ref": None if max_correction is None else (qT if qref is None else qref)[:, idx],
+        "c": None if cT is None else cT[:, idx],
     }
     live = torch.ones(idx.numel(), dtype=torch.bool, device=device)
     any_dead = False
@@ -261,7 +186,11 @@ def fixed_jacobian_iterations(
         q, Pa, prev, last = st["q"], st["P"], st["prev"], st["last"]
         # (47)-(48) at q^r
         R, p = kernel.flange(q, st["s"])
-        de = pose_error_soa(R, p, st["R"], st["p"])
+        if axis is not None:
+            p = axis.shift_soa(R, p, st["c"])
+        de_full = de = pose_error_soa(R, p, st["R"], st["p"])
+        if axis is not None:
+            de = axis.project_soa(de)  # the rotation about the tool axis is free
         res = _weighted_norm(de, length)
         better = res < st["best_res"]  # NaN compares False: a blown-up row keeps its last good iterate
         st["best_res"] = torch.where(better, res, st["best_res"])
@@ -294,7 +223,7 @@ def fixed_jacobian_iterations(
                 d = d & ~far
                 far_out[rows] = far
             q_out[:, rows] = torch.where(d, q[:, f], st["best_q"][:, f])
-            de_out[:, rows] = de[:, f]
+            de_out[:, rows] = de_full[:, f]
             step_out[rows] = step[f]
             it_out[rows] = r
             ok_out[rows] = d
@@ -320,7 +249,7 @@ def fixed_jacobian_iterations(
 
 
 def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
-    require(model, "compensate commands", "compensate")  # the model contract (torchcal.contract)
+    require(model, "compensate commands", "compensate")  # the model contract (torchcal.core.contract)
     if not isinstance(q_nom, torch.Tensor) or q_nom.ndim != 2 or q_nom.shape[1] != model.n:
         shape = tuple(q_nom.shape) if isinstance(q_nom, torch.Tensor) else type(q_nom).__name__
         raise ValueError(f"compensate: q_nom must be a (B, {model.n}) tensor of commands, got {shape}")
@@ -356,38 +285,9 @@ def nominal_sigma_min(model, q: torch.Tensor, length: float = 1.0) -> torch.Tens
     return torch.linalg.svdvals(J)[:, -1]
 
 
-DEFAULT_BOUND = "default"
-"""compensate()'s default step and correction bound: 5 deg for revolute joints, 5 mm for prismatic ones."""
-
-
-def per_joint_bound(bound, n: int, dtype, device, name: str = "bound", prismatic=None) -> torch.Tensor | None:
-    """A step or correction bound as an (n,) tensor: None stays None, a number applies to every joint.
-
-    :data:`DEFAULT_BOUND` is 5 deg per revolute and 5 mm per prismatic joint
-    (``prismatic``: (n,) bool, the controller joints; all revolute if None).
-    For other per-joint bounds pass an (n,) tensor (rad / m), e.g.
-    ``units.joint_scale(prismatic) * 2.0`` for 2 deg / 2 mm. Raises
-    ValueError for a wrong length or a bound that is not positive.
-    """
-    if bound is None:
-        return None
-    if isinstance(bound, str):
-        if bound != DEFAULT_BOUND:
-            raise ValueError(f"compensate: {name} must be a number, one per joint, None or '{DEFAULT_BOUND}', got {bound!r}")
-        pr = torch.zeros(n, dtype=torch.bool) if prismatic is None else torch.as_tensor(prismatic, dtype=torch.bool).cpu()
-        bound = torch.where(pr, torch.tensor(5e-3, dtype=torch.float64), torch.tensor(math.radians(5.0), dtype=torch.float64))
-    t = torch.as_tensor(bound, dtype=dtype, device=device)
-    t = t.expand(n).clone() if t.ndim == 0 else t
-    if t.shape != (n,):
-        raise ValueError(f"compensate: {name} must be a number or one value per joint ({n}), got shape {tuple(t.shape)}")
-    if not bool((t > 0).all()):
-        raise ValueError(f"compensate: {name} must be positive, got {t.tolist()}")
-    return t
-
-
 FLOPS_PER_POSE = 2e4
 """Work of one compensated pose (6-7 flange evaluations with Jacobians, ~1 500 flops each, and the
-updates): the size :func:`torchcal.threads.threads_for` gives threads by."""
+updates): the size :func:`torchcal.core.threads.threads_for` gives threads by."""
 
 
 FUSED_MIN_POSES = 1024
@@ -423,6 +323,9 @@ def compensate(
     max_step: float | torch.Tensor | str | None = DEFAULT_BOUND,
     max_correction: float | torch.Tensor | str | None = DEFAULT_BOUND,
     null_damping: float = 1e-3,
+    branch: bool = True,
+    free_tool_axis=None,
+    tool_point=None,
 ) -> CompensationResult:
     """Compensated joint commands for many poses, Paper II (46)-(52).
 
@@ -453,16 +356,25 @@ def compensate(
         at its best iterate (nominal chain, fast kernel) before it goes to the
         damped path; 0 is the paper's single Jacobian at q_nom.
     max_step: trust bound, the largest change of any joint in one update
-        (rad / m); default 5 deg per revolute and 5 mm per prismatic joint;
+        (rad / m); default 5 deg per revolute and 5 mm per prismatic joint (:data:`DEFAULT_STEP_DEG`);
         a number for every joint or an (n,) tensor per joint
         (:func:`per_joint_bound`); None: unbounded.
     max_correction: bound on |q_new - q_nom| for every joint and every row,
-        flagged or not (rad / m, like max_step: default 5 deg / 5 mm). The correction is a
-        calibration-sized one (typically < 1 deg); a row whose exact solution
-        lies further away (next to a singularity a small orientation error
-        would swing q4 and q6 by tens of degrees) is not converged: it comes
-        out flagged with a bounded best effort instead of a command that
-        makes the robot swing. None: unbounded (the paper's behaviour).
+        flagged or not (rad / m, like max_step: default 30 deg / 5 mm, :data:`DEFAULT_CORRECTION_DEG`). The
+        correction is a calibration-sized one (typically < 1 deg, 5-8 deg next to the wrist singularity,
+        where a small orientation error turns q4 and q6 in opposite directions); a row whose exact solution
+        lies further away is not converged: it comes out flagged with a bounded best effort instead of a
+        command that makes the robot swing. None: unbounded (the paper's behaviour).
+    branch: refuse solutions on another branch than q_nom's (:mod:`.branch`: the sign of det J of the
+        nominal kinematics changes between them, i.e. a configuration flag changes): such a row is
+        solved again on the damped path from q_nom and, if that ends across the surface too, flagged
+        (status BRANCH). Only for n = 6.
+    free_tool_axis: None (6-DOF, (46)); True or a (3,) direction in the flange frame (True: z): 5-DOF
+        compensation for axisymmetric tools, the rotation about that axis left free (:mod:`.axis`):
+        the tool point reaches its nominal position and the tool axis its nominal direction, with the
+        smallest correction the solver finds (pseudo-inverse / Tikhonov toward q_nom).
+    tool_point: with free_tool_axis, the point on the tool axis (flange frame, m; (3,) or (B, 3); default
+        the flange origin) whose position is compensated.
     null_damping: Tikhonov damping toward q_nom on the damped path (m / rad,
         like ``length``-weighted singular values): directions of the Jacobian
         with singular values well below it (the q4/q6 combination that does
@@ -491,14 +403,14 @@ def compensate(
         # float32 (a GPU's fast path) carries ~1e-7 of a metre: the float64 tolerances cannot be met, so every row
         # would be flagged; these are the float32 floor (measured: commands within ~1e-5 rad of float64's)
         tol, residual_tol = max(tol, FLOAT32_TOL), max(residual_tol, FLOAT32_RESIDUAL_TOL)
-    with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.threads)
+    with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.core.threads)
         return _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction,
                       length, residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction,
-                      null_damping)
+                      null_damping, branch, free_tool_axis, tool_point)
 
 
 def _chunks(count: int, chunk_size: int, name: str):
-    """range(0, count, chunk_size), reported as a progress task (:mod:`torchcal.progress`) of one item per chunk."""
+    """range(0, count, chunk_size), reported as a progress task (:mod:`torchcal.core.progress`) of one item per chunk."""
     with progress_task(name, total=-(-count // chunk_size)) as t:
         for c0 in range(0, count, chunk_size):
             yield c0
@@ -507,7 +419,8 @@ def _chunks(count: int, chunk_size: int, name: str):
 
 @torch.no_grad()
 def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length,
-           residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction, null_damping):
+           residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction, null_damping, branch,
+           free_tool_axis, tool_point):
     """:func:`compensate`'s work, on the calling thread count."""
     _check_inputs(model, q_nom, direction)
     dtype, device = model.dtype, model.device
@@ -516,6 +429,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
     prismatic = model.robot.joint_map.prismatic if hasattr(model, "robot") else None
     max_step = per_joint_bound(max_step, n, dtype, device, "max_step", prismatic)
     max_correction = per_joint_bound(max_correction, n, dtype, device, "max_correction", prismatic)
+    ax = tool_axis(free_tool_axis, tool_point, dtype, device, B)
     if direction is not None:
         direction = direction.to(dtype)
     # the compiled kernel's first call in a process costs ~0.5-0.8 s (numba loads its cached machine code and
@@ -526,6 +440,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
         # (measured on an H200: 1.4e6 poses/s in chunks of 262 144, 2.5e6 in one chunk of 10^6)
         chunk_size = min(max(B, 1), GPU_CHUNK if q_nom.device.type == "cuda" else 262144)
     chunk_size = max(int(chunk_size), 1)
+    branch = branch and n == 6
 
     q_out = torch.empty(B, n, dtype=dtype, device=device)
     step = torch.empty(B, dtype=dtype, device=device)
@@ -535,6 +450,13 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
     sig = torch.empty(B, dtype=dtype, device=device) if sigma else None
     targets_R = torch.empty(3, 3, B, dtype=dtype, device=device)
     targets_p = torch.empty(3, B, dtype=dtype, device=device)
+    # branch test: rows clear of a singular surface at q_nom, and det J's sign there
+    clear = torch.zeros(B, dtype=torch.bool, device=device)
+    sign0 = torch.zeros(B, dtype=dtype, device=device)
+    # a lower bound of sigma_min at q_nom (from the inverse the iteration uses): rows that provably stay on
+    # their branch skip the test (branch.surely_same_branch); 0 where no bound is known (5-DOF)
+    sig_lb = torch.zeros(B, dtype=dtype, device=device)
+    lipschitz = jacobian_lipschitz(kernel, length) if branch and ax is None else None
 
     for c0 in _chunks(B, chunk_size, "fixed-Jacobian Newton (chunks)"):
         sl = slice(c0, min(c0 + chunk_size, B))
@@ -546,10 +468,19 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
             Js = J.permute(2, 0, 1).clone()
             Js[:, 3:] *= length
             sig[sl] = torch.linalg.svdvals(Js)[:, -1]
+        if branch:
+            sign0[sl] = det_sign_soa(J)
+        cT = None if ax is None else ax.pointT(torch.arange(sl.start, sl.stop, device=device))
+        if ax is not None:  # 5-DOF: the tool point's target, the kept rows of the Jacobian
+            pn, J = ax.shift_soa(Rn, pn, cT), ax.jacobian_soa(J, cT)
         P, invertible = nominal_jacobian_inverse(J, 0.1 * null_damping, length)
+        clear[sl] = invertible
+        if lipschitz is not None:
+            fro2 = (P[:, :3] ** 2).sum((0, 1)) + (P[:, 3:] ** 2).sum((0, 1)) / length**2
+            sig_lb[sl] = torch.where(invertible, fro2.clamp(min=1e-300).rsqrt(), torch.zeros_like(fro2))
         out = fixed_jacobian_iterations(
             kernel, qT, sT, Rn, pn, P, invertible, tol, max_iter, contraction, length, residual_tol, broyden,
-            qT, max_correction,
+            qT, max_correction, ax, cT,
         )
         qc, de, st, it, okc, far = out["q"], out["de"], out["step"], out["iterations"], out["ok"], out["far"]
         # Rows that did not contract moved far from q_nom (near a singularity a
@@ -560,19 +491,28 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
             if f.numel() == 0:
                 break
             sf = None if sT is None else sT[:, f]
-            _, _, Jf = (kernel.flange_jacobian(qc[:, f], sf) if refresh_model else kernel.nominal_flange_jacobian(qc[:, f]))
+            Rf, _, Jf = (kernel.flange_jacobian(qc[:, f], sf) if refresh_model else kernel.nominal_flange_jacobian(qc[:, f]))
+            if ax is not None:
+                Jf = ax.jacobian_soa(Jf, cT[:, f])
             # (a stricter floor here: at a row's best iterate the modeled joint may sit just off a
             # singularity that the solution lies on, where a chord step moves the null space freely)
             Pf, okf = nominal_jacobian_inverse(Jf, null_damping, length)
             o = fixed_jacobian_iterations(
                 kernel, qc[:, f], sf, Rn[..., f], pn[:, f], Pf, okf, tol, max_iter, contraction, length, residual_tol, broyden,
-                qT[:, f], max_correction,
+                qT[:, f], max_correction, ax, None if cT is None else cT[:, f],
             )
             qc[:, f], de[:, f], st[f], okc[f], far[f] = o["q"], o["de"], o["step"], o["ok"], o["far"]
             it[f] += o["iterations"]
         q_out[sl], step[sl], iters[sl], ok[sl] = qc.T, st, it, okc
         de_out[sl] = de.T
 
+    status = torch.full((B,), NOT_CONVERGED, dtype=torch.int8, device=device)
+    status[ok] = CONVERGED
+    crossed = torch.zeros(B, dtype=torch.bool, device=device)
+    if branch:  # a fast-path solution on another branch: solve it again from q_nom on the damped path
+        sure = surely_same_branch(q_nom, q_out, sig_lb, lipschitz)
+        crossed = branch_changed(kernel, q_nom, q_out, ok & clear & ~sure, sign_from=sign0)
+        ok &= ~crossed
     damped = ~ok
     if damped.any():
         k = damped.nonzero()[:, 0]
@@ -581,14 +521,16 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
             kk = k[c0:c0 + chunk_size]
             tk = target[c0:c0 + chunk_size]
             dk = None if direction is None else direction[kk]
+            axk = None if ax is None else ax.subset(kk)
+            # start from the fast path's best iterate only when it is a bounded correction on the nominal
+            # command's branch (rows whose best lies on another branch restart at q_nom)
+            away = crossed[kk]
             if max_correction is not None:
-                # start from the fast path's best iterate only when it is a bounded correction (rows
-                # whose best lies on another branch restart at q_nom)
-                away = ((q_out[kk] - q_nom[kk]).abs() / max_correction).amax(-1) > 1.0
-                q_out[kk] = torch.where(away[:, None], q_nom[kk], q_out[kk])
+                away = away | (((q_out[kk] - q_nom[kk]).abs() / max_correction).amax(-1) > 1.0)
+            q_out[kk] = torch.where(away[:, None], q_nom[kk], q_out[kk])
             opts = dict(tol=tol, max_iter=max_damped_iter, damping=damping, length=length, residual_tol=residual_tol,
                         kernel=kernel, q_ref=q_nom[kk], max_step=max_step, max_correction=max_correction,
-                        stop_at_bound=True)
+                        stop_at_bound=True, axis=axk)
             if null_damping:
                 # first pass: only picks the branch and the null-space component (the polish below
                 # restores the accuracy), so a loose tolerance and few iterations do; rows whose exact
@@ -598,6 +540,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
             else:
                 res = damped_least_squares(model, q_out[kk], tk, dk, **opts)
             q_out[kk], ok[kk], step[kk], de_out[kk] = res.q, res.converged, res.step, res.pose_error
+            status[kk] = _damped_status(res)
             iters[kk] += res.iterations
             if null_damping:
                 # the damped pass leaves a bias of ~lam² |dq| / sigma: polish without it, inside the same
@@ -607,6 +550,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
                 if m.numel():
                     km = kk[m]
                     opts["q_ref"] = q_nom[km]
+                    opts["axis"] = None if ax is None else ax.subset(km)
                     # from there Levenberg-Marquardt needs a handful of steps (a solution outside the
                     # bounds runs into the box and stops)
                     opts["max_iter"] = min(max_damped_iter, 20)
@@ -617,14 +561,30 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
                     c = (pol.converged | ~pol.blocked).nonzero()[:, 0]
                     kc = km[c]
                     q_out[kc], ok[kc], step[kc], de_out[kc] = pol.q[c], pol.converged[c], pol.step[c], pol.pose_error[c]
+                    status[kc] = _damped_status(pol)[c]
+        if branch:  # the damped path's solutions on another branch are refused: flagged
+            sure = surely_same_branch(q_nom, q_out, sig_lb, lipschitz)
+            again = branch_changed(kernel, q_nom, q_out, ok & damped & clear & ~sure, sign_from=sign0)
+            ok &= ~again
+            status[again] = BRANCH
 
     lim = model.command_limits.to(dtype)
     within = ((q_out >= lim[:, 0]) & (q_out <= lim[:, 1])).all(-1)
-    residual = torch.sqrt((de_out[:, :3] ** 2).sum(-1) + length**2 * (de_out[:, 3:] ** 2).sum(-1))
+    w = torch.cat([de_out[:, :3], length * de_out[:, 3:]], -1)
+    residual = (w if ax is None else ax.project_rows(w)).norm(dim=-1)
     correction = (q_out - q_nom).abs().amax(-1) if n else torch.zeros(B, dtype=dtype, device=device)
     outside = None
     coverage = getattr(model, "coverage", None)
     if coverage is not None and direction is not None:
         # the approach pattern of the command actually sent (the bins may differ from q_nom's)
         outside = coverage.outside(q_out, direction).to(device=device, dtype=torch.bool)
-    return CompensationResult(q_out, ok, iters, de_out, residual, step, damped, within, sig, correction, outside)
+    return CompensationResult(q_out, ok, iters, de_out, residual, step, damped, within, sig, correction, outside, status)
+
+
+def _damped_status(res) -> torch.Tensor:
+    """A :class:`.damped.DampedResult`'s rows -> status codes (:mod:`.result`)."""
+    st = torch.full(res.converged.shape, NOT_CONVERGED, dtype=torch.int8, device=res.converged.device)
+    st[res.stationary] = OUT_OF_REACH
+    st[res.blocked] = AT_BOUND
+    st[res.converged] = CONVERGED
+    return st

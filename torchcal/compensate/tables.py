@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .. import units
-from ..exceptions import TorchcalError
+from ..core import units
+from ..core.exceptions import TorchcalError
 
 DEFAULT_POINTS = 101
 """Grid points per table by default: 1 % of the axis range apart (9.8 mm on Paper I's Z, 5.4 deg on C)."""
@@ -177,7 +177,7 @@ def compensation_tables(ap_or_model, points_per_table: int = DEFAULT_POINTS, pai
     """The controller tables -f_ij of an axis perturbation model, Paper I (2)-(3).
 
     ap_or_model: an :class:`~torchcal.error_models.axis_perturbation.AxisPerturbation`
-    or a model holding one as ``.axis_errors`` (:class:`torchcal.machine.MachineModel`);
+    or a model holding one as ``.axis_errors`` (:class:`torchcal.models.machine.MachineModel`);
     points_per_table: grid points K, equally spaced over the input axis's whole
     command range (``limits[j]``); pairs: (output i, input j) pairs to export,
     0-based ints or axis names (default: every enabled table of the model).

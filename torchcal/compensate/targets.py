@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..contract import require
+from ..core.contract import require
 from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
 from .damped import damped_least_squares
 from .newton import CompensationResult, compensate
@@ -83,16 +83,19 @@ def _flange_for(T: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, direction: torch.Tensor | None = None,
-                       ik_tol: float = 1e-10, ik_max_iter: int = 100, **options) -> TargetResult:
+                       ik_tol: float = 1e-10, ik_max_iter: int = 100, free_tool_axis=None, **options) -> TargetResult:
     """Calibrated joint commands and corrected Cartesian targets for tool poses in the robot's base frame.
 
-    model: a model that compensates commands (:class:`torchcal.model.RobotModel`,
-    see :mod:`torchcal.contract`); target: (B, 4, 4) tool poses in the
+    model: a model that compensates commands (:class:`torchcal.models.robot.RobotModel`,
+    see :mod:`torchcal.core.contract`); target: (B, 4, 4) tool poses in the
     robot's nominal base frame, SI; seed: (B, n) commands on the branch the
     controller uses (rad / m); tool: an index or (B,) indices into the model's
     tools; direction: (B, n) approach directions or None; ik_tol / ik_max_iter:
-    the nominal IK's step tolerance and iterations; options: for
-    :func:`.newton.compensate` (max_correction, tol, ...). -> :class:`TargetResult`.
+    the nominal IK's step tolerance and iterations; free_tool_axis: None (6-DOF) or True / a (3,) direction
+    in the flange frame: an axisymmetric tool, the rotation about its axis (through the model's identified
+    tool point) left free in the compensation (:mod:`.axis`; the tool point and the axis's direction are
+    reached, with less joint motion next to the wrist); options: for :func:`.newton.compensate`
+    (max_correction, tol, ...). -> :class:`TargetResult`.
 
     Example:
         >>> import torch, torchcal
@@ -125,6 +128,8 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     # the flange pose that puts the model's identified tool on the target, reached on the nominal chain first
     goal = _flange_for(target, t_actual)
     ik = damped_least_squares(nominal, ik_c.q, goal, None, tol=ik_tol, max_iter=ik_max_iter)
+    if free_tool_axis is not None and free_tool_axis is not False:
+        options = dict(options, free_tool_axis=free_tool_axis, tool_point=t_actual)
     comp = compensate(model, ik.q, direction, **options)
     ok = ik_c.converged & ik.converged & comp.converged & comp.within_limits
     command = _tool_pose(model.nominal_flange(comp.q), t_nominal)

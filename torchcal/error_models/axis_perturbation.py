@@ -24,8 +24,8 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from ..basis import chebyshev, chebyshev_with_derivative, normalize
-from ..params import ANGLE, LENGTH, ParamGroup
+from ..core.basis import chebyshev, chebyshev_with_derivative, normalize
+from ..core.params import ANGLE, LENGTH, ParamGroup
 
 MAX_ORDER = 12
 

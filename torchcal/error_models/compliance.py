@@ -209,9 +209,9 @@ def read_inertials(source, chain) -> tuple[Inertials | None, str]:
     """
     from pytorch_kinematics.urdf_parser_py.urdf import URDF
 
-    from ..kinematics.urdf import _origin, _read
+    from ..kinematics.urdf import origin_transform, read_urdf_text
 
-    xml, label = _read(source)
+    xml, label = read_urdf_text(source)
     robot = URDF.from_xml_string(xml)
     by_child = {j.child: j for j in robot.joints}
     chain_child = {name: i for i, name in enumerate(chain.link_names)}
@@ -234,7 +234,7 @@ def read_inertials(source, chain) -> tuple[Inertials | None, str]:
                 break
             if j.type != "fixed" and j.name not in chain_joints:
                 through = through or j.name
-            T = _origin(j) @ T
+            T = origin_transform(j) @ T
             cur = j.parent
         if cur not in chain_child:
             continue  # static: below the chain's first joint
@@ -375,12 +375,12 @@ class GravityCompliance(nn.Module):
         return out.index_add(1, self.joints, d)
 
     def param_groups(self, prefix: str = "compliance") -> list:
-        """Declared kind and prior scale of ``coef`` (see :class:`torchcal.params.ParamGroup`).
+        """Declared kind and prior scale of ``coef`` (see :class:`torchcal.core.params.ParamGroup`).
 
         A coefficient is a joint deflection (rad) per unit configuration
         function: per unit sin/cos in 'functions' mode, per N·m in 'gravity' mode.
         """
-        from ..params import ANGLE, ParamGroup
+        from ..core.params import ANGLE, ParamGroup
 
         k = self.coef.numel()
         return [ParamGroup(f"{prefix}.coef", "compliance", self.parameter_names(), [ANGLE] * k,

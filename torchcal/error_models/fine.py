@@ -30,7 +30,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..params import ANGLE, ParamGroup
+from ..core.params import ANGLE, ParamGroup
 
 DEFAULT_SPACING = 0.05
 """Knot spacing (rad) of the tables: about 3 degrees."""

@@ -6,7 +6,7 @@ import torch
 from torch import nn
 
 from ..kinematics.transforms import twist_to_transform
-from ..params import LENGTH, ParamGroup, term_kinds
+from ..core.params import LENGTH, ParamGroup, term_kinds
 
 
 class FrameCorrection(nn.Module):

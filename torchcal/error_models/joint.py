@@ -20,9 +20,9 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from ..basis import chebyshev, normalize
+from ..core.basis import chebyshev, normalize
 from ..kinematics.transforms import twist_to_transform
-from ..params import ANGLE, ParamGroup, term_kinds
+from ..core.params import ANGLE, ParamGroup, term_kinds
 
 TERMS = ("eps_x", "eps_y", "eps_z", "delta_x", "delta_y", "delta_z")
 """The six error terms of (20), in twist order: rotations (rad) then translations (m)."""

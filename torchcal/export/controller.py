@@ -1,5 +1,7 @@
 """Compensation tables (Paper I (2)-(3)) in controller formats: CSV, Siemens 840D CEC, LinuxCNC.
 
+Why one module: the compensation tables in every controller format (CSV, Siemens 840D CEC, LinuxCNC joint tables) and the one dispatcher ``export-tables`` uses.
+
 Every writer takes :class:`~torchcal.compensate.tables.CompensationTable` s
 (SI) and writes millimetres and degrees (each value in its own axis's unit:
 the grid in the INPUT axis's, the correction in the OUTPUT axis's). The
@@ -48,6 +50,10 @@ not three numbers, so the file carries no comments; :func:`write_linuxcnc_comp`
 writes the INI lines to a separate ``linuxcnc_comp.ini`` snippet. See the
 LinuxCNC INI documentation, section [JOINT_<num>], COMP_FILE and
 COMP_FILE_TYPE (https://linuxcnc.org/docs/html/config/ini-config.html).
+The cross-axis tables are refused there, by name (a :class:`TableNotWrittenWarning`
+and the returned mapping's ``refused``): ``--format linuxcnc-volumetric``
+(:mod:`torchcal.export.linuxcnc_hal`) writes a HAL component that applies all
+tables, same-axis and cross-axis, instead of the joint files.
 
 Bad input raises :mod:`torchcal.compensate.tables` errors (all TorchcalError
 and ValueError): a table larger than the controller allows or not equally
@@ -65,7 +71,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import units
+from ..core import units
 from ..compensate.tables import (
     CompensationTable,
     TableAxisError,
@@ -73,7 +79,9 @@ from ..compensate.tables import (
     warn_end_slopes,
 )
 from ..io.atomic import atomic_write_text
-from ..io.csv import DataError, Problem, _numbers, _read_raw, write_table
+from ..io.csv import DataError, Problem, parse_numbers, read_raw_table, write_table
+from .linuxcnc_hal import FORMAT as LINUXCNC_VOLUMETRIC
+from .linuxcnc_hal import TableNotWrittenWarning, write_linuxcnc_volumetric
 
 CSV_COLUMNS = ("output_axis", "input_axis", "input", "correction")
 
@@ -141,7 +149,7 @@ def read_tables_csv(path, axis_names, prismatic) -> list[CompensationTable]:
     pris = [bool(p) for p in torch.as_tensor(prismatic, dtype=torch.bool).tolist()]
     if len(pris) != len(names):
         raise ValueError(f"read_tables_csv: {len(names)} axis names but {len(pris)} prismatic flags")
-    df = _read_raw(path)
+    df = read_raw_table(path)
     problems: list[Problem] = []
     missing = [c for c in CSV_COLUMNS if c not in df.columns]
     if missing:
@@ -153,8 +161,8 @@ def read_tables_csv(path, axis_names, prismatic) -> list[CompensationTable]:
             if v not in names:
                 problems.append(Problem(r + 1, col, f"{v!r} is not one of the machine's axes {names}",
                                         lines[r] if lines else None))
-    x = _numbers(df, "input", problems)
-    c = _numbers(df, "correction", problems)
+    x = parse_numbers(df, "input", problems)
+    c = parse_numbers(df, "correction", problems)
     if problems:
         raise DataError(path, problems)
     key = list(zip(df["output_axis"].tolist(), df["input_axis"].tolist()))
@@ -285,17 +293,26 @@ def write_siemens_cec(path, tables, machine_axes=None, max_points: int = SIEMENS
 
 
 # -------------------------------------------------------------------------- LinuxCNC
+class WrittenTables(dict):
+    """{name: path} of what a writer wrote, plus ``refused``: {table name: why it is not in the output}."""
+
+    def __init__(self, written=(), refused=None):
+        super().__init__(written)
+        self.refused: dict[str, str] = dict(refused or {})
+
+
 def write_linuxcnc_comp(folder, tables, max_points: int = LINUXCNC_MAX_POINTS, joint_numbers=None,
-                        warn_slopes: bool = True) -> dict[str, Path]:
+                        warn_slopes: bool = True) -> WrittenTables:
     """Write LinuxCNC joint compensation files (COMP_FILE_TYPE = 1) for the same-axis tables T_ii.
 
     folder: output folder; one file ``<axis>.comp`` per table with i == j
-    (cross-axis tables have no LinuxCNC joint equivalent and are skipped,
-    listed in the INI snippet's comments), lines ``nominal trim trim`` in the
+    (a cross-axis table has no LinuxCNC joint equivalent: it is refused by name in
+    one :class:`TableNotWrittenWarning`, in the INI snippet's comments and in the
+    result's ``refused``; ``--format linuxcnc-volumetric`` applies it), lines ``nominal trim trim`` in the
     joint's unit (mm / deg), trim = correction to ADD (module docstring).
     joint_numbers: {axis name: LinuxCNC joint number}, default the 0-based axis
     index. Also writes ``linuxcnc_comp.ini`` with the ``[JOINT_n] COMP_FILE``
-    and ``COMP_FILE_TYPE`` lines. Returns {axis name: path}.
+    and ``COMP_FILE_TYPE`` lines. Returns {axis name: path} (a :class:`WrittenTables`).
 
     Tables with more than max_points (256) entries are not written and raise
     :class:`TableSizeError` after the others are (``.ok``: {axis: path}).
@@ -306,13 +323,21 @@ def write_linuxcnc_comp(folder, tables, max_points: int = LINUXCNC_MAX_POINTS, j
     folder.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
     failed: dict[str, str] = {}
-    skipped = [t.name for t in tables if t.output_axis != t.input_axis]
+    refused = {t.name: f"cross-axis: not written, applied by the volumetric component (--format {LINUXCNC_VOLUMETRIC})"
+               for t in tables if t.output_axis != t.input_axis}
     ini = ["# LinuxCNC joint compensation written by torchcal (Paper I axis perturbation tables).",
            "# Add these lines to the [JOINT_n] sections of the machine's INI file. Values: joint units (mm / deg),",
            "# 'nominal forward_trim reverse_trim', trim = correction ADDED to the joint command (COMP_FILE_TYPE = 1).",
            "# Beyond the first / last nominal position LinuxCNC holds the end trim."]
-    if skipped:
-        ini.append(f"# cross-axis tables not expressible as joint compensation (use a kinematics or CEC): {', '.join(skipped)}")
+    if refused:
+        ini.append(f"# {len(refused)} cross-axis table(s) NOT written (a joint's COMP_FILE follows its own position only); "
+                   f"--format {LINUXCNC_VOLUMETRIC} applies them:")
+        ini += [f"#   {name}: not written" for name in refused]
+        import warnings
+
+        warnings.warn(f"linuxcnc: {len(refused)} cross-axis table(s) not written, LinuxCNC joint compensation follows a "
+                      f"joint's own position only: {', '.join(refused)}; --format {LINUXCNC_VOLUMETRIC} writes a HAL "
+                      f"component that applies all {len(tables)} tables", TableNotWrittenWarning, stacklevel=2)
     for t in tables:
         if t.output_axis != t.input_axis:
             continue
@@ -330,6 +355,7 @@ def write_linuxcnc_comp(folder, tables, max_points: int = LINUXCNC_MAX_POINTS, j
         jn = joint_numbers[t.input_name] if joint_numbers else t.input_axis
         ini += ["", f"[JOINT_{jn}]", f"COMP_FILE = {p.name}", "COMP_FILE_TYPE = 1"]
     atomic_write_text(folder / "linuxcnc_comp.ini", "\n".join(ini) + "\n")
+    written = WrittenTables(written, {**refused, **failed})
     if failed:
         raise TableSizeError(f"{folder}: {len(failed)} LinuxCNC table(s) not written ({len(written)} written): "
                              + "; ".join(f"{k}: {v}" for k, v in failed.items()), ok=written, failed=failed)
@@ -360,11 +386,12 @@ def read_linuxcnc_comp(path, axis: int, name: str, prismatic: bool) -> Compensat
 
 def export_tables(folder, tables, siemens_max_points: int = SIEMENS_MAX_POINTS, machine_axes=None,
                   modulo_axes=(), slope_limit_mm: float = 0.4) -> dict:
-    """All three formats into ``folder``: tables.csv, cec_tables.mpf (840D), linuxcnc/ (same-axis tables).
+    """Every format into ``folder``: tables.csv, cec_tables.mpf (840D), linuxcnc/ (same-axis tables),
+    linuxcnc_volumetric/ (the HAL component applying all tables).
 
-    Returns {'csv': path, 'siemens': path, 'linuxcnc': {axis: path}}. Formats
+    Returns {'csv': path, 'siemens': path, 'linuxcnc': {axis: path}, 'linuxcnc-volumetric': {file: path}}. Formats
     that fail partly still write what fits; the first error is raised after
-    all three were attempted (``.ok`` holds this dict).
+    all were attempted (``.ok`` holds this dict).
     """
     import warnings
 
@@ -387,13 +414,14 @@ def export_tables(folder, tables, siemens_max_points: int = SIEMENS_MAX_POINTS, 
         except TableSizeError as e:
             out["linuxcnc"] = e.ok
             errors.append(e)
+        out[LINUXCNC_VOLUMETRIC] = write_linuxcnc_volumetric(folder / "linuxcnc_volumetric", tables, warn_slopes=False)
     if errors:
         failed = {k: v for e in errors for k, v in e.failed.items()}
         raise TableSizeError("; ".join(str(e) for e in errors), ok=out, failed=failed)
     return out
 
 
-FORMATS = ("csv", "siemens-cec", "linuxcnc", "all")
+FORMATS = ("csv", "siemens-cec", "linuxcnc", LINUXCNC_VOLUMETRIC, "all")
 
 
 def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None, siemens_max_points: int = SIEMENS_MAX_POINTS,
@@ -401,7 +429,7 @@ def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None,
     """``torchcal export-tables``: the compensation tables of a machine run directory in one controller format.
 
     run_dir: written by ``torchcal fit`` with ``model.kind: axis_perturbation``; out: a file (csv,
-    siemens-cec) or a folder (linuxcnc, all); points: grid points per table (default: the tables'
+    siemens-cec) or a folder (linuxcnc, linuxcnc-volumetric, all); points: grid points per table (default: the tables'
     default, at most ``siemens_max_points`` for siemens-cec); pairs: (output, input) axis names or
     indices (default every table of the model). -> what was written (path, or {axis: path}, or a dict).
     Raises RunDirError for a run without an axis perturbation model, TableError subclasses as the writers do.
@@ -411,7 +439,7 @@ def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None,
 
     if fmt not in FORMATS:
         raise TableError(f"unknown table format {fmt!r}; choose from {', '.join(FORMATS)}")
-    from ..contract import require
+    from ..core.contract import require
 
     model = load_model(run_dir)
     try:  # the model contract: only an axis perturbation model has tables
@@ -437,6 +465,8 @@ def export_run_tables(run_dir, out, fmt: str = "csv", points: int | None = None,
         return write_siemens_cec(out, tables, max_points=siemens_max_points, modulo_axes=modulo, warn_slopes=False)
     if fmt == "linuxcnc":
         return write_linuxcnc_comp(out, tables, warn_slopes=False)
+    if fmt == LINUXCNC_VOLUMETRIC:
+        return write_linuxcnc_volumetric(out, tables, warn_slopes=False)
     return export_tables(out, tables, siemens_max_points, slope_limit_mm=limit)
 
 
@@ -462,12 +492,15 @@ __all__ = [
     "LINUXCNC_MAX_POINTS",
     "SIEMENS_MAX_POINTS",
     "TableAxisError",
+    "TableNotWrittenWarning",
+    "WrittenTables",
     "export_tables",
     "read_linuxcnc_comp",
     "read_tables_csv",
     "siemens_cec_program",
     "tables_frame",
     "write_linuxcnc_comp",
+    "write_linuxcnc_volumetric",
     "write_siemens_cec",
     "write_tables_csv",
 ]

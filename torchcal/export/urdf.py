@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from .. import units
+from ..core import units
 from ..io.atomic import atomic_write_text
 from ..analysis.stats import ResidualStats, point_residuals, residual_stats, stats_table
 from ..kinematics.robot import Robot, load_robot, urdf_dir
@@ -140,7 +140,7 @@ def export_urdf(model, path, base: str = "joint", measurement_frame: bool = Fals
                 name: str | None = None) -> UrdfExport:
     """Write a calibrated URDF (and its joint-map YAML) for ``model``.
 
-    model: a fitted :class:`torchcal.model.RobotModel`; path: the .urdf to
+    model: a fitted :class:`torchcal.models.robot.RobotModel`; path: the .urdf to
     write (a joint-map YAML with the same stem is written next to it when the
     robot has one); base: 'joint' (fold the base correction into the first
     movable joint's origin), 'link' (a new root link '<root>_nominal' with a
@@ -259,7 +259,7 @@ def urdf_only_model(model, export: UrdfExport):
     Keeps the model's identified tool vectors and (unless the URDF holds it)
     its nominal measurement frame; joint errors, backlash and compliance are zero.
     """
-    from ..model import RobotModel
+    from ..models.robot import RobotModel
 
     with torch.no_grad():
         tools = model.tools().detach().clone()

@@ -9,7 +9,7 @@ rigid part of the measurement model with no guess from the user,
     p_r = R_b (R_f(q_r) t_{tool_r} + p_f(q_r)) + b          (25) on the nominal chain
 
 (R_b, b: the robot base seen in the measurement frame, the ``base_nominal`` of
-:class:`torchcal.model.RobotModel`; R_f, p_f: the nominal flange pose; t: tool
+:class:`torchcal.models.robot.RobotModel`; R_f, p_f: the nominal flange pose; t: tool
 vectors in the flange frame), by least squares on the nominal kinematics, so
 that the full MLE starts within the size of the robot's errors:
 
@@ -36,11 +36,11 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .. import units
+from ..core import units
 from ..kinematics.fk import chain_fk
 from ..kinematics.transforms import homogeneous, matrix_to_rpy, skew, twist_to_transform
-from ..exceptions import TorchcalError
-from ..measurements import Measurements
+from ..core.exceptions import TorchcalError
+from ..core.measurements import Measurements
 
 
 class AlignmentError(TorchcalError, ValueError):
@@ -81,7 +81,7 @@ class AlignmentResult:
     """What :func:`align` found.
 
     base_nominal: (4, 4) the robot base in the measurement frame (SI), what
-    :class:`~torchcal.model.RobotModel` takes as ``base_nominal``; tools: (T, 3)
+    :class:`~torchcal.models.robot.RobotModel` takes as ``base_nominal``; tools: (T, 3)
     tool vectors in the flange frame, m; residuals: (R,) m, per row, of the
     rigid model on the nominal chain; rms / mean / max: of those, m;
     iterations: alternation + refinement steps; converged: the refinement met

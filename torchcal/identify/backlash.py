@@ -21,8 +21,8 @@ from typing import Callable, Iterable, Sequence
 import torch
 
 from ..error_models.joint import DEFAULT_BACKLASH_ORDER
-from ..measurements import Measurements
-from ..progress import task
+from ..core.measurements import Measurements
+from ..core.progress import task
 from .candidates import StructureSearch
 from .order import OrderSelection, SearchScores, held_out_errors, paired_improvement
 from .problem import NoiseModel, Prior

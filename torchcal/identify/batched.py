@@ -27,9 +27,9 @@ from typing import Sequence
 import torch
 from torch.func import functional_call, vmap
 
-from ..measurements import Measurements
-from ..progress import task
-from ..threads import threads_for_work
+from ..core.measurements import Measurements
+from ..core.progress import task
+from ..core.threads import threads_for_work
 from .candidates import structure_mask
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .layout import copy_overlap
@@ -223,6 +223,13 @@ class BatchedProblem:
         dx = X - self.mean
         return (f * f).sum((1, 2)) + (self.w_v_cost[which] * V * V).sum((1, 2)) + (self.lam * dx * dx * self.keep[which]).sum(1)
 
+    def step(self, lin, V, dX, mu, which):
+        """Damped Gauss-Newton steps of the models ``which`` from their linearizations ``lin`` (f, A, C) at
+        joint errors V, prior offsets dX = X - mean, dampings mu. -> db (m, P), dv (m, R, n), predicted
+        linearized residual (m, R, d)."""
+        f, A, C = lin
+        return _schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
+
 
 def _schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
     """Damped Gauss-Newton steps of m models at once (the batched :func:`~torchcal.identify.lm._schur_step`).
@@ -321,14 +328,28 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
     idx_all = torch.arange(M, device=X.device)
 
     def lin_chunks(which, Xw, Vw):
-        out = [bp.linearize(Xw[c:c + chunk], Vw[c:c + chunk], which[c:c + chunk]) for c in range(0, which.numel(), chunk)]
-        return tuple(torch.cat(t) for t in zip(*out))
+        """[(start, stop, linearization)] of the models ``which`` in chunks (positions in ``which``)."""
+        return [(c, min(c + chunk, which.numel()), bp.linearize(Xw[c:c + chunk], Vw[c:c + chunk], which[c:c + chunk]))
+                for c in range(0, which.numel(), chunk)]
+
+    def rows(t, idx):
+        """t[idx], a view where idx is a run of consecutive models (no copy of the linearizations)."""
+        if idx.numel() and int(idx[-1]) - int(idx[0]) + 1 == idx.numel():
+            return t[int(idx[0]):int(idx[-1]) + 1]
+        return t[idx]
+
+    def step(lin, Vw, dX, muw, which):
+        if hasattr(bp, "step"):
+            return bp.step(lin, Vw, dX, muw, which)
+        f, A, C = lin
+        return _schur_steps(f, A, C, bp.w_v[which], Vw, bp.lam, dX, muw, bp.keep[which])
 
     with threads_for_work(work), task(label, total=M) as bar:
-        f, A, C = lin_chunks(idx_all, X, V)
-        cost = bp.cost_from(f, X, V, idx_all)
-        for m in range(M):
-            history[m].append(float(cost[m]))
+        # f first; the rest is whatever bp's step reads (A, C or factors)
+        lin = [torch.cat(t) for t in zip(*(out for _, _, out in lin_chunks(idx_all, X, V)))]
+        cost = bp.cost_from(lin[0], X, V, idx_all)
+        for m, c in enumerate(cost.tolist()):  # one transfer, not one host sync per model (a GPU waits on each)
+            history[m].append(c)
         active = torch.ones(M, dtype=torch.bool, device=X.device)
         first = torch.ones(M, dtype=torch.bool, device=X.device)
         fresh = torch.ones(M, dtype=torch.bool, device=X.device)  # the last step was accepted
@@ -337,19 +358,24 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             it += 1
             w = active.nonzero()[:, 0]
             # steps of the active models, in chunks (memory)
-            steps = [_schur_steps(f[w[c:c + chunk]], A[w[c:c + chunk]], C[w[c:c + chunk]], bp.w_v[w[c:c + chunk]],
-                                  V[w[c:c + chunk]], bp.lam, X[w[c:c + chunk]] - bp.mean, mu[w[c:c + chunk]],
-                                  bp.keep[w[c:c + chunk]]) for c in range(0, w.numel(), chunk)]
-            db, dv, lin = (torch.cat(t) for t in zip(*steps))
+            steps = [step([rows(t, w[c:c + chunk]) for t in lin], V[w[c:c + chunk]], X[w[c:c + chunk]] - bp.mean,
+                          mu[w[c:c + chunk]], w[c:c + chunk]) for c in range(0, w.numel(), chunk)]
+            db, dv, lres = (torch.cat(t) for t in zip(*steps))
             Xn, Vn = X[w] + db, V[w] + dv
-            predicted = cost[w] - bp.cost_from(lin, Xn, Vn, w)
+            predicted = cost[w] - bp.cost_from(lres, Xn, Vn, w)
             # the Gauss-Newton model at the current point sees less to gain than the stopping test accepts
             # (judged only on a step right after an accepted one, as the single-model solver does: after a
-            # rejection the damping is raised and a small prediction says nothing)
+            # rejection the damping is raised and a small prediction says nothing); such a model stops here,
+            # without paying a linearization to confirm it
             flat = fresh[w] & (~first[w]) & (predicted >= 0) & (predicted <= 0.1 * ftol * cost[w])
-            fn, An, Cn = lin_chunks(w, Xn, Vn)
-            nfev[w.cpu()] += 1
-            new_cost = bp.cost_from(fn, Xn, Vn, w)
+            need = (~flat).nonzero()[:, 0]
+            wl = w[need]
+            new_cost = cost[w].clone()
+            lin_n = lin_chunks(wl, Xn[need], Vn[need]) if need.numel() else []
+            if need.numel():
+                nfev[wl.cpu()] += 1
+                for a, b, out in lin_n:
+                    new_cost[need[a:b]] = bp.cost_from(out[0], Xn[need[a:b]], Vn[need[a:b]], wl[a:b])
             actual = cost[w] - new_cost
             ok = (actual > 0) & (predicted > 0) & ~flat
             rho = actual / predicted.clamp(min=1e-300)
@@ -360,25 +386,37 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             # accept: the trial point and its linearization become the current ones
             okw = w[ok]
             X[okw], V[okw], cost[okw] = Xn[ok], Vn[ok], new_cost[ok]
-            f[okw], A[okw], C[okw] = fn[ok], An[ok], Cn[ok]
+            okl = ok[need]
+            for a, b, out in lin_n:
+                sel = okl[a:b]
+                if bool(sel.all()):
+                    for t, tn in zip(lin, out):
+                        rows(t, wl[a:b]).copy_(tn) if int(wl[b - 1]) - int(wl[a]) + 1 == b - a else \
+                            t.index_copy_(0, wl[a:b], tn)
+                elif bool(sel.any()):
+                    for t, tn in zip(lin, out):
+                        t[wl[a:b][sel]] = tn[sel]
             mu[w], nu[w] = mu_w, nu_w
             fresh[w] = ok
             nit[w.cpu()] += 1
             first[w] = False
-            for j, m in enumerate(w.tolist()):
-                if bool(ok[j]):
-                    history[m].append(float(new_cost[j]))
             conv_rel = ok & (actual <= ftol * new_cost) & (predicted <= ftol * new_cost * 10)
             done = flat | stalled | conv_rel | (ok & step_small)
+            # the per-model bookkeeping from one transfer: on a GPU every scalar read is a host sync
+            flags = torch.stack([ok, done, flat, stalled, conv_rel]).cpu().tolist()
+            costs = new_cost.tolist()
             for j, m in enumerate(w.tolist()):
-                if bool(done[j]):
+                okj, donej, flatj, stalledj, relj = (f[j] for f in flags)
+                if okj:
+                    history[m].append(costs[j])
+                if donej:
                     success[m] = True
-                    message[m] = ("converged: the predicted cost reduction is below ftol" if bool(flat[j]) else
-                                  "converged: no step lowers the cost further" if bool(stalled[j]) else
-                                  "converged: relative cost reduction below ftol" if bool(conv_rel[j]) else
+                    message[m] = ("converged: the predicted cost reduction is below ftol" if flatj else
+                                  "converged: no step lowers the cost further" if stalledj else
+                                  "converged: relative cost reduction below ftol" if relj else
                                   "converged: parameter step below xtol")
             active[w] = ~done
-            bar.advance(int(done.sum()), note=f"iteration {it}, {int(active.sum())} models active")
+            bar.advance(sum(flags[1]), note=f"iteration {it}, {int(active.sum())} models active")
     elapsed = time.perf_counter() - t0
     names = bp.layout.names()
     results = []

@@ -34,8 +34,8 @@ from typing import Sequence
 
 import torch
 
-from ..measurements import Measurements
-from ..threads import threads_for_work
+from ..core.measurements import Measurements
+from ..core.threads import threads_for_work
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .layout import copy_overlap  # noqa: F401  (re-exported: the warm start between candidates)
 from .problem import CalibrationProblem, NoiseModel, Prior

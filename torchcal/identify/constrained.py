@@ -1,5 +1,7 @@
 """Paper I's slope constraint: the constrained MLE, the constraint sweep and the choice of c.
 
+Why one module: Paper I's slope constraint (31) as one method: the penalty block, the constrained fit, the constraint sweep and its knee (3.4, Figure 14), auto_constraint.
+
 Paper I (Ma, Bristow, Landers) identifies the axis perturbation model by the
 implicit-loop MLE (11)-(12) SUBJECT TO a bound on the tool-tip modeled-error
 slope over the whole axis space:
@@ -53,15 +55,15 @@ import numpy as np
 import torch
 from torch import nn
 
-from .. import progress
-from ..exceptions import TorchcalError
-from ..measurements import Measurements
-from ..threads import threads_for_work
+from ..core import progress
+from ..core.exceptions import TorchcalError
+from ..core.measurements import Measurements
+from ..core.threads import threads_for_work
 from .fit import fit, resolve_noise
 from .layout import ParameterLayout
 from .problem import NoiseModel, Prior, row_errors
 from .result import FitResult
-from .slope import (_is_machine, cat_contexts, context_rows, functional_slope_norms, machine_slope_norm_jacobian,
+from .slope import (is_machine_model, cat_contexts, context_rows, functional_slope_norms, machine_slope_norm_jacobian,
                     robot_fast_path, robot_pair_terms, robot_slope_terms, slope_context, slope_model, slope_norms,
                     slope_points, tool_vectors, worst_points)
 
@@ -118,7 +120,7 @@ class SlopePenalty:
     Example:
         >>> import torch, torchcal
         >>> from torchcal.identify.layout import ParameterLayout
-        >>> from torchcal.machine import MachineModel
+        >>> from torchcal.models.machine import MachineModel
         >>> robot = torchcal.load_robot("five_axis_xyzcb")
         >>> model = MachineModel(robot, torch.tensor([[0.0, 0.0, 0.4029]], dtype=torch.float64), orders=2)
         >>> pen = SlopePenalty(model, slope_points(robot.joint_map.limits, 64), c=1e-4, weight=1e4)
@@ -201,7 +203,7 @@ class SlopePenalty:
         """d |hbar| / dx (k, P) of the active entries."""
         k, P = active.shape[0], x.numel()
         J = x.new_zeros(k, P)
-        if _is_machine(self.model):
+        if is_machine_model(self.model):
             params = layout.as_dict(x)
             wrapper = _MachineNormJacobian(self.model)
             from torch.func import functional_call
@@ -691,7 +693,7 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
     Example:
         >>> import torch, torchcal
         >>> import torchcal.sim
-        >>> from torchcal.machine import MachineModel
+        >>> from torchcal.models.machine import MachineModel
         >>> robot = torchcal.load_robot("five_axis_xyzcb")
         >>> tools = torch.tensor([[0.0, 0.0, 0.4029], [0.0, 0.0, 0.5009]], dtype=torch.float64)
         >>> truth = MachineModel(robot, tools, orders=2)
@@ -705,7 +707,7 @@ def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | Non
         >>> res.success, res.max_slope_check <= 2e-4 * 1.05
         (True, True)
     """
-    # small solves run on one thread (torchcal.threads): the slope evaluations and QPs are many small steps
+    # small solves run on one thread (torchcal.core.threads): the slope evaluations and QPs are many small steps
     c_text = "inf" if c is None or math.isinf(float(c)) else f"{float(c) * 1e3:.4g} mm"
     with threads_for_work(_work(model, data, fit_options.get("instrument"))), \
             progress.task(f"constrained fit (c = {c_text})") as task:

@@ -6,8 +6,8 @@ import logging
 
 import torch
 
-from ..measurements import Measurements
-from ..threads import threads_for_work
+from ..core.measurements import Measurements
+from ..core.threads import threads_for_work
 from .gauge import fix_gauge
 from .layout import copy_overlap
 from .lbfgs import lbfgs
@@ -84,7 +84,7 @@ def fit(
     entries (:func:`~torchcal.identify.layout.copy_overlap`), the gauge fixed
     first at ``model``'s own values, as in a cold fit.
     When the data carry approach directions, ``model.coverage`` records them
-    (:class:`torchcal.coverage.DirectionCoverage`).
+    (:class:`torchcal.core.coverage.DirectionCoverage`).
 
     Example:
         >>> import torch, torchcal
@@ -108,7 +108,7 @@ def fit(
         result = SOLVERS[method](problem, **solver_options)
     result.pinned = pinned
     if data.has_direction and hasattr(model, "command_limits"):
-        from ..coverage import DirectionCoverage
+        from ..core.coverage import DirectionCoverage
 
         model.coverage = DirectionCoverage.from_data(data.q, data.direction, model.command_limits)
     return result

@@ -9,7 +9,11 @@ convergence, and a converged unit stops costing work. Each unit's result is
 its own maximum-likelihood fit (Paper II (26)); nothing is shared between
 units but the model's structure and the gauge (the redundant constants of
 Paper II (18), which no data set can determine, judged on the pooled rows
-of the first units).
+of the first units). For a RobotModel the Jacobian is never formed: its
+Khatri-Rao factors (twist Jacobian columns times Chebyshev basis values,
+:mod:`.structured`, compiled per row by :mod:`.fleet_kernel`) give the
+normal matrix as per-pose Gram matrices contracted with the basis, ~10x
+fewer flops than the dense product and a tenth of the memory traffic.
 
 :func:`fleet_prior` turns the fitted fleet into a Gaussian prior (mean and
 spread of every parameter over the units) for a new unit measured with few
@@ -26,11 +30,15 @@ from typing import Callable, Sequence
 import torch
 from torch.func import functional_call, vmap
 
-from ..measurements import Measurements
+from ..core.measurements import Measurements
 from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
 from .problem import CalibrationProblem, Prior, _prefixed
+from . import fleet_kernel
+from .fleet_kernel import factored_linearization_fused
+from ..models.jacobian import chebyshev_design
+from .structured import RobotStructure, factored_linearization, pair_basis, pose_slots, structured_steps
 
 
 def stack_units(units: Sequence[Measurements]) -> dict:
@@ -76,14 +84,15 @@ class FleetProblem(BatchedProblem):
     superset come from it); units: M :class:`Measurements` (tracker points,
     SI); noise: one :class:`NoiseModel` or M of them; prior, fixed, gauge: as
     for :func:`torchcal.fit`. gauge_units: how many units' rows are pooled to
-    judge the gauge (the structural redundancy is the same for every unit).
+    judge the gauge (the structural redundancy is the same for every unit; None: the first units whose
+    rows hold 4x as many residuals as there are parameters, one FANUC unit of 250 x 3 poses).
     The models start at zero error (or at ``start``: (P,) values in the
     superset's layout, e.g. a fleet mean).
     """
 
     def __init__(self, make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
-                 prior: Prior | None = Prior(), fixed=(), gauge: bool = True, gauge_units: int = 3,
-                 models: Sequence[torch.nn.Module] | None = None):
+                 prior: Prior | None = Prior(), fixed=(), gauge: bool = True, gauge_units: int | None = None,
+                 models: Sequence[torch.nn.Module] | None = None, structured: bool = True):
         from .fit import resolve_noise
 
         M = len(units)
@@ -116,25 +125,52 @@ class FleetProblem(BatchedProblem):
         if gauge:
             keep = keep & ~self._pins(keep, noises[0], prior, fixed, gauge_units)
         self.keep = keep
+        # the factored Jacobian (torchcal.identify.structured) where the model has one, else dense A
+        self.structure = None
+        if structured and RobotStructure.supports(superset, p.instrument, self.layout):
+            self.structure = RobotStructure(superset, self.layout)
+            self.slots = pose_slots([u.q for u in units], [u.direction if st["has_direction"] else None for u in units], R)
+            self.phi_p, self.pp = self._pose_basis()
 
     def _pins(self, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
         """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units."""
         x0 = torch.zeros(self.layout.size, dtype=torch.float64, device=self.rows.device)
         blocks = []
+        if gauge_units is None:  # the first units until their rows (x d) are 4x the parameters: data enough
+            rows = torch.cumsum(torch.tensor([len(u) * self.d for u in self.units]), 0)
+            gauge_units = int((rows < 4 * self.layout.size).sum()) + 1
         for u in self.units[:max(1, int(gauge_units))]:
             prob = CalibrationProblem(self.superset, u, noise, prior, fixed)
             blocks.append(prob.linearize(x0, torch.zeros_like(prob.data.q))[1].reshape(-1, self.layout.size))
         basis = gauge_basis(torch.cat(blocks), gauge_priority(self.layout.roles()))
-        return dependent_columns_masked(basis, keep)
+        # every unit carries the same terms (one model type): judge each distinct column subset once
+        subsets, inverse = torch.unique(keep, dim=0, return_inverse=True)
+        return dependent_columns_masked(basis, subsets)[inverse]
+
+    @torch.no_grad()
+    def _pose_basis(self):
+        """Every pose's basis values at its command (M, Pp, n, K) (the normal matrix's; the rows' own, with their
+        joint errors, enter every exact product), and their pair products (:func:`pair_basis`) where every unit
+        has the same poses, else None."""
+        je, st = self.superset.joint_errors, self.structure
+        first = self.slots[..., 0].clamp(max=self.R - 1)  # a pose's first row (empty poses: any; they weigh 0)
+        q = torch.gather(self.stack["q"], 1, first[..., None].expand(-1, -1, self.n))
+        u = self.superset.error_variables(q.reshape(-1, self.n))
+        basis, _ = chebyshev_design(je.normalized(u), st.K, 2.0 / (je.ranges[:, 1] - je.ranges[:, 0]))
+        phi = basis.reshape(self.M, -1, self.n, st.K)
+        shared = bool((phi == phi[:1]).all()) and bool((self.slots < self.R).sum(-1).eq((self.slots[:1] < self.R).sum(-1)).all())
+        return phi, (pair_basis(phi[0], self.n).contiguous() if shared else None)
 
     @torch.no_grad()
     def linearize(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor):
         """Whitened residual f (m, R, d), parameter Jacobian A (m, R, d, P) and joint-error Jacobian C
         (m, R, d, n) of the units ``which`` (m,) at X (m, P), V (m, R, n), each on its own rows."""
-        wrapper = _Predict(self.superset, self.instrument)
         inst, layout, R, st = self.instrument, self.layout, self.R, self.stack
         w = which.to(st["q"].device)
         q, tool, obs = st["q"][w], st["tool"][w], st["xyz"][w]
+        if self.structure is not None:
+            return self._factored(X, V, w, q, tool, obs)
+        wrapper = _Predict(self.superset, self.instrument)
 
         if st["has_direction"]:
             def one(params, q, tool, direction, obs, v):
@@ -152,6 +188,23 @@ class FleetProblem(BatchedProblem):
         kf = self.keep[which].to(A)
         return f * s, A * s[..., None] * kf[:, None, None, :], C * s[..., None]
 
+    def _factored(self, X, V, w, q, tool, obs):
+        """Whitened residual f (m, R, d), joint-error Jacobian C (m, R, d, n) and the factored parameter
+        Jacobian (E (m, R, d, Q), Phi (m, R, n, K), each pose's Phi_p (m, Pp, n, K) at its command) of the units w."""
+        st = self.stack
+        direction = st["direction"][w] if st["has_direction"] else None
+        lin = factored_linearization_fused if fleet_kernel.available(q.device) else factored_linearization
+        raw, Jv, E, Phi = lin(self.superset, self.structure, self._params(X), q, tool, direction, V, obs)
+        s = self.scale[w][:, :, None] / self.instrument.weight.sigma
+        return raw * s, Jv * s[..., None], E * s[..., None], Phi, self.phi_p[w]
+
+    def step(self, lin, V, dX, mu, which):
+        """Damped Gauss-Newton steps of the units ``which`` (factored where the model allows, else dense)."""
+        if self.structure is None:
+            return super().step(lin, V, dX, mu, which)
+        return structured_steps(lin, self.structure, self.slots[which], self.w_v[which], V, self.lam, dX, mu,
+                                self.keep[which], pp=self.pp)
+
 
 @dataclass
 class FleetFit:
@@ -168,7 +221,8 @@ class FleetFit:
 
 def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
               prior: Prior | None = Prior(), fixed=(), gauge: bool = True, max_iter: int = 100, ftol: float = 1e-8,
-              xtol: float = 1e-10, mu0: float = MU0, chunk: int | None = None, gauge_units: int = 3) -> FleetFit:
+              xtol: float = 1e-10, mu0: float = MU0, chunk: int | None = None, gauge_units: int | None = None,
+              structured: bool = True) -> FleetFit:
     """Fit one model per unit, every unit on its own data, in one batched Levenberg-Marquardt solve.
 
     make: () -> a fresh model of the robot type (e.g. ``lambda: RobotModel(robot,
@@ -176,8 +230,9 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     per unit (tracker points, SI; any number of rows each); noise: one
     :class:`NoiseModel` (None: the robot's) or M of them; prior, fixed, gauge,
     max_iter, ftol, xtol, mu0: as for :func:`torchcal.fit` (``method='lm'``);
-    chunk: units linearized together (memory: chunk x R x 3 x P doubles;
-    None: 8 on the CPU, on a GPU as many as ~1 GB of Jacobians holds).
+    chunk: units linearized together (None: as many as ~60 MB of factors and temporaries hold on the CPU,
+    ~1 GB on a GPU). structured: the factored Jacobian and normal matrix (:mod:`.structured`) where the model
+    allows (a RobotModel without compliance and fine tables, isotropic point targets); False: dense A.
     Each unit's result is its own fit's (the same optimum, up to the stopping
     tolerance). -> :class:`FleetFit` (each unit's model fitted in place).
 
@@ -194,10 +249,14 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
         [True, True, True]
     """
     t0 = time.perf_counter()
-    fp = FleetProblem(make, units, noise, prior, fixed, gauge, gauge_units)
+    fp = FleetProblem(make, units, noise, prior, fixed, gauge, gauge_units, structured=structured)
     if chunk is None:
-        per_unit = fp.R * fp.d * fp.layout.size * 8 * 3  # f, A, C and the step's temporaries, roughly
-        chunk = 8 if fp.rows.device.type == "cpu" else max(1, min(fp.M, int(1e9 // per_unit)))
+        if fp.structure is not None:  # factors, per-pose Gram blocks and temporaries: ~8 MB a FANUC unit
+            per_unit = 8 * fp.R * (4 * fp.d * (fp.structure.ne + fp.structure.Nd) + 2 * fp.structure.size)
+        else:  # f, A, C and the step's temporaries, roughly
+            per_unit = 8 * fp.R * fp.d * fp.layout.size * 3
+        budget = 6e7 if fp.rows.device.type == "cpu" else 1e9  # bytes
+        chunk = max(1, min(fp.M, int(budget // per_unit)))
     batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label="fitting the fleet's units together", t0=t0)
     return FleetFit(fp.models, batch, fp.layout)
 

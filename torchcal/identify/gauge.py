@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from ..threads import threads_for_work
+from ..core.threads import threads_for_work
 
 
 def _project_out(r: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import torch
 
-from ..exceptions import TorchcalError
+from ..core.exceptions import TorchcalError
 from ..measure.pose import rotation_log
 from .alignment import kabsch
 

@@ -1,7 +1,7 @@
 """A flat view of a model's free parameters, for solvers that work on one vector.
 
 What each entry is (its name, role, kind and default prior scale) comes from
-the modules' declarations (:class:`torchcal.params.ParamGroup`, see
+the modules' declarations (:class:`torchcal.core.params.ParamGroup`, see
 :func:`parameter_groups`), never from parameter names.
 """
 
@@ -12,7 +12,7 @@ from typing import Iterable
 import torch
 from torch import nn
 
-from ..params import ANGLE, ParamGroup
+from ..core.params import ANGLE, ParamGroup
 
 
 def parameter_groups(model: nn.Module) -> list[ParamGroup]:

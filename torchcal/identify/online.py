@@ -1,5 +1,7 @@
 """Online adaptive identification (Paper III (31)-(33)): a first model, then one update per batch of new poses.
 
+Why one module: Paper III (31)-(33) in its information form and its literal form, with the state they carry between updates; the two forms are one algorithm and are checked against each other.
+
 The first batch is identified with (31): joint errors v_k of every row, the
 error parameters b, and the parameter prior. Each later batch of M rows
 warm-starts from the previous parameters b_N* and never re-solves the earlier
@@ -57,8 +59,8 @@ import torch
 
 from ..measure import Instrument, PointTargets
 from ..measure.base import concat
-from ..measurements import Measurements
-from ..progress import task as progress_task
+from ..core.measurements import Measurements
+from ..core.progress import task as progress_task
 from .fit import SOLVERS, fit, resolve_noise
 from .gauge import fix_gauge
 from .layout import ParameterLayout
@@ -399,7 +401,7 @@ class OnlineCalibration:
         self.rows += len(data)
         if coverage and data.has_direction and getattr(self.model, "command_limits", None) is not None:
             # the directions every row so far came from (what fit() records for one batch)
-            from ..coverage import DirectionCoverage
+            from ..core.coverage import DirectionCoverage
 
             cov = getattr(self.model, "coverage", None)
             self.model.coverage = (DirectionCoverage.from_data(data.q, data.direction, self.model.command_limits)
@@ -573,7 +575,7 @@ class OnlineCalibration:
         if lit is None:
             self.data = self.instrument = self.v = None
             return
-        self.data = _measurements_from_state(lit["data"])
+        self.data = measurements_from_state(lit["data"])
         inst = _instrument_from_state(lit["instrument"]) if lit["instrument"] is not None else instrument
         if inst is None:
             raise ValueError("OnlineCalibration.load_state_dict: the literal strategy's instrument was not stored "
@@ -634,7 +636,7 @@ def _measurements_state(data: Measurements) -> dict:
     return out
 
 
-def _measurements_from_state(s: dict) -> Measurements:
+def measurements_from_state(s: dict) -> Measurements:
     return Measurements(**{k: s[k] for k in _MEAS_TENSORS}, has_direction=bool(s["has_direction"]),
                         source=s["source"], extra=dict(s["extra"]))
 

@@ -21,8 +21,8 @@ from typing import Callable, Iterable, Sequence
 
 import torch
 
-from ..measurements import Measurements
-from ..progress import task
+from ..core.measurements import Measurements
+from ..core.progress import task
 from .candidates import StructureSearch
 from .fit import fit, resolve_noise
 from .gauge import fix_gauge

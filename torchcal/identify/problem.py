@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 import torch
 from torch.func import functional_call
 
-from .. import units
+from ..core import units
 from ..measure import Instrument, PointTargets, row_jacobians
-from ..measurements import Measurements
+from ..core.measurements import Measurements
 from .blocks import block_cost
 from .layout import ParameterLayout
 
@@ -101,7 +101,7 @@ class NoiseModel:
 class Prior:
     """Gaussian prior on the error parameters, centred on ``mean`` (default zero: no error).
 
-    Each entry's sigma is its module's declared prior (:class:`torchcal.params.ParamGroup`),
+    Each entry's sigma is its module's declared prior (:class:`torchcal.core.params.ParamGroup`),
     overridden by role and kind where a field here is set (None keeps the
     declaration): role 'joint' takes rotation (angles, rad) / translation
     (lengths, m); 'backlash' takes backlash (rad, every coefficient; None keeps
@@ -217,7 +217,7 @@ def row_errors(model, data: Measurements, instrument: Instrument | None = None, 
 class CalibrationProblem:
     """Whitened residuals and Jacobians of V for one model, one instrument and one data set.
 
-    model: a :class:`torchcal.model.RobotModel` (or any module the instrument
+    model: a :class:`torchcal.models.robot.RobotModel` (or any module the instrument
     can predict from, its parameters declared, see
     :func:`~torchcal.identify.layout.parameter_groups`); data: identification
     rows (q, tool, direction, pose); noise: joint variances (and sigma_m for

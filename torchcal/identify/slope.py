@@ -1,5 +1,7 @@
 """The tool-tip modeled-error slope of Paper I (13)-(30), for machine tools and robots, by autograd.
 
+Why one module: Paper I (13)-(30), the tool-tip error slope, for machines and robots, in closed form and through torch.func; the forms are checked against each other.
+
 The modeled error of the tool tip is the difference between where the
 identified model and the nominal kinematics put it, both in the machine's own
 base frame (no measurement frame) and with the nominal tool vector p_tl:
@@ -15,8 +17,8 @@ in metres per half axis motion, and Paper I bounds |hbar_i|_2 <= c (31) over
 the WHOLE axis space (where nothing was measured too). The paper derives
 hbar_i in closed form for XYZCB under R_nom ~ R_AP (24)-(28); here it is the
 exact derivative, by forward-mode autograd (torch.func.jacfwd, vmapped over
-points), so it holds for any model: :class:`torchcal.machine.MachineModel`
-(e_t from F_AP(q) = F_nom(q + dq(q))) and :class:`torchcal.model.RobotModel`
+points), so it holds for any model: :class:`torchcal.models.machine.MachineModel`
+(e_t from F_AP(q) = F_nom(q + dq(q))) and :class:`torchcal.models.robot.RobotModel`
 (e_t from the modeled flange with every joint error term, gravity compliance
 included, the base-frame correction and backlash excluded: the former is the
 measurement frame, the latter depends on the approach direction, not on q).
@@ -44,7 +46,7 @@ from ..kinematics.fk import chain_frames
 
 
 # ------------------------------------------------------------------ the modeled error
-def _is_machine(model) -> bool:
+def is_machine_model(model) -> bool:
     return callable(getattr(model, "machine_flange", None))
 
 
@@ -56,11 +58,11 @@ def slope_model(model):
     """-> (the model whose slope is taken, the prefix of its parameter names in ``model``).
 
     A MachineModel or RobotModel is itself (prefix ''); a sensor rig (Paper III,
-    :class:`~torchcal.measure.rig.SensorRig`: a RobotModel carrying a 6-DOF sensor) is its robot
+    :class:`~torchcal.models.sensor_rig.SensorRig`: a RobotModel carrying a 6-DOF sensor) is its robot
     model ('model.'), whose error terms are what the bound is on.
     """
     inner = getattr(model, "model", None)
-    if not _is_machine(model) and not _is_robot(model) and inner is not None and _is_robot(inner):
+    if not is_machine_model(model) and not _is_robot(model) and inner is not None and _is_robot(inner):
         return inner, "model."
     return model, ""
 
@@ -71,7 +73,7 @@ def modeled_flange(model, q: torch.Tensor) -> torch.Tensor:
     MachineModel: F_AP(q) = F_nom(q + dq(q)); RobotModel: the chain with every
     joint error term at the command q (no backlash: direction unknown), no base correction.
     """
-    if _is_machine(model):
+    if is_machine_model(model):
         return model.machine_flange(q)
     if _is_robot(model):
         theta, u, _ = model._variables(q, None)
@@ -149,7 +151,7 @@ def _slopes(model, q: torch.Tensor, P: torch.Tensor, method: str = "auto", conte
     if method not in ("auto", "autograd"):
         raise ValueError(f"slope method must be 'auto' or 'autograd', got {method!r}")
     model = slope_model(model)[0]
-    if method == "auto" and _is_machine(model):
+    if method == "auto" and is_machine_model(model):
         return machine_slope_terms(model, q, P, context=context)["hbar"]
     if method == "auto" and robot_fast_path(model) and not torch.is_grad_enabled():
         return robot_slopes(model, q, P, context=context)
@@ -222,7 +224,7 @@ def _robot_point_context(model, q: torch.Tensor, P: torch.Tensor) -> dict:
 
 def _axis_jacobian(jR, jp, axes, prismatic, point):
     """d point / d theta (B, 3, n) through the joints' own motion (the linear rows of
-    :func:`torchcal.jacobian.joint_axis_jacobian`)."""
+    :func:`torchcal.models.jacobian.joint_axis_jacobian`)."""
     z = (jR @ axes.to(point)[:, :, None])[..., 0]  # (B, n, 3)
     lin = torch.where(prismatic[None, :, None], z, torch.linalg.cross(z, point[:, None, :] - jp, dim=-1))
     return lin.transpose(1, 2)
@@ -239,7 +241,7 @@ def robot_slopes(model, q: torch.Tensor, P: torch.Tensor, context: dict | None =
     for one forward pass of M rows instead of 2 n M. Fine joint-angle tables (piecewise linear) take the
     central differences. context: :func:`robot_slope_context` of (q, P) or None.
     """
-    from ..jacobian import chebyshev_design, so3_right_jacobian
+    from ..models.jacobian import chebyshev_design, so3_right_jacobian
     from ..kinematics.transforms import so3_exp, twist_to_transform
 
     model = slope_model(model)[0]
@@ -268,7 +270,7 @@ def robot_slopes(model, q: torch.Tensor, P: torch.Tensor, context: dict | None =
         e = torch.einsum("bnk,ntk->bnt", basis[..., :K], coef)
         de = torch.einsum("bnk,ntk->bnt", dbasis[..., :K], coef)
         jR, jp, F = chain_frames(model.origins, model.axes, model.prismatic, theta, twist_to_transform(e), model.tip, None)
-        # E_i's velocity along its series: angular w_i, linear v_i (the rows of torchcal.jacobian.twist_jacobian)
+        # E_i's velocity along its series: angular w_i, linear v_i (the rows of torchcal.models.jacobian.twist_jacobian)
         w = (jR @ (so3_right_jacobian(e[..., :3]) @ de[..., :3, None]))[..., 0]  # (M, n, 3)
         v = (jR @ (so3_exp(e[..., :3]).transpose(-1, -2) @ de[..., 3:, None]))[..., 0]
         out = []
@@ -303,7 +305,7 @@ def robot_context_rows(context: dict, rows: torch.Tensor, tools=None) -> dict:
 
 def slope_context(model, q: torch.Tensor, P: torch.Tensor) -> dict | None:
     """:func:`machine_slope_context` or :func:`robot_slope_context` of (q, P), whichever applies (None: neither)."""
-    if _is_machine(model):
+    if is_machine_model(model):
         return machine_slope_context(model, q, P)
     if robot_fast_path(model):
         return robot_slope_context(model, q, P)
@@ -338,7 +340,7 @@ def _robot_parts(model, context: dict) -> dict:
     (tests hold the two to bitwise equality); no backlash (direction unknown), no base frame.
     """
     from ..kinematics.transforms import twist_to_transform
-    from ..model import joint_series
+    from ..models.robot import joint_series
 
     theta, u, comp = context["theta"], context["u"], context["comp"]
     if comp is not None:
@@ -485,7 +487,7 @@ def machine_slope_context(model, q: torch.Tensor, P: torch.Tensor) -> dict:
     evaluates the slope at the same points hundreds of times: computed once, these are
     half of each evaluation. Index a context with :func:`context_rows`.
     """
-    from ..basis import chebyshev_with_derivative
+    from ..core.basis import chebyshev_with_derivative
 
     with torch.no_grad():
         ae = model.axis_errors
@@ -516,7 +518,7 @@ def machine_slope_terms(model, q: torch.Tensor, P: torch.Tensor, hessian: bool =
     (with ``hessian``), 'ID' (B, n, n) = I + D, 'design', 'ddesign' (B, n, K):
     Chebyshev values and their derivative w.r.t. q_j per input axis.
     """
-    from ..basis import chebyshev_with_derivative
+    from ..core.basis import chebyshev_with_derivative
 
     ae = model.axis_errors
     A = model.coupling.to(q)
@@ -581,7 +583,7 @@ def model_slopes(model, q: torch.Tensor, tool=None, method: str = "auto") -> tor
 
     Example:
         >>> import torch, torchcal
-        >>> from torchcal.machine import MachineModel
+        >>> from torchcal.models.machine import MachineModel
         >>> robot = torchcal.load_robot("five_axis_xyzcb")
         >>> model = MachineModel(robot, torch.tensor([[0.0, 0.0, 0.5009]], dtype=torch.float64), orders=2)
         >>> with torch.no_grad():

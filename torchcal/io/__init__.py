@@ -1,11 +1,11 @@
-"""Files in and out: the CSV data contract, configs, run directories, simulated truths and plots.
+"""Files in and out: the CSV data contract, run directories, simulated truths and plots.
 
 Everything here speaks mm and degrees on the file side and SI inside; the
-conversion goes through :mod:`torchcal.units` only. ``plots`` is imported on
+conversion goes through :mod:`torchcal.core.units` only. ``plots`` is imported on
 demand (it loads matplotlib).
 """
 
-from .config import ConfigError, FitConfig, apply_overrides, check_config, load_config, make_config, schema, to_yaml
+from ..core.exceptions import ConfigError
 from .csv import DataError, Problem, read_measurements, read_table, write_measurements, write_table
 from .rundir import RunDirError, collect_versions, load_model, load_run_config, make_run_dir, save_model, write_json
 from .truth import TruthError, load_truth, save_truth
@@ -13,25 +13,18 @@ from .truth import TruthError, load_truth, save_truth
 __all__ = [
     "ConfigError",
     "DataError",
-    "FitConfig",
     "Problem",
     "RunDirError",
     "TruthError",
-    "apply_overrides",
-    "check_config",
     "collect_versions",
-    "load_config",
     "load_model",
     "load_run_config",
     "load_truth",
-    "make_config",
     "make_run_dir",
     "read_measurements",
     "read_table",
     "save_model",
     "save_truth",
-    "schema",
-    "to_yaml",
     "write_json",
     "write_measurements",
     "write_table",

@@ -18,7 +18,7 @@ import secrets
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..exceptions import TorchcalError
+from ..core.exceptions import TorchcalError
 
 
 class WriteError(TorchcalError, ValueError):

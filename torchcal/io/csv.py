@@ -1,5 +1,7 @@
 """The CSV data contract: one row per measured point, millimetres and degrees.
 
+Why one module: the whole CSV data contract (columns, units, reading with file/row/column errors, writing, Cartesian targets); split, one contract's rules would spread over files.
+
 Columns (a header line is required; order is free; names are case-sensitive):
 
 =============  ==============================================================
@@ -15,7 +17,7 @@ anything else  carried through untouched (kept as text, written back as is)
 Reading validates everything and raises one :class:`DataError` listing every
 problem (up to :data:`MAX_LISTED`, then a count) with the file, the 1-based
 data row and its line in the file (the header is line 1), and the column.
-Rows are never dropped. Units are converted with :mod:`torchcal.units` only.
+Rows are never dropped. Units are converted with :mod:`torchcal.core.units` only.
 """
 
 from __future__ import annotations
@@ -30,9 +32,9 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import units
-from ..exceptions import TorchcalError
-from ..measurements import Measurements
+from ..core import units
+from ..core.exceptions import TorchcalError
+from ..core.measurements import Measurements
 
 MAX_LISTED = 20
 """How many problems a :class:`DataError` message lists before summarising the rest as a count."""
@@ -153,7 +155,7 @@ def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[
     return [h.strip() for h in header], starts, widths
 
 
-def _read_raw(path: Path) -> pd.DataFrame:
+def read_raw_table(path: Path) -> pd.DataFrame:
     """Every cell as stripped text ('' where empty), one row per record, blank lines kept as rows.
 
     ``df.attrs['lines']`` holds the file line each row starts on. Structural
@@ -227,7 +229,7 @@ def _read_raw(path: Path) -> pd.DataFrame:
     return df
 
 
-def _numbers(df: pd.DataFrame, column: str, problems: list[Problem]) -> np.ndarray:
+def parse_numbers(df: pd.DataFrame, column: str, problems: list[Problem]) -> np.ndarray:
     """Column as float64 (R,); every empty, non-numeric or non-finite cell becomes a Problem (value NaN).
 
     Rows flagged in ``df.attrs['blank']`` (blank lines, reported once each) are not reported again.
@@ -247,7 +249,7 @@ def _numbers(df: pd.DataFrame, column: str, problems: list[Problem]) -> np.ndarr
 
 def _integers(df: pd.DataFrame, column: str, problems: list[Problem]) -> tuple[np.ndarray, np.ndarray]:
     """Column as int64 (R,) and (R,) bool valid; non-integer values become Problems (value 0, invalid)."""
-    values = _numbers(df, column, problems)
+    values = parse_numbers(df, column, problems)
     ok = np.isfinite(values)
     frac = ok & (values != np.round(values))
     for r in np.flatnonzero(frac):
@@ -314,7 +316,7 @@ def parse_table(
     for i, c in enumerate(qcols):
         if c not in cols:
             continue
-        q[:, i] = _numbers(df, c, problems)
+        q[:, i] = parse_numbers(df, c, problems)
         lo, hi = limits[i]
         outside = np.isfinite(q[:, i]) & ((q[:, i] < lo - LIMIT_TOL) | (q[:, i] > hi + LIMIT_TOL))
         for r in np.flatnonzero(outside):
@@ -326,7 +328,7 @@ def parse_table(
     direction = np.zeros((R, n))
     if has_direction:
         for i, c in enumerate(dcols):
-            d = _numbers(df, c, problems)
+            d = parse_numbers(df, c, problems)
             wrong = np.isfinite(d) & (np.abs(d) != 1.0)
             for r in np.flatnonzero(wrong):
                 problems.append(Problem(int(r) + 1, c, f"{df[c].iloc[r]!r} is not an approach direction (+1 or -1)"))
@@ -352,13 +354,13 @@ def parse_table(
     if has_xyz:
         for i, c in enumerate(XYZ):
             if require_xyz:
-                xyz[:, i] = _numbers(df, c, problems)
+                xyz[:, i] = parse_numbers(df, c, problems)
             else:
                 # predicting: empty cells are allowed (nothing measured), text is still an error
                 filled = df[c] != ""
                 sub = df.loc[filled, [c]].reset_index(drop=True)
                 sub_problems: list[Problem] = []
-                vals = _numbers(sub, c, sub_problems)
+                vals = parse_numbers(sub, c, sub_problems)
                 rows = np.flatnonzero(filled.to_numpy())
                 problems += [Problem(int(rows[p.row - 1]) + 1, p.column, p.message) for p in sub_problems]
                 xyz[rows, i] = vals
@@ -405,7 +407,7 @@ def read_table(path, robot, n_tools: int | None, require_xyz: bool = True, requi
     See :func:`parse_table` for the arguments. Raises :class:`DataError`.
     """
     path = Path(path)
-    df = _read_raw(path)
+    df = read_raw_table(path)
     return parse_table(df, path, robot, n_tools, require_xyz, require_pose), df
 
 
@@ -459,9 +461,9 @@ def read_targets(df: pd.DataFrame, path) -> tuple[str, torch.Tensor, torch.Tenso
         raise DataError(path, [Problem(None, None, "no Cartesian target columns: x, y, z (mm) and rx, ry, rz "
                                                    "(deg) or qw, qx, qy, qz")])
     problems: list[Problem] = []
-    p = np.stack([_numbers(df, c, problems) for c in XYZ], 1)
+    p = np.stack([parse_numbers(df, c, problems) for c in XYZ], 1)
     names = TARGET_RPY if kind == "rpy" else TARGET_QUAT
-    o = np.stack([_numbers(df, c, problems) for c in names], 1)
+    o = np.stack([parse_numbers(df, c, problems) for c in names], 1)
     if kind == "quaternion":
         norm = np.linalg.norm(o, axis=1)
         for r in np.flatnonzero(np.isfinite(norm) & (np.abs(norm - 1.0) > 1e-6)):

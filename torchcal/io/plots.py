@@ -1,5 +1,7 @@
 """Figures of a calibration run (matplotlib's Agg renderer: files only, no display needed).
 
+Why one module: every figure of a run directory and the worker process that draws them; the worker boots once and imports matplotlib once, and the figure functions (data in, figure out) are what it runs.
+
 - :func:`plot_joint_errors`: Paper II Figure 12, the six terms of every E_i over its joint's range;
 - :func:`plot_residuals`: Figures 14-15, nominal vs modeled residual per measured row;
 - :func:`plot_compensation`: Figure 16, nominal vs compensated residual per command;
@@ -9,7 +11,7 @@ Every function takes plain tensors / arrays in SI (m, rad) and writes a PNG;
 units on the axes are mm and degrees.
 
 Each figure is made in two halves: ``*_figure`` turns the inputs into the
-numbers drawn (mm, degrees; torch, :mod:`torchcal.units` and scipy live here)
+numbers drawn (mm, degrees; torch, :mod:`torchcal.core.units` and scipy live here)
 and ``draw_*`` draws them with numpy and matplotlib alone. So a
 :class:`PlotWorker` (a second Python process that never imports torch) can draw
 while the caller goes on: the pipeline starts one with the run, hands it each
@@ -105,7 +107,7 @@ def joint_error_curves(model, samples: int = 201) -> dict:
 
 def joint_errors_figure(model, samples: int = 201, title: str | None = None) -> dict:
     """What :func:`draw_joint_errors` draws (mm, degrees): keyword arguments, numpy and str only."""
-    from .. import units
+    from ..core import units
 
     c = joint_error_curves(model, samples)
     theta, fwd, bwd = _np(c["theta"]), _np(c["forward"]), _np(c["backward"])
@@ -204,7 +206,7 @@ def _bars(ax, before, after, before_label, after_label, after_color):
 
 def pair_figure(before, after, title, before_label, after_label, after_color, xlabel, flagged=None) -> dict:
     """What :func:`draw_pair` draws: residuals (R,) m -> mm, flags (R,) bool."""
-    from .. import units
+    from ..core import units
 
     b, a = units.m_to_mm(_np(before)), units.m_to_mm(_np(after))
     if b.shape != a.shape:
@@ -268,14 +270,14 @@ def plot_compensation(nominal, compensated, path, title: str = "Nominal and comp
 # ------------------------------------------------------------------ Figure 13
 def distribution_figure(residuals, stats=None, title: str = "Residual distribution") -> dict:
     """What :func:`draw_distribution` draws: residuals in mm, the statistics and the fitted Gamma density."""
-    from .. import units
+    from ..core import units
 
     r = units.m_to_mm(_np(residuals))
     out = {"residuals": r, "title": title, "mean": None, "max": None, "gamma99": None, "gamma_curve": None}
     if stats is not None:
         out.update(mean=float(stats.mean), max=float(stats.max))
         if np.isfinite(stats.gamma99) and r.size > 1 and (r > 0).all():
-            from ..gamma_fit import gamma_mle, gamma_pdf
+            from ..core.gamma_fit import gamma_mle, gamma_pdf
 
             fitted = gamma_mle(r)
             xs = np.linspace(0, max(r.max(), stats.gamma99) * 1.1, 300)

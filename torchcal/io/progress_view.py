@@ -1,4 +1,4 @@
-"""What a front end shows of :mod:`torchcal.progress`: bars on a terminal, plain lines elsewhere, and run.log.
+"""What a front end shows of :mod:`torchcal.core.progress`: bars on a terminal, plain lines elsewhere, and run.log.
 
 The library marks its long loops as tasks and never prints. A :class:`ProgressView`,
 installed around a command (``with ProgressView(console): ...``, or
@@ -24,7 +24,7 @@ after it.
 Example:
     >>> import io
     >>> from rich.console import Console
-    >>> from torchcal import progress
+    >>> from torchcal.core import progress
     >>> out = io.StringIO()
     >>> with ProgressView(Console(file=out, width=120), logger=None, delay=0.0, min_interval=0.0):
     ...     with progress.task("candidate orders", total=4) as t:
@@ -40,8 +40,8 @@ import threading
 import time
 from contextlib import contextmanager
 
-from .. import progress
-from ..progress import Reporter, Task
+from ..core import progress
+from ..core.progress import Reporter, Task
 
 HEARTBEAT_S = 5.0
 """Seconds between two lines while a task runs without advancing."""
@@ -116,7 +116,7 @@ def describe(task: Task, final: bool = False) -> str:
 
 
 class ProgressView(Reporter):
-    """A :class:`torchcal.progress.Reporter` for the CLI: bars on a terminal, lines elsewhere, lines in the log.
+    """A :class:`torchcal.core.progress.Reporter` for the CLI: bars on a terminal, lines elsewhere, lines in the log.
 
     console: a rich Console (None: no screen output, the logger only); bars: draw
     rich bars (default: when the console is a terminal), else plain lines on the
@@ -127,7 +127,7 @@ class ProgressView(Reporter):
     A finished inner task with a total above 1 that printed a line says ``k/N, done in E``
     (a stage, a task without a parent, has its caller's own 'done' line). Use it
     as a context manager: it installs itself for the block
-    (:func:`torchcal.progress.reporting`) and :meth:`close` s at the end.
+    (:func:`torchcal.core.progress.reporting`) and :meth:`close` s at the end.
     """
 
     def __init__(self, console=None, *, bars: bool | None = None, logger: logging.Logger | str | None = "torchcal",
@@ -309,8 +309,8 @@ def _bar_fields(task: Task) -> dict:
 
 
 def installed_reporter() -> Reporter | None:
-    """The reporter :func:`torchcal.progress.reporting` installed for the current context, or None."""
-    getter = getattr(progress, "current_reporter", None)  # not in torchcal.progress's API (yet): its context variable
+    """The reporter :func:`torchcal.core.progress.reporting` installed for the current context, or None."""
+    getter = getattr(progress, "current_reporter", None)  # not in torchcal.core.progress's API (yet): its context variable
     return getter() if getter is not None else progress._REPORTER.get()
 
 

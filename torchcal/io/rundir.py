@@ -1,6 +1,6 @@
 """Run directories: everything one fit produced, reloadable, like a training run.
 
-Layout written by :func:`torchcal.pipeline.run_fit`::
+Layout written by :func:`torchcal.app.fit.run_fit`::
 
     <run>/
       config.yaml      the fully resolved config (absolute paths, every default)
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import torch
 
-from ..exceptions import TorchcalError
+from ..core.exceptions import TorchcalError
 
 MODEL_FILE = "model.pt"
 MODEL_FORMAT = "torchcal.RobotModel"
@@ -52,7 +52,7 @@ PARTIAL_FILE = "PARTIAL"
 """Present in a run directory whose run failed or was interrupted (written when its log opens, removed at its end)."""
 
 RUN_MARKERS = ("config.yaml", "run.log", "model.pt", "versions.json", "metrics.json")
-"""Files that make a folder a run directory (what :func:`torchcal.pipeline.run_fit` writes first)."""
+"""Files that make a folder a run directory (what :func:`torchcal.app.fit.run_fit` writes first)."""
 
 
 def is_run_dir(folder) -> bool:
@@ -214,9 +214,9 @@ def save_model(run_dir, model, **meta) -> Path:
 # spec["kind"] -> "module:Class"; every class has spec() and from_spec(spec, robot=None). A spec without
 # "kind" is a robot model (run directories written before machines and sensor rigs existed).
 MODEL_KINDS = {
-    "robot": "torchcal.model:RobotModel",
-    "machine": "torchcal.machine:MachineModel",
-    "sensor_rig": "torchcal.measure.rig:SensorRig",
+    "robot": "torchcal.models.robot:RobotModel",
+    "machine": "torchcal.models.machine:MachineModel",
+    "sensor_rig": "torchcal.models.sensor_rig:SensorRig",
 }
 
 
@@ -233,7 +233,7 @@ def model_class(spec: dict, path="model.pt"):
 
 
 def load_model(run_dir, device=None, robot=None):
-    """Rebuild the identified :class:`torchcal.model.RobotModel` of a run (a run folder or its model.pt).
+    """Rebuild the identified :class:`torchcal.models.robot.RobotModel` of a run (a run folder or its model.pt).
 
     device: where to put it (default CPU); robot: a loaded Robot to use instead
     of the one named in the spec (e.g. when the run moved to another machine).
@@ -261,14 +261,21 @@ def load_model(run_dir, device=None, robot=None):
     return model.to(device) if device is not None else model
 
 
-def load_run_config(run_dir):
-    """The resolved config (DictConfig) a run was made with."""
-    from omegaconf import OmegaConf
+def load_run_config(run_dir) -> dict:
+    """The resolved config a run was made with, as plain containers (the typed, checked view of it is the
+    application layer's: :func:`torchcal.app.config.run_config`)."""
+    import yaml
 
     path = Path(run_dir) / "config.yaml"
     if not path.is_file():
         raise RunDirError(f"{path}: no config.yaml; is {run_dir} a run directory?")
-    return OmegaConf.load(path)
+    try:
+        cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as exc:
+        raise RunDirError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(cfg, dict):
+        raise RunDirError(f"{path}: not a run's config (a mapping of keys)")
+    return cfg
 
 
 # ---------------------------------------------------------------------- logging

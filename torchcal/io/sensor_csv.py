@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import units
+from ..core import units
 from ..measure.pose import (
     ORTHONORMAL_TOL,
     euler_mismatch,
@@ -47,13 +47,13 @@ from ..measure.pose import (
     rotation_defects,
     rotation_from_euler,
 )
-from ..measurements import Measurements
+from ..core.measurements import Measurements
 from ..measure.gravity import GRAVITY_TOL, GravityError, check_gravity  # noqa: F401  (moved; old imports keep working)
 from .csv import (
     DataError,
     Problem,
-    _numbers,
-    _read_raw,
+    parse_numbers,
+    read_raw_table,
     measurements_frame,
     parse_table,
     write_table,
@@ -145,18 +145,18 @@ def parse_pose_table(df: pd.DataFrame, path, robot, require_pose: bool = True, e
 
     def numbers(c: str, filled_only: bool) -> np.ndarray:
         if not filled_only:
-            return _numbers(df, c, problems)
+            return parse_numbers(df, c, problems)
         filled = (df[c] != "").to_numpy()
         out = np.full(R, np.nan)
         sub = df.loc[filled, [c]].reset_index(drop=True)
         sub_p: list[Problem] = []
-        out[np.flatnonzero(filled)] = _numbers(sub, c, sub_p)
+        out[np.flatnonzero(filled)] = parse_numbers(sub, c, sub_p)
         rows = np.flatnonzero(filled)
         problems.extend(Problem(int(rows[p.row - 1]) + 1, p.column, p.message) for p in sub_p)
         return out
 
     scratch: list[Problem] = []  # x, y, z problems are parse_table's to report
-    xyz_mm = np.stack([_numbers(df, c, scratch) if c in cols else np.full(R, np.nan) for c in "xyz"], 1)
+    xyz_mm = np.stack([parse_numbers(df, c, scratch) if c in cols else np.full(R, np.nan) for c in "xyz"], 1)
 
     # rotations: r-columns, Euler columns, or both (then they must agree)
     has_r = [c for c in R_COLUMNS if c in cols]
@@ -285,7 +285,7 @@ def read_pose_measurements(path, robot, require_pose: bool = True, euler_columns
         ([1.5, 0.0, 0.3], (1, 3, 3))
     """
     path = Path(path)
-    df = _read_raw(path)
+    df = read_raw_table(path)
     return parse_pose_table(df, path, robot, require_pose, euler_columns, euler_convention, sensor, gravity)
 
 

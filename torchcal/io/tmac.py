@@ -17,7 +17,7 @@ LF line endings; NUL bytes ending a line are stripped):
   (``extra['pose_std']``, m and rad); ``measurement_temperature`` (°C) goes to
   ``extra['temperature']``. Other columns (Timestamp, Goal ...) are ignored.
 
-:func:`read_tmac` returns :class:`~torchcal.measurements.Measurements` in SI
+:func:`read_tmac` returns :class:`~torchcal.core.measurements.Measurements` in SI
 in the shape of the 6-DOF contract (``xyz``, ``extra['rotation']``);
 :func:`convert_tmac` writes the sensor CSV contract of
 :mod:`torchcal.io.sensor_csv` (``pose, q1..q6, x, y, z, r11..r33, sx..srz``,
@@ -33,8 +33,8 @@ from pathlib import Path
 
 import torch
 
-from .. import units
-from ..measurements import Measurements
+from ..core import units
+from ..core.measurements import Measurements
 from .csv import DataError, Problem
 
 TMAC_JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",

@@ -46,7 +46,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import units
+from ..core import units
 from .csv import LIMIT_TOL, XYZ, DataError, Problem, direction_columns, joint_columns, missing_file_message
 
 OUTLIER_MM = 1.0

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import torch
 
-from .. import units
-from ..exceptions import TorchcalError
+from ..core import units
+from ..core.exceptions import TorchcalError
 from .rundir import read_json, write_json
 
 TRUTH_FORMAT = "torchcal.TruthRobot"

@@ -14,8 +14,8 @@ import math
 import numpy as np
 import torch
 
-from .. import units
-from ..exceptions import TorchcalError
+from ..core import units
+from ..core.exceptions import TorchcalError
 
 OVERRIDE = "--units-checked"
 """The one override name: a CLI flag, and ``data.units_checked: true`` in a fit config."""

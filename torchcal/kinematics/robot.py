@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from .. import units
+from ..core import units
 from .chain import Chain
 from .joint_map import JointMap
 from .urdf import URDFError, load_urdf

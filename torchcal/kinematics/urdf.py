@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from ..exceptions import TorchcalError
+from ..core.exceptions import TorchcalError
 from .chain import Chain
 from .transforms import homogeneous, rpy_to_matrix
 
@@ -59,7 +59,7 @@ def urdf_parser():
     return importlib.import_module(_PARSER_MODULE)
 
 
-def _read(source: str | Path) -> tuple[str, str]:
+def read_urdf_text(source: str | Path) -> tuple[str, str]:
     """(xml text, label for messages) from a path or an XML string."""
     if isinstance(source, Path) or (isinstance(source, str) and not source.lstrip().startswith("<")):
         path = Path(source)
@@ -177,7 +177,7 @@ def _joints_without_axis(root) -> set[str]:
     return {j.get("name") for j in root.iter("joint") if j.find("axis") is None}
 
 
-def _origin(joint) -> torch.Tensor:
+def origin_transform(joint) -> torch.Tensor:
     xyz = torch.tensor(joint.origin.xyz if joint.origin is not None and joint.origin.xyz is not None else [0.0, 0.0, 0.0], dtype=torch.float64)
     rpy = torch.tensor(joint.origin.rpy if joint.origin is not None and joint.origin.rpy is not None else [0.0, 0.0, 0.0], dtype=torch.float64)
     return homogeneous(rpy_to_matrix(rpy), xyz)
@@ -192,7 +192,7 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
     """
     URDF = urdf_parser().URDF
 
-    xml, label = _read(source)
+    xml, label = read_urdf_text(source)
     tree = _check_well_formed(xml, label)
     problems = validate_urdf(xml, label)
     if problems:
@@ -250,7 +250,7 @@ def load_urdf(source: str | Path, end_link: str | None = None, root_link: str | 
     pending = torch.eye(4, dtype=torch.float64)  # fixed joints fold into the next origin
     link_names = []
     for joint in path:
-        T = pending @ _origin(joint)
+        T = pending @ origin_transform(joint)
         if joint.type == "fixed":
             pending = T
             continue

@@ -15,7 +15,6 @@ from .pose import (
     euler_from_rotation,
     rotation_from_euler,
 )
-from .rig import SensorRig
 from .sts import SensorRangeError, STSInstrument, STSSelection, sts_angles
 from .tracker import TrackerNoise, tracker_covariance
 from .triangle import triangle_frame
@@ -31,7 +30,6 @@ __all__ = [
     "STSInstrument",
     "STSSelection",
     "SensorRangeError",
-    "SensorRig",
     "TrackerNoise",
     "euler_from_rotation",
     "rotation_from_euler",

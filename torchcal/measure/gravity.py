@@ -1,6 +1,6 @@
 """The gravity ('up') vector of a tracker's level, checked (Paper III (27)).
 
-Low in the package so that the instruments (:mod:`torchcal.measure.rig`,
+Low in the package so that the instruments (:mod:`torchcal.models.sensor_rig`,
 :mod:`torchcal.measure.sts`) and the sensor CSV reader
 (:mod:`torchcal.io.sensor_csv`, which re-exports these names) share it.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from ..exceptions import ConfigError
+from ..core.exceptions import ConfigError
 
 GRAVITY_TOL = 1e-6
 """How far from 1 the norm of a configured gravity vector may be."""
@@ -17,6 +17,15 @@ GRAVITY_TOL = 1e-6
 
 class GravityError(ConfigError):
     """A configured gravity vector that is not a unit vector with positive z (Paper III (27))."""
+
+
+def gravity_from_xy(g_xy: torch.Tensor) -> torch.Tensor:
+    """Paper III (27): (..., 2) (g_x, g_y) -> (..., 3) unit vector (g_x, g_y, sqrt(1 - g_x^2 - g_y^2)).
+
+    The vector is the 'up' direction of the level (z component positive); |g_xy| must stay below 1.
+    """
+    gz2 = (1.0 - (g_xy * g_xy).sum(-1)).clamp(min=1e-12)
+    return torch.cat([g_xy, torch.sqrt(gz2)[..., None]], -1)
 
 
 def check_gravity(g, where: str, tol: float = GRAVITY_TOL) -> torch.Tensor:
@@ -45,4 +54,4 @@ def check_gravity(g, where: str, tol: float = GRAVITY_TOL) -> torch.Tensor:
     return t
 
 
-__all__ = ["GRAVITY_TOL", "GravityError", "check_gravity"]
+__all__ = ["GRAVITY_TOL", "GravityError", "check_gravity", "gravity_from_xy"]

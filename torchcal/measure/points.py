@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from ..measurements import Measurements
+from ..core.measurements import Measurements
 from .base import Instrument
 from .weights import CovarianceWeight, IsotropicWeight
 

@@ -23,8 +23,8 @@ import math
 
 import torch
 
-from ..exceptions import TorchcalError
-from ..measurements import Measurements
+from ..core.exceptions import TorchcalError
+from ..core.measurements import Measurements
 from .base import Instrument
 from .weights import CovarianceWeight, IsotropicWeight
 
@@ -242,7 +242,7 @@ class PoseInstrument(Instrument):
     ``observed`` and :meth:`predict` use the (R, 12) layout x, y, z, r11..r33
     (the residual is not a plain difference of these; no closed-form
     Jacobians, autograd is used). The model must give ``sensor_pose(q,
-    tool, direction, v)`` -> (B, 4, 4), e.g. :class:`~torchcal.measure.rig.SensorRig`.
+    tool, direction, v)`` -> (B, 4, 4), e.g. :class:`~torchcal.models.sensor_rig.SensorRig`.
 
     Example:
         >>> import torch
@@ -343,11 +343,11 @@ class PoseInstrument(Instrument):
         if not instruments:
             raise ValueError("PoseInstrument.cat: no instruments")
         dev = instruments[0].observed.device
-        covs = [_covariance(i, 6).to(dev) for i in instruments]
+        covs = [pose_covariance(i, 6).to(dev) for i in instruments]
         return cls.__new__(cls)._new(torch.cat([i.observed.to(dev) for i in instruments]), CovarianceWeight(torch.cat(covs)))
 
 
-def _covariance(inst: Instrument, d: int) -> torch.Tensor:
+def pose_covariance(inst: Instrument, d: int) -> torch.Tensor:
     """(R, d, d) covariance of an instrument's weight (isotropic ones expanded)."""
     w = inst.weight
     if isinstance(w, CovarianceWeight):

@@ -34,10 +34,10 @@ from typing import NamedTuple
 
 import torch
 
-from ..exceptions import TorchcalError
-from ..measurements import Measurements
+from ..core.exceptions import TorchcalError
+from ..core.measurements import Measurements
 from .base import Instrument
-from .pose import _covariance
+from .pose import pose_covariance
 from .weights import CovarianceWeight
 
 log = logging.getLogger("torchcal")
@@ -116,7 +116,7 @@ def angle_jacobians(R: torch.Tensor, p: torch.Tensor, g_xy: torch.Tensor):
     (omega in the tracker frame), / d (g_x, g_y) (B, 3, 2). With a = -R^T p / |p| (the beam in s0):
     dpsi = (a1 da2 - a2 da1) / c^2, dtheta = (c da3 - a3 dc) / |a|^2, dphi = ds / |x × g| (s = x . g).
     """
-    from .rig import gravity_from_xy
+    from .gravity import gravity_from_xy
 
     r = p.norm(dim=-1)[:, None, None]  # (B, 1, 1)
     u = (R.transpose(1, 2) @ p[..., None])  # (B, 3, 1)
@@ -251,7 +251,7 @@ class STSInstrument(Instrument):
     (e.g. a tracker's, Paper III (36)) or a float: isotropic sigma (m);
     angle_sigma: (R, 3) or (3,) rad, default (46) evaluated at the measured
     level angle. The model must give ``sensor_pose(q, tool, direction, v)``
-    and ``gravity_vector()``: :class:`~torchcal.measure.rig.SensorRig`.
+    and ``gravity_vector()``: :class:`~torchcal.models.sensor_rig.SensorRig`.
     Jacobians by autograd (:func:`~torchcal.measure.row_jacobians`).
 
     Example:
@@ -391,7 +391,7 @@ class STSInstrument(Instrument):
             raise ValueError("STSInstrument.cat: no instruments")
         dev = instruments[0].observed.device
         return cls.__new__(cls)._new(torch.cat([i.observed.to(dev) for i in instruments]),
-                                     CovarianceWeight(torch.cat([_covariance(i, 6).to(dev) for i in instruments])))
+                                     CovarianceWeight(torch.cat([pose_covariance(i, 6).to(dev) for i in instruments])))
 
 
 def _position_cov(noise, xyz: torch.Tensor, rows: int, idx: torch.Tensor) -> torch.Tensor:

@@ -50,8 +50,8 @@ from dataclasses import dataclass
 
 import torch
 
-from .. import units
-from ..exceptions import TorchcalError
+from ..core import units
+from ..core.exceptions import TorchcalError
 
 
 class GeometryError(TorchcalError, ValueError):
@@ -65,7 +65,7 @@ tracker's elevation travel). At β = 0 (straight up) α is undefined and the fir
 variance of some coordinates vanishes, so relative errors there mean nothing."""
 
 
-def _points(p, name: str = "points") -> torch.Tensor:
+def tracker_points(p, name: str = "points") -> torch.Tensor:
     p = torch.as_tensor(p)
     if not p.is_floating_point():
         p = p.to(torch.float64)
@@ -90,7 +90,7 @@ def spherical(p) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         >>> [round(float(a[0]), 6), round(float(b[0]), 6), float(d[0])]
         [1.570796, 1.570796, 2.0]
     """
-    p = _points(p)
+    p = tracker_points(p)
     d = torch.linalg.norm(p, dim=-1)
     if (d == 0).any():
         idx = tuple(int(i) for i in (d == 0).nonzero()[0])
@@ -217,7 +217,7 @@ class TrackerNoise:
 
     def covariance(self, p) -> torch.Tensor:
         """Linearized covariance of tracker points: p (R, 3) m, tracker base frame -> (R, 3, 3) m²."""
-        p = _points(p)
+        p = tracker_points(p)
         return tracker_covariance(p, self.sigma_alpha, self.sigma_beta, self.sigma_d(torch.linalg.norm(p, dim=-1)))
 
 
@@ -227,7 +227,7 @@ def sample_tracker_points(p, noise: TrackerNoise, n: int, seed: int) -> torch.Te
     σ_d is evaluated at each point's true distance; the draws come from a
     generator seeded with ``seed`` on p's device.
     """
-    p = _points(p)
+    p = tracker_points(p)
     alpha, beta, d = spherical(p)
     g = torch.Generator(device=p.device).manual_seed(int(seed))
     e = torch.randn((*p.shape[:-1], int(n), 3), generator=g, dtype=p.dtype, device=p.device)
@@ -243,7 +243,7 @@ def monte_carlo_covariance(p, noise: TrackerNoise, n: int = 200_000, seed: int =
     and accumulates deviations from the true point, so the result is the
     unbiased (n - 1) covariance about the sample mean. Chunk k uses seed + k.
     """
-    p = _points(p)
+    p = tracker_points(p)
     if int(n) < 2:
         raise GeometryError(f"monte_carlo_covariance: need at least 2 samples, got {n}")
     s1 = torch.zeros_like(p)
@@ -299,7 +299,7 @@ def covariance_check(noise: TrackerNoise, points=None, n_samples: int = 200_000,
     error about σ_α, σ_β (1e-5): the number measures the sampling noise unless
     the linearization is wrong.
     """
-    pts = working_range_points() if points is None else _points(points)
+    pts = working_range_points() if points is None else tracker_points(points)
     lin = noise.covariance(pts)
     mc = monte_carlo_covariance(pts, noise, n_samples, seed)
     return float(covariance_deviation(mc, lin).max())

@@ -34,13 +34,13 @@ from dataclasses import dataclass
 
 import torch
 
-from .tracker import GeometryError, TrackerNoise, _points, sample_tracker_points
+from .tracker import GeometryError, TrackerNoise, tracker_points, sample_tracker_points
 
 _DEGENERATE = 1e-9  # |a × b| / (|a| |b|): sine of the smallest admissible angle between two sides
 
 
 def _vertices(p1, p2, p3) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    p1, p2, p3 = _points(p1, "p1"), _points(p2, "p2"), _points(p3, "p3")
+    p1, p2, p3 = tracker_points(p1, "p1"), tracker_points(p2, "p2"), tracker_points(p3, "p3")
     p1, p2, p3 = torch.broadcast_tensors(p1, p2.to(p1), p3.to(p1))
     a, b = p2 - p1, p3 - p1
     n = torch.linalg.cross(a, b)
@@ -121,7 +121,7 @@ def _unit_angle(u: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 
 def _stacked(t, name: str) -> torch.Tensor:
-    t = _points(t, name)
+    t = tracker_points(t, name)
     if t.ndim < 2 or t.shape[-2] != 3:
         raise GeometryError(f"{name}: expected (B, 3, 3) triangles (rows p1, p2, p3), got shape {tuple(t.shape)}")
     return t
@@ -133,7 +133,7 @@ def triangle_orientation_error(measured, modeled, kind: str = "normal") -> torch
     kind="normal": angle between the two normals, the AT angular residual of
     Table 6 (orientation = the normal; rotation about it is not measured);
     kind="frame": geodesic angle between the two full frames of
-    :func:`triangle_frame`. Use :func:`torchcal.units.rad_to_deg` for degrees.
+    :func:`triangle_frame`. Use :func:`torchcal.core.units.rad_to_deg` for degrees.
     """
     m, h = _stacked(measured, "measured"), _stacked(modeled, "modeled")
     Tm = triangle_frame(m[..., 0, :], m[..., 1, :], m[..., 2, :])

@@ -3,12 +3,11 @@
 - :func:`quasi_random_commands`, :func:`approach_directions`: measurement pose sequences (5.2)
 - :class:`TruthRobot`: the actual robot, independent of torchcal's Chebyshev model
 - :func:`simulate`, :func:`noise_free_points`: tracker measurements (25) with joint and tracker noise
-- :func:`simulate_dataset`: a whole simulated data set on disk (CSV, truth.json, fit.yaml)
+- a whole simulated data set on disk (CSV, truth.json, fit.yaml): :func:`torchcal.app.simulate.simulate_dataset`
 - :class:`MachineTruth`, :func:`simulate_machine_dataset`: Paper I's five-axis machine tool and its data set
 - :class:`SensorTruth`: Paper III's FANUC + SmartTRACK sensor + laser tracker, and the AT targets
 """
 
-from .dataset import default_joint_variances, simulate_dataset
 from .machine_truth import MachineTruth, simulate_machine_dataset
 from .measure import noise_free_points, simulate
 from .sampling import approach_directions, quasi_random_commands
@@ -21,12 +20,10 @@ __all__ = [
     "SensorTruth",
     "TruthRobot",
     "approach_directions",
-    "default_joint_variances",
     "harmonic_limit",
     "noise_free_points",
     "perpendicular_axes",
     "quasi_random_commands",
     "simulate",
-    "simulate_dataset",
     "simulate_machine_dataset",
 ]

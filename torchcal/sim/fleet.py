@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from .. import units
+from ..core import units
 from .truth import TruthRobot
 
 CONSTANT_SPREAD = {"mastering_deg": 0.02, "shift_mm": 0.1, "tilt_deg": 0.01}

@@ -95,8 +95,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import units
-from ..measurements import Measurements
+from ..core import units
+from ..core.measurements import Measurements
 
 AXES = ("X", "Y", "Z", "C", "B")
 PRISMATIC = (True, True, True, False, False)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from ..identify.problem import NoiseModel
-from ..measurements import Measurements, first_invalid_direction
+from ..core.measurements import Measurements, first_invalid_direction
 from .sampling import approach_directions
 from .truth import TruthRobot
 

@@ -32,7 +32,7 @@ def quasi_random_commands(limits, count: int, seed: int, skip: int = 0, shuffle:
     corr(s_i, q_i) up to 0.85). Backlash b_i(q) s_i and the plain error term
     e_i(q) are then confounded. A random visiting order weakens this but does
     not remove it: whatever the order, a high position is more often reached
-    from below (corr ~0.6 per joint). :func:`torchcal.planning.plan_poses`
+    from below (corr ~0.6 per joint). :func:`torchcal.analysis.planning.plan_poses`
     chooses the order itself and gets the correlation down to chance (~0.07);
     use it to plan a measurement session. The sequence order stays available
     (``shuffle=False``) because it is what users with a Sobol or Niederreiter

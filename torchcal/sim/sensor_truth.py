@@ -64,10 +64,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from .. import units
+from ..core import units
 from ..kinematics.robot import Robot
 from ..kinematics.transforms import homogeneous, so3_exp
-from ..measurements import Measurements, first_invalid_direction
+from ..core.measurements import Measurements, first_invalid_direction
 from .sampling import approach_directions, quasi_random_commands
 from .truth import TruthRobot
 

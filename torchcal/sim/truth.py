@@ -1,5 +1,7 @@
 """A simulated physical robot with known truth, built from the error sources of Paper II.
 
+Why one module: one simulated robot written from Paper II's Table 1 (seven error sources plus sources the model lacks); the sources share one chain walk and one set of constants.
+
 Experiments and tests judge calibration against this truth, so it is written
 independently of torchcal's Chebyshev error model: every error source of Paper
 II Table 1 / (4)-(14) is its own exact rigid transform or joint-angle term, and
@@ -77,7 +79,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .. import units
+from ..core import units
 from ..kinematics.fk import chain_frames
 from ..kinematics.joint_map import normalize_error_variable
 from ..kinematics.robot import Robot
@@ -159,7 +161,7 @@ class TruthRobot(nn.Module):
 
     robot: nominal machine; tools: (T, 3) nominal tool vectors in the flange
     frame (m); base_nominal: (4, 4) nominal measurement frame -> robot base
-    (identity by default, as for :class:`torchcal.model.RobotModel`);
+    (identity by default, as for :class:`torchcal.models.robot.RobotModel`);
     error_variable: what each joint's joint-dependent errors follow, 'command'
     (Paper II (24), default) or 'joint' (URDF θ_i), one word or one per joint
     (kept as the list ``error_variable``; it fixes ``ranges`` and the draws of
@@ -575,7 +577,7 @@ class TruthRobot(nn.Module):
     def chebyshev_fit_error(self, order: int = 6, points: int = 1001) -> dict[str, dict[str, list[float]]]:
         """How well an order-``order`` series in λ (24) fits each joint-dependent error function.
 
-        Least-squares Chebyshev fit (numpy, independent of :mod:`torchcal.basis`)
+        Least-squares Chebyshev fit (numpy, independent of :mod:`torchcal.core.basis`)
         of each function over the joint range (``joint_map.joint_ranges()``) on
         ``points`` samples. -> {function: {'max_abs': (n,), 'rel': (n,)}} with
         max_abs in deg (angle terms; mm along prismatic axes) or mm (wobble), and

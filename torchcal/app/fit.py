@@ -1,5 +1,7 @@
 """The fit pipeline behind ``torchcal fit`` and the experiments: config -> run directory.
 
+Why one module: the stages of one fit in Paper II's order (5.5-5.6) and the config -> objects helpers they share; each stage is a function, :func:`run_fit` reads top to bottom.
+
 A thin composition of library calls, in Paper II's order (5.5-5.6); each stage
 is one function of this module, and :func:`run_fit` calls them in turn:
 
@@ -30,7 +32,7 @@ is one function of this module, and :func:`run_fit` calls them in turn:
 9. plots (Figures 12-16), drawn by a second process (:class:`torchcal.io.plots.PlotWorker`)
    that gets each figure as soon as its data exist, while the stages above go on.
 
-Every stage is a progress task (:mod:`torchcal.progress`): the CLI shows a bar on
+Every stage is a progress task (:mod:`torchcal.core.progress`): the CLI shows a bar on
 a terminal and plain lines elsewhere, and run.log gets the lines
 (:mod:`torchcal.io.progress_view`). Everything inside is SI; tables and files are mm and degrees.
 """
@@ -40,27 +42,28 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import torch
-from omegaconf import DictConfig
+from collections.abc import Mapping
 
-from . import threads, units
-from .analysis.stats import percent_decrease, point_residuals, residual_stats
-from .identify import FitResult, NoiseModel, Prior, fit
-from .io.config import ConfigError, check_config
-from .kinematics.transforms import homogeneous, rpy_to_matrix
-from .io.csv import DataError, read_measurements, write_table
-from .io.rundir import make_run_dir, run_log, save_model, write_json
-from .kinematics import load_robot
-from .measurements import Measurements
-from .model import RobotModel
-from .pipeline_common import (  # shared with pipeline_sensor; re-exported here under the old names
+from ..core import threads, units
+from ..analysis.stats import percent_decrease, point_residuals, residual_stats
+from ..identify import FitResult, NoiseModel, Prior, fit
+from .config import ConfigError, check_config
+from ..kinematics.transforms import homogeneous, rpy_to_matrix
+from ..io.csv import DataError, read_measurements, write_table
+from ..io.rundir import make_run_dir, run_log, save_model, write_json
+from ..kinematics import load_robot
+from ..core.measurements import Measurements
+from ..models.robot import RobotModel
+from .files import compensation_kwargs  # the compensation check uses the options predict/compensate use
+from .common import (  # shared with app.sensor; re-exported here under the old names
+    write_run_report,
     STAT_KEYS,
     RunResult,
-    _collect_warnings,
-    _Progress,
-    _row,
+    collect_warnings,
+    Progress,
+    stats_row,
     config_backlash,
     config_compliance,
     config_error_variable,
@@ -70,7 +73,6 @@ from .pipeline_common import (  # shared with pipeline_sensor; re-exported here 
     solver_options,
     write_preamble_files,
 )
-from .progress import task as progress_task
 
 log = logging.getLogger("torchcal")
 
@@ -78,14 +80,14 @@ log = logging.getLogger("torchcal")
 # --------------------------------------------------------------- config -> objects
 def config_tools(cfg) -> torch.Tensor | None:
     """Tool vectors (T, 3) in metres from the config's mm; None when the config only counts them ({count: T})."""
-    if isinstance(cfg.tools, (dict, DictConfig)):
+    if isinstance(cfg.tools, Mapping):
         return None
     return units.mm_to_m(torch.tensor([[float(v) for v in t] for t in cfg.tools], dtype=torch.float64))
 
 
 def config_tool_count(cfg) -> int:
     """T: the number of tool configurations (listed vectors or tools.count)."""
-    return int(cfg.tools["count"]) if isinstance(cfg.tools, (dict, DictConfig)) else len(cfg.tools)
+    return int(cfg.tools["count"]) if isinstance(cfg.tools, Mapping) else len(cfg.tools)
 
 
 def config_frame(cfg) -> tuple[str, torch.Tensor | None]:
@@ -95,7 +97,7 @@ def config_frame(cfg) -> tuple[str, torch.Tensor | None]:
     A given frame {xyz_mm, rpy_deg} is the robot base in the measurement frame: p = Rot(rpy) p_base + xyz.
     """
     f = cfg.measurement_frame
-    if isinstance(f, (dict, DictConfig)):
+    if isinstance(f, Mapping):
         rpy = units.deg_to_rad(torch.tensor([float(v) for v in f["rpy_deg"]], dtype=torch.float64))
         xyz = units.mm_to_m(torch.tensor([float(v) for v in f["xyz_mm"]], dtype=torch.float64))
         return "given", homogeneous(rpy_to_matrix(rpy), xyz)
@@ -115,7 +117,7 @@ def config_alignment(cfg, robot, data: Measurements, label: str = "config"):
     dev = data.xyz.device
     if tools_m is not None and mode != "estimate":
         return tools_m.to(dev), frame.to(dev), None
-    from .identify.alignment import AlignmentError, align
+    from ..identify.alignment import AlignmentError, align
 
     try:
         res = align(robot, data, T, None if tools_m is None else tools_m.to(dev),
@@ -147,7 +149,7 @@ class ModelFactory:
 
 
 class MachineFactory:
-    """make(orders) -> a fresh all-zero :class:`torchcal.machine.MachineModel` (Paper I) on ``device``.
+    """make(orders) -> a fresh all-zero :class:`torchcal.models.machine.MachineModel` (Paper I) on ``device``.
 
     orders: an int (every table) or one order per INPUT axis j (the order of every f_ij(q_j)).
     """
@@ -160,7 +162,7 @@ class MachineFactory:
         self.base_nominal = None if base_nominal is None else base_nominal.detach().cpu()
 
     def __call__(self, orders, backlash="default"):
-        from .machine import MachineModel
+        from ..models.machine import MachineModel
 
         if not isinstance(orders, int):
             orders = [int(o) for o in orders]
@@ -199,8 +201,8 @@ def table6(evaluations: dict[str, dict]) -> list[dict]:
     """Paper II Table 6 rows: per data set, nominal then modeled (mm), with percent decrease against nominal."""
     rows = []
     for set_name, ev in evaluations.items():
-        rows.append(_row(set_name, "Nominal", ev["nominal_stats"], None))
-        rows.append(_row(set_name, "Modeled", ev["modeled_stats"], ev["nominal_stats"]))
+        rows.append(stats_row(set_name, "Nominal", ev["nominal_stats"], None))
+        rows.append(stats_row(set_name, "Modeled", ev["modeled_stats"], ev["nominal_stats"]))
     return rows
 
 
@@ -222,8 +224,8 @@ def compensation_check(model, truth, data: Measurements, noise: NoiseModel | Non
     (R,) m residual of the measurements at the compensated commands against
     :func:`compensation_targets`, 'measured': Measurements at the compensated commands}.
     """
-    from .compensate import compensate
-    from .sim import simulate
+    from ..compensate import compensate
+    from ..sim import simulate
 
     direction = data.direction if data.has_direction else None
     res = compensate(model, data.q, direction, **options)
@@ -291,7 +293,7 @@ def load_inputs(cfg) -> FitInputs:
     """
     label = cfg.config_file or "config"
     notes: list[str] = []  # warnings while reading (a URDF joint without <axis>, a European CSV), for the run log
-    with _collect_warnings(notes):
+    with collect_warnings(notes):
         robot = load_robot(cfg.robot)
     check_config(cfg, label, robot.joint_map.n)
     device = torch.device(cfg.device)
@@ -306,23 +308,11 @@ def load_inputs(cfg) -> FitInputs:
         if missing and script is not None and script.is_file():  # an experiment's config: its script writes the data
             exc.args = (f"{exc}\n  this config's data are written by its experiment: run `python {script}` first",)
         raise
-    if cfg.model.kind == "axis_perturbation":
-        for key, bad, why in (("model.order", isinstance(cfg.model.order, str) and int(cfg.model.folds) > 0,
-                               "auto on a machine tool chooses by leave-one-pose-out or the validation set "
-                               "(model.folds: 0)"),
-                              ("data.truth", bool(cfg.data.truth), "the compensation check simulates robots; run "
-                               "experiments/paper1_machine_tool for machine tools"),
-                              ("model.compliance", cfg.model.compliance not in (False, None),
-                               "gravity compliance belongs to model.kind=joint_dependent")):
-            if bad:
-                raise ConfigError(f"{label}: key '{key}': not with model.kind=axis_perturbation: {why}")
     truth = None
     if cfg.data.truth:
-        from .io.truth import load_truth
+        from ..io.truth import load_truth
 
         truth = load_truth(cfg.data.truth, robot).to(device)
-        if val is None:
-            raise ConfigError(f"{label}: key 'data.truth': the compensation check runs on the validation set; set data.validation")
     return FitInputs(robot, T, noise, joint_variance_source(cfg, robot), config_prior(cfg), solver_options(cfg),
                      ident, val, truth, device, label, notes)
 
@@ -331,13 +321,13 @@ def read_sets(cfg, robot, T: int, identification, validation, notes: list[str], 
     """The identification and (optional) validation files of a config -> (ident, val or None) on ``device``,
     with ``data.n_poses`` applied and the unit-slip checks (unless ``data.units_checked``); warnings go to
     ``notes``. Raises DataError naming the file, row and column."""
-    with _collect_warnings(notes):
+    with collect_warnings(notes):
         ident = read_measurements(identification, robot, T).to(device)
         val = read_measurements(validation, robot, T).to(device) if validation else None
-    if cfg.data.get("n_poses") is not None:
+    if cfg.data.n_poses is not None:
         ident = first_poses(ident, int(cfg.data.n_poses), label)
-    if not cfg.data.get("units_checked", False):
-        from .io.unit_checks import check_point_scale, radian_columns, radian_message
+    if not cfg.data.units_checked:
+        from ..io.unit_checks import check_point_scale, radian_columns, radian_message
 
         for d in (ident, val):
             if d is None:
@@ -359,7 +349,7 @@ def align_inputs(cfg, inp: FitInputs):
     return config_alignment(cfg, inp.robot, inp.ident, inp.label)
 
 
-def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: _Progress, files: dict) -> None:
+def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: Progress, files: dict) -> None:
     """Stage 3, start the run directory: config.yaml, versions.json, what was read (and how), alignment.json."""
     write_preamble_files(run_dir, cfg, inp.device, files)
     progress.info(f"run directory {run_dir}")
@@ -385,7 +375,7 @@ def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: _Pro
         progress.warn("the alignment refinement did not converge; see alignment.json")
 
 
-def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress, files: dict):
+def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: Progress, files: dict):
     """Stage 4, build: the Chebyshev orders per joint -> (orders, OrderSelection or None).
 
     ``model.order: auto`` searches them (validation set, else leave-one-pose-out or K-fold CV) and writes
@@ -397,14 +387,14 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress,
         if make.backlash is True and inp.ident.has_direction:
             # backlash on without an order: its order follows the data (identifiable where directions do not
             # follow positions), never eps_z's order blindly
-            from .identify.backlash import default_backlash_orders
+            from ..identify.backlash import default_backlash_orders
 
             make.backlash, r2 = default_backlash_orders(orders, inp.ident.q, inp.ident.direction,
                                                         inp.robot.joint_map.limits.to(inp.ident.q))
             progress.info(f"backlash orders {make.backlash}: direction explained by position R² "
                           + ", ".join(f"{x:.2f}" for x in r2) + " (below 0.1: the joint's order, at most 3; else 2)")
         return orders, None
-    from .identify.order import select_orders  # "auto": check_config allows no other string
+    from ..identify.order import select_orders  # "auto": check_config allows no other string
 
     folds = int(cfg.model.folds)
     how = ("validation set" if inp.val is not None else
@@ -419,7 +409,7 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress,
               "table": [{**r, "score_mm": units.m_to_mm(r["score"])} for r in selection.table]}
     if make.backlash is True and inp.ident.has_direction:
         # backlash switched on without an order: its own order is chosen too, after the joints' (never tied to eps_z's)
-        from .identify.backlash import select_backlash_orders
+        from ..identify.backlash import select_backlash_orders
 
         with progress.step("choosing the backlash orders") as p:
             bsel = select_backlash_orders(make, orders, inp.ident, inp.val, inp.noise, inp.prior, folds=folds,
@@ -434,7 +424,7 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: _Progress,
     return orders, selection
 
 
-def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: _Progress, files: dict) -> FitResult:
+def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: Progress, files: dict) -> FitResult:
     """Stage 5, fit: identify ``model`` in place and write model.pt and fit.json at once (a later failure loses nothing)."""
     opts = inp.opts
     with progress.step(f"identifying the model (orders {orders}, {opts['method']})") as p:
@@ -456,7 +446,7 @@ def structural_pins(make, orders, inp: FitInputs, poses: int | None = None, seed
     commands over the controller range, both approach directions at random, every tool; its pinned
     names are what any data set pins. What a fit pins beyond them, its data cannot determine.
     """
-    from .identify import CalibrationProblem, fix_gauge
+    from ..identify import CalibrationProblem, fix_gauge
 
     model = make(orders)
     dev = inp.ident.q.device
@@ -484,7 +474,7 @@ def _names_short(names: list[str], limit: int = 12) -> str:
     return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
-def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, progress: _Progress) -> dict:
+def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, progress: Progress) -> dict:
     """Stage 6, what the identification data cannot determine; each finding is a warning (console, run log, metrics).
 
     - tools of the config never measured in the identification file;
@@ -542,7 +532,7 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
         # backlash vs position in these data: how far the directions follow the positions (quasi-random poses
         # measured in sequence order), and how well each backlash coefficient is told from the position terms
         try:
-            from .analysis.confounding import backlash_confounding
+            from ..analysis.confounding import backlash_confounding
 
             rep = backlash_confounding(ident, model=model, noise=inp.noise)
             out["confounding"] = rep.to_dict()
@@ -572,10 +562,11 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
                               f"(fit.json 'pinned_names'): {_names_short(extra)}. Spread the poses over the joint "
                               "ranges and measure every tool, or lower model.order")
     try:  # what is left free but barely determined: torchcal.analysis.identifiability at the solution
-        from .analysis.identifiability import identifiability
+        from ..analysis.identifiability import identifiability
 
         ia = identifiability(model, ident, inp.noise, inp.prior, pinned=result.pinned, v=result.v)
         combos = ia.undetermined
+        out["_uncertainty"] = parameter_uncertainty(ia)  # written as parameters.csv by the caller
     except Exception as exc:  # a diagnostic must not cost the run
         log.warning("identifiability check skipped: %s: %s", type(exc).__name__, exc)
         combos = []
@@ -589,7 +580,19 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
     return out
 
 
-def evaluate_sets(inp: FitInputs, model, progress: _Progress) -> tuple[dict, dict, list[dict]]:
+def parameter_uncertainty(ia) -> list[dict]:
+    """Each free parameter's value and Laplace standard deviation (:class:`torchcal.analysis.identifiability.
+    Identifiability`, at the solution, joint errors marginalized, prior included), in mm / deg: the rows of
+    ``parameters.csv``. Entries the gauge pinned are not free and have no row (fit.json lists them)."""
+    scale = {"angle": ("deg", units.rad_to_deg), "length": ("mm", units.m_to_mm)}
+    rows = []
+    for name, role, kind, x, s in zip(ia.names, ia.layout.roles(), ia.layout.kinds(), ia.x.tolist(), ia.std.tolist()):
+        unit, conv = scale.get(kind, ("1", float))
+        rows.append({"name": name, "role": role, "unit": unit, "value": conv(x), "std": conv(s)})
+    return rows
+
+
+def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict, list[dict]]:
     """Stage 7, evaluate: nominal and modeled residuals of every set -> (sets, evaluations, Table 6 rows).
 
     Warns when the nominal residual is beyond any plausible calibration error
@@ -627,7 +630,7 @@ def fit_metrics(orders, selection, result: FitResult, alignment, sets: dict, eva
     }
 
 
-def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: dict, progress: _Progress):
+def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: dict, progress: Progress):
     """Stage 8, compensate-check (simulated data with a truth): Table 7 -> (rows, compensation_check dict).
 
     Adds 'table7' and 'compensation' to ``metrics``.
@@ -640,9 +643,9 @@ def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: d
     flagged = int((~res.converged | ~res.within_limits).sum())
     ns = evaluations["Validation"]["nominal_stats"]
     cs = residual_stats(comp["compensated"]).scaled(units.m_to_mm(1.0))
-    rows = [_row("Validation", "Nominal", ns, None),
-            _row("Validation", "Modeled", evaluations["Validation"]["modeled_stats"], ns),
-            _row("Validation", "Compensated", cs, ns)]
+    rows = [stats_row("Validation", "Nominal", ns, None),
+            stats_row("Validation", "Modeled", evaluations["Validation"]["modeled_stats"], ns),
+            stats_row("Validation", "Compensated", cs, ns)]
     metrics["table7"] = rows
     ok = (res.converged & res.within_limits).cpu()
     metrics["compensation"] = {**res.summary(), "flagged": flagged, "compensated": vars(cs),
@@ -657,7 +660,7 @@ def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: d
 
 # ------------------------------------------------------------------- the run
 def run_fit(cfg, console=None) -> RunResult:
-    """Run one calibration from a config (see :mod:`torchcal.io.config`) and write its run directory.
+    """Run one calibration from a config (see :mod:`torchcal.app.config`) and write its run directory.
 
     console: a rich Console for progress (None: quiet, the run log still records
     everything). Raises DataError / URDFError / ConfigError for bad inputs,
@@ -666,16 +669,16 @@ def run_fit(cfg, console=None) -> RunResult:
     (the CLI prints where the partial run is).
 
     Example:
-        >>> from torchcal.io.config import load_config
+        >>> from torchcal.app.config import load_config
         >>> result = run_fit(load_config("data/fanuc/fit.yaml", ["model.order=2"]))   # doctest: +SKIP
         >>> result.metrics["sets"]["validation"]["modeled"]["mean"]                  # doctest: +SKIP
         0.0123
     """
-    from .io.progress_view import showing
+    from ..io.progress_view import showing
 
     # every stage is a progress task: a bar on a terminal, plain lines (and a heartbeat) elsewhere and in run.log
     with showing(console):
-        if cfg.threads is None:  # each stage picks its threads by work size (torchcal.threads)
+        if cfg.threads is None:  # each stage picks its threads by work size (torchcal.core.threads)
             return _run_fit(cfg, console)
         old = threads.get_override()
         threads.set_threads(int(cfg.threads))
@@ -688,12 +691,12 @@ def run_fit(cfg, console=None) -> RunResult:
 def _run_fit(cfg, console=None) -> RunResult:
     """The stages in order: load, align, (run directory), build / select orders, fit, check data, evaluate,
     compensate-check, plots; each writes its files as soon as it has them. Sensor configs (Paper III) take
-    :func:`torchcal.pipeline_sensor.run_sensor_fit`."""
+    :func:`torchcal.app.sensor.run_sensor_fit`."""
     if cfg.sensor.kind is not None:
-        from .pipeline_sensor import run_sensor_fit
+        from .sensor import run_sensor_fit
 
         return run_sensor_fit(cfg, console)
-    from .io.plots import PlotWorker
+    from ..io.plots import PlotWorker
 
     # the figures are drawn by a second process (numpy + matplotlib) while the stages below compute
     plotter = PlotWorker() if cfg.plots else None
@@ -707,7 +710,7 @@ def _run_fit(cfg, console=None) -> RunResult:
 def _run_stages(cfg, console, plotter) -> RunResult:
     """:func:`_run_fit`'s stages; ``plotter``: a :class:`torchcal.io.plots.PlotWorker` that gets each figure
     as soon as its data exist, or None (plots: false)."""
-    progress = _Progress(console)
+    progress = Progress(console)
     with progress.step("reading the robot and the data", quiet=True):
         inp = load_inputs(cfg)
     with progress.step("estimating the tool vectors / measurement frame", quiet=True):
@@ -725,7 +728,7 @@ def _run_stages(cfg, console, plotter) -> RunResult:
                 model = make(orders)
                 result = identify_model(cfg, inp, model, orders, run_dir, progress, files)
             else:
-                from .pipeline_constraint import identify_constrained
+                from .constraint import identify_constrained
 
                 model, result, constraint = identify_constrained(cfg, inp, make, orders, run_dir, progress, files)
             plot_folder = run_dir / "plots"
@@ -751,222 +754,24 @@ def _run_stages(cfg, console, plotter) -> RunResult:
                     _submit_plots(plotter, plot_folder, comp=comp)
             with progress.step("checking what the data determine", quiet=True):
                 metrics["data_checks"] = check_data(cfg, inp, model, make, orders, result, progress)
+                uncertainty = metrics["data_checks"].pop("_uncertainty", None)
+                if uncertainty:
+                    import pandas as pd
+
+                    files["parameters"] = write_table(run_dir / "parameters.csv", pd.DataFrame(uncertainty))
             metrics["warnings"] = progress.warnings
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
             if plotter is not None:
                 with progress.step("plotting") as p:  # waits for the figures drawn meanwhile
                     files.update(plotter.finish(p.task))
             progress.info(f"done: {run_dir}")
+        if cfg.report:  # after run_log: the run is complete (no PARTIAL marker) and its log whole
+            with progress.step("writing the calibration report", quiet=True):
+                write_run_report(run_dir, files, progress)
     except KeyboardInterrupt as exc:
         exc.run_dir = run_dir  # the CLI names the partial run directory
         raise
     return RunResult(run_dir, model, result, metrics, table, comp_table, orders, selection, files, progress.warnings)
-
-
-def _refuse_radians(path, data: Measurements, robot, units_checked: bool) -> None:
-    """Commands that look like radians would be driven as degrees: refuse unless the user says they are degrees."""
-    if units_checked:
-        return
-    from .io.unit_checks import OVERRIDE, UnitsError, radian_columns, radian_message
-
-    rad = radian_columns(data.q, robot)
-    if rad:
-        raise UnitsError(radian_message(path, data.q, robot, rad) + f"; pass {OVERRIDE} if they really are degrees")
-
-
-def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> int:
-    """``torchcal predict``: the points x, y, z (mm, measurement frame) an identified model predicts for
-    the commands of a CSV (tool, q1..qN [, dir1..dirN]); other columns are kept, measured x, y, z replaced.
-    A file without a 'tool' column (``torchcal plan-poses`` writes commands only) gets every tool of the
-    run for every row, tool by tool, with the 'tool' column added.
-
-    -> the number of rows written. Raises RunDirError / DataError naming the folder or file.
-    """
-    from .io.csv import points_to_file, read_table
-    from .io.rundir import RunDirError, load_model
-
-    with progress_task(f"loading the run {run_dir}"):
-        model = load_model(run_dir, device=device)
-    from .contract import PredictsPoints, implements, require
-
-    if not implements(model, PredictsPoints) and hasattr(model, "sensor_pose"):
-        from .pipeline_sensor import predict_pose_file  # a sensor run (Paper III): modeled x, y, z, r11..r33
-
-        with progress_task(f"predicting the sensor poses of {input}"):
-            return predict_pose_file(run_dir, input, output, model)
-    try:
-        require(model, "predict points", f"torchcal predict {run_dir}")
-    except TypeError as exc:
-        raise RunDirError(str(exc)) from None
-    import pandas as pd
-
-    from .io.csv import parse_table
-
-    T = model.tools.count
-    with progress_task(f"reading {input}"):
-        data, df = read_table(input, model.robot, None, require_xyz=False)
-        per_tool = "tool" not in df.columns
-        if not per_tool:  # the rows name their tools: checked against the run's
-            data = parse_table(df, input, model.robot, T, require_xyz=False)
-    _refuse_radians(input, data, model.robot, units_checked)
-    data = data.to(model.device)
-    # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
-    tools = range(T) if per_tool else [None]
-    parts = []
-    with torch.no_grad(), progress_task(f"predicting {len(df) * len(tools)} rows"):
-        for t in tools:
-            tool = data.tool if t is None else torch.full_like(data.tool, t)
-            mm = points_to_file(model.points(data.q, tool, data.direction if data.has_direction else None))
-            out = df.copy()
-            if t is not None:
-                out.insert(1 if "pose" in out.columns else 0, "tool", t)
-            for i, c in enumerate(("x", "y", "z")):
-                out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
-            parts.append(out)
-    out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
-    write_table(output, out)
-    return len(out)
-
-
-@dataclass
-class CompensationFile:
-    """What :func:`compensate_file` wrote: row count and how many rows are flagged, and why."""
-
-    rows: int
-    not_converged: int
-    outside_limits: int
-    flagged: int
-    direction_outside: int
-    result: Any = field(default=None, repr=False)
-
-
-def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
-                             max_correction_deg: float | None = None, prismatic=None) -> dict:
-    """Keyword arguments for compensate(): the given values, else the run's config, else compensate()'s defaults.
-
-    max_correction_deg: the correction (and step) bound, deg for revolute joints and the same number in mm for
-    prismatic ones (``prismatic``: (n,) bool), as an (n,) SI tensor.
-    """
-    from .io.rundir import load_run_config
-
-    try:
-        comp = load_run_config(run_dir).get("compensation", None) or {}
-    except Exception:  # a run folder without (or with an older) config.yaml still compensates
-        comp = {}
-    out = compensation_kwargs(tol_deg if tol_deg is not None else comp.get("tol_deg"),
-                              max_iter if max_iter is not None else comp.get("max_iter"))
-    if max_correction_deg is not None:
-        if prismatic is None:
-            bound = units.deg_to_rad(float(max_correction_deg))
-        else:
-            bound = units.joint_scale(torch.as_tensor(prismatic).cpu()) * float(max_correction_deg)
-        out.update(max_correction=bound, max_step=bound)
-    return out
-
-
-def compensate_file(run_dir, input, output, device=None, tol_deg: float | None = None, max_iter: int | None = None,
-                    max_correction_deg: float | None = None, units_checked: bool = False) -> CompensationFile:
-    """``torchcal compensate``: compensated commands for every row of a CSV (q1..qN [, dir1..dirN], deg / mm).
-
-    Writes q1..qN compensated plus converged, iterations, within_limits,
-    max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside]; every
-    input row is kept, in order, other columns too. Raises RunDirError /
-    DataError naming the folder or file.
-    """
-    from .compensate import compensate
-    from .io.csv import joint_columns, joints_to_file, read_table, write_table
-    from .io.rundir import load_model
-
-    from .contract import require
-    from .io.rundir import RunDirError
-
-    with progress_task(f"loading the run {run_dir}"):
-        model = load_model(run_dir, device=device)
-    try:  # the model contract: machine tools and sensor rigs have no joint-error Newton solve
-        require(model, "compensate commands", f"torchcal compensate {run_dir}")
-    except TypeError as exc:
-        raise RunDirError(str(exc)) from None
-    robot = model.robot
-    with progress_task(f"reading {input}"):
-        data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
-    _refuse_radians(input, data, robot, units_checked)
-    from .io.csv import target_kind
-
-    if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
-        return _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg)
-    data = data.to(model.device)
-    opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
-    with progress_task(f"compensating {len(df)} commands"):
-        res = compensate(model, data.q, data.direction if data.has_direction else None, **opts)
-    q_file = joints_to_file(res.q, robot)
-    out = df.copy()
-    for i, c in enumerate(joint_columns(robot.joint_map.n)):
-        out[c] = q_file[:, i]  # every row kept, in input order; failures are marked below
-    out["converged"] = res.converged.cpu().numpy()
-    out["iterations"] = res.iterations.cpu().numpy()
-    out["within_limits"] = res.within_limits.cpu().numpy()
-    # largest correction in file units (deg / mm): a flagged or large one is visible per row
-    out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
-    if res.direction_outside is not None:
-        out["direction_outside"] = res.direction_outside.cpu().numpy()
-    out["reason"] = res.reasons(opts.get("max_correction"), robot.joint_map.prismatic)
-    write_table(output, out)
-    nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
-    return CompensationFile(len(df), nc, ol, int((~res.converged | ~res.within_limits).sum()),
-                            0 if res.direction_outside is None else int(res.direction_outside.sum()), res)
-
-
-def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,
-                             max_correction_deg) -> CompensationFile:
-    """``torchcal compensate`` on Cartesian targets (x, y, z mm; rx, ry, rz deg or qw, qx, qy, qz; robot base
-    frame; q1..qN the seeds on the controller's branch; tool optional, default 0): writes q1..qN calibrated,
-    x_cmd .. rz_cmd the corrected target for a controller that runs nominal IK with its nominal tool data,
-    converged, within_limits, max_dq (against the nominal IK's commands) and reason (empty when converged)."""
-    from .compensate.targets import compensate_targets, pose_rpy, target_poses
-    from .io.csv import joint_columns, joints_to_file, parse_table, read_targets
-
-    robot = model.robot
-    if "tool" in df.columns:  # checked against the run's tools
-        data = parse_table(df, input, robot, model.tools.count, require_xyz=False, require_pose=False)
-    _, pos, ori = read_targets(df, input)
-    T = target_poses(pos, ori).to(model.device)
-    data = data.to(model.device)
-    with progress_task(f"compensating {len(df)} Cartesian targets"):
-        res = compensate_targets(model, T, data.q, data.tool, data.direction if data.has_direction else None,
-                                 **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg,
-                                                            robot.joint_map.prismatic))
-    q_file = joints_to_file(res.q, robot)
-    out = df.copy()
-    for i, c in enumerate(joint_columns(robot.joint_map.n)):
-        out[c] = q_file[:, i]
-    cmd = pose_rpy(res.command_target).cpu()
-    for i, c in enumerate(("x_cmd", "y_cmd", "z_cmd")):
-        out[c] = units.m_to_mm(cmd[:, i]).numpy()
-    for i, c in enumerate(("rx_cmd", "ry_cmd", "rz_cmd")):
-        out[c] = units.rad_to_deg(cmd[:, 3 + i]).numpy()
-    comp = res.compensation
-    out["converged"] = res.converged.cpu().numpy()
-    out["within_limits"] = comp.within_limits.cpu().numpy()
-    out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
-    out["reason"] = res.reason
-    write_table(output, out)
-    flagged = int((~res.converged).sum())
-    return CompensationFile(len(df), int((~comp.converged).sum()), int((~comp.within_limits).sum()), flagged,
-                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp)
-
-
-def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:
-    """Keyword arguments for :func:`torchcal.compensate.compensate`: tolerance deg -> rad; None keeps its defaults.
-
-    The tolerance is a joint-space step norm; like the paper's (51) it is one
-    number for all joints (read as mm for prismatic ones, converted the same way).
-    """
-    out = {}
-    if tol_deg is not None:
-        out["tol"] = units.deg_to_rad(float(tol_deg))
-    if max_iter is not None:
-        out["max_iter"] = int(max_iter)
-    return out
 
 
 def _write_residuals(path: Path, sets: dict, evaluations: dict) -> Path:
@@ -986,7 +791,7 @@ def _write_residuals(path: Path, sets: dict, evaluations: dict) -> Path:
 def _submit_plots(plotter, folder: Path, model=None, evaluations: dict | None = None, comp: dict | None = None) -> None:
     """Hand the figures whose data exist to ``plotter`` (:class:`torchcal.io.plots.PlotWorker`): Figure 12 with the
     model, Figures 13-15 with the evaluations, Figure 16 with the compensation check."""
-    from .io import plots
+    from ..io import plots
 
     if isinstance(model, RobotModel):
         plotter.submit("plot_joint_errors", "joint_errors", folder / "joint_errors.png", plots.joint_errors_figure(model))
@@ -1024,7 +829,6 @@ __all__ = [
     "structural_pins",
     "write_preamble",
     "compensation_check",
-    "compensation_kwargs",
     "compensation_targets",
     "config_alignment",
     "config_frame",
@@ -1034,9 +838,10 @@ __all__ = [
     "config_tools",
     "evaluate",
     "model_factory",
-    "predict_file",
     "read_sets",
     "run_fit",
     "solver_options",
     "table6",
+    "parameter_uncertainty",
+    "write_run_report",
 ]

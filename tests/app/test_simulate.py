@@ -6,11 +6,12 @@ import pytest
 import torch
 
 from conftest import PAPER2_TOOLS_MM
-from torchcal.io.config import ConfigError
+from torchcal.app.config import ConfigError
 from torchcal.io.csv import read_measurements
 from torchcal.io.truth import load_truth, truth_noise
-from torchcal.sim import TruthRobot, default_joint_variances, simulate_dataset
-from torchcal.sim.dataset import PAPER2_TOOLS_MM as DATASET_TOOLS_MM
+from torchcal.app.simulate import default_joint_variances, simulate_dataset
+from torchcal.sim import TruthRobot
+from torchcal.app.simulate import PAPER2_TOOLS_MM as DATASET_TOOLS_MM
 
 
 def test_writes_the_data_set_and_records_the_error_variable(fanuc, tmp_path):

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from torchcal.io.config import ConfigError, check_config, load_config, make_config
+from torchcal.app.config import ConfigError, check_config, load_config, make_config
 
 MINIMAL = """\
 robot: fanuc_lrmate200i
@@ -144,7 +144,7 @@ def test_unknown_tools_and_measurement_frame(cfg_file):
     """tools: {count: T} and measurement_frame: auto / base / estimate / {xyz_mm, rpy_deg}; overrides replace them."""
     import torch
 
-    from torchcal.pipeline import config_frame, config_tool_count, config_tools
+    from torchcal.app.fit import config_frame, config_tool_count, config_tools
 
     cfg = load_config(cfg_file)
     assert cfg.measurement_frame == "auto" and config_tool_count(cfg) == 2
@@ -199,7 +199,7 @@ def test_joint_variances_both_or_neither_and_error_variable(cfg_file):
 
 
 def test_config_error_is_a_torchcal_error():
-    from torchcal.exceptions import TorchcalError
+    from torchcal.core.exceptions import TorchcalError
 
     assert issubclass(ConfigError, TorchcalError) and issubclass(ConfigError, ValueError)
 
@@ -238,14 +238,14 @@ def test_sensor_run_needs_no_tools_and_checks_gravity(tmp_path):
     assert cfg.tools is None and cfg.sensor.mount == "estimate"
     with pytest.raises(ConfigError, match="sensor.gravity.*norm"):
         load_config(p, ["sensor.gravity=[0, 0.1, -1]"])
-    assert load_config(p, ["sensor.gravity=[0, 0, -1]"]).sensor.gravity == [0, 0, -1]
+    assert load_config(p, ["sensor.gravity=[0, 0, -1]"]).sensor.gravity == (0, 0, -1)  # the frozen config holds tuples
     with pytest.raises(ConfigError, match="key 'tools'"):
         load_config(p, ["tools=[[0, 0, 100]]"])
     with pytest.raises(ConfigError, match="sensor.kind"):
         load_config(p, ["sensor.kind=camera"])
     # an override replaces the mount wholesale (a word and a mapping never merge)
     cfg = load_config(p, ["sensor.mount={xyz_mm: [0, 0, 50], rpy_deg: [0, 0, 0]}"])
-    assert cfg.sensor.mount.xyz_mm == [0, 0, 50]
+    assert cfg.sensor.mount["xyz_mm"] == (0, 0, 50)  # a mapping of tuples in the frozen config
 
 
 def test_sensor_gravity_pointing_up_is_reported_as_given(tmp_path):
@@ -253,7 +253,7 @@ def test_sensor_gravity_pointing_up_is_reported_as_given(tmp_path):
     not negated into the level's 'up' vector (which once read "gravity [..., -0.8] must point up")."""
     p = tmp_path / "fit.yaml"
     p.write_text(SENSOR)
-    assert load_config(p, ["sensor.gravity=[0, 0.6, -0.8]"]).sensor.gravity == [0, 0.6, -0.8]
+    assert load_config(p, ["sensor.gravity=[0, 0.6, -0.8]"]).sensor.gravity == (0, 0.6, -0.8)
     with pytest.raises(ConfigError) as err:
         load_config(p, ["sensor.gravity=[0, 0.6, 0.8]"])
     msg = str(err.value)
@@ -267,3 +267,44 @@ def test_point_target_run_still_needs_tools(cfg_file):
     cfg_file.write_text(MINIMAL.replace("tools:\n  - [33.06, 57.73, 161.22]\n  - [57.26, -33.86, 161.22]\n", ""))
     with pytest.raises(ConfigError, match="key 'tools'.*required"):
         load_config(cfg_file)
+
+
+def test_the_config_is_frozen_typed_and_round_trips_through_its_yaml(tmp_path):
+    """What a run gets is a frozen dataclass (no stage can change it behind another's back), per-joint lists
+    are tuples, and the YAML a run directory keeps reads back to an equal config."""
+    import dataclasses
+
+    from torchcal.app.config import FitConfig, config_from_text, to_yaml, updated
+
+    cfg = make_config({"robot": "fanuc_lrmate200i", "tools": [[0, 0, 100], [50, 0, 80]],
+                       "data": {"identification": "ident.csv"}}, ["model.order=[1,2,3,4,5,6]"], base_dir=tmp_path)
+    assert isinstance(cfg, FitConfig) and cfg.model.order == (1, 2, 3, 4, 5, 6)
+    assert cfg.tools == ((0, 0, 100), (50, 0, 80))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.out = "elsewhere"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.model.order = 4
+    assert config_from_text(to_yaml(cfg)) == cfg
+    variant = updated(cfg, {"out": str(tmp_path / "cell"), "data.n_poses": 5})
+    assert (variant.out, variant.data.n_poses, cfg.data.n_poses) == (str(tmp_path / "cell"), 5, None)
+    with pytest.raises(ConfigError, match="unknown config key 'data.n_pose'"):
+        updated(cfg, {"data.n_pose": 5})
+    with pytest.raises(ConfigError, match="model.order"):  # a variant is checked like a file
+        updated(cfg, {"model.order": 99})
+
+
+@pytest.mark.parametrize("values, key", [
+    ({"data": {"identification": "i.csv", "truth": "t.json"}}, "data.truth"),  # no validation set
+    ({"model": {"kind": "axis_perturbation", "compliance": True}}, "model.compliance"),
+    ({"model": {"kind": "axis_perturbation", "order": "auto", "folds": 5}}, "model.order"),
+    ({"sensor": {"kind": "pose"}, "tools": None, "data": {"identification": "i.csv", "validation": "v.csv",
+                                                         "truth": "t.json"}}, "data.truth"),
+    ({"sensor": {"kind": "pose"}, "tools": None, "model": {"order": "auto", "folds": 3}}, "model.order"),
+])
+def test_keys_that_exclude_each_other_are_refused_when_the_config_is_read(values, key, tmp_path):
+    """Cross-key conflicts are the config check's, at parse time, naming the key: no stage finds them later,
+    after the robot and the data were read (the files named here do not even exist)."""
+    base = {"robot": "fanuc_lrmate200i", "tools": [[0, 0, 100]], "data": {"identification": "i.csv"}}
+    merged = {**base, **values}
+    with pytest.raises(ConfigError, match=f"key '{key}'"):
+        make_config(merged, base_dir=tmp_path)

@@ -46,22 +46,22 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     see :func:`torchcal.sim.sampling.quasi_random_commands`).
     -> name -> path of the files written.
 
-    Bad options raise :class:`torchcal.exceptions.ConfigError` (also importable from :mod:`torchcal.io.config`).
+    Bad options raise :class:`torchcal.core.exceptions.ConfigError` (also importable from :mod:`torchcal.app.config`).
     """
     import torch
     import yaml
 
-    from .. import units
+    from ..core import units
     from ..identify import NoiseModel
-    from ..exceptions import ConfigError
+    from ..core.exceptions import ConfigError
     from ..io.atomic import atomic_write_text
     from ..io.csv import write_measurements
     from ..io.truth import save_truth
     from ..kinematics import load_robot
     from ..kinematics.joint_map import normalize_error_variable
-    from .measure import simulate
-    from .sampling import quasi_random_commands
-    from .truth import TruthRobot
+    from ..sim.measure import simulate
+    from ..sim.sampling import quasi_random_commands
+    from ..sim.truth import TruthRobot
 
     out_dir = Path(out_dir)
     names = {"identification": "identification.csv", "validation": "validation.csv", "truth": "truth.json", "config": "fit.yaml"}
@@ -78,7 +78,7 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     rob = load_robot(robot)
     n = rob.joint_map.n
     # fit.yaml must pass `torchcal fit`'s own check: the same rule, not a copy of it
-    from ..io.config import make_config
+    from .config import make_config
 
     make_config({"robot": rob.name, "tools": PAPER2_TOOLS_MM, "data": {"identification": names["identification"]},
                  "model": {"order": order}}, label="--order", base_dir=out_dir)

@@ -21,12 +21,12 @@ from pathlib import Path
 
 import torch
 
-from . import units
-from .identify import FitResult
-from .identify.constrained import ConstraintError, auto_constraint, fit_constrained
-from .identify.slope import slope_model
-from .io.config import ConfigError
-from .io.rundir import save_model, write_json
+from ..core import units
+from ..identify import FitResult
+from ..identify.constrained import ConstraintError, auto_constraint, fit_constrained
+from ..identify.slope import slope_model
+from .config import ConfigError
+from ..io.rundir import save_model, write_json
 
 log = logging.getLogger("torchcal")
 

@@ -36,22 +36,21 @@ from pathlib import Path
 
 import torch
 
-from . import threads
-from .identify.online import STRATEGIES, OnlineCalibration, OnlineStep
-from .io.atomic import atomic_path, atomic_write_text
-from .io.config import ConfigError, to_yaml
-from .io.rundir import (
+from ..core import threads
+from ..identify.online import STRATEGIES, OnlineCalibration, OnlineStep
+from ..io.atomic import atomic_path, atomic_write_text
+from .config import ConfigError, run_config, to_yaml
+from ..io.rundir import (
     RunDirError,
     collect_versions,
     load_model,
-    load_run_config,
     make_run_dir,
     read_json,
     run_log,
     save_model,
     write_json,
 )
-from .measurements import Measurements
+from ..core.measurements import Measurements
 
 log = logging.getLogger("torchcal")
 
@@ -84,8 +83,7 @@ class UpdateResult:
 
 def is_sensor_run(cfg) -> bool:
     """Whether the run's config names a 6-DOF sensor (``sensor.kind``) rather than point targets."""
-    sensor = cfg.get("sensor", None)
-    return sensor is not None and sensor.get("kind", None) is not None
+    return cfg.sensor.kind is not None
 
 
 def read_update_data(cfg, model, path, noise=None, progress=None) -> tuple[Measurements, object | None]:
@@ -94,24 +92,24 @@ def read_update_data(cfg, model, path, noise=None, progress=None) -> tuple[Measu
     None stands for point targets on the rows' x, y, z (:class:`~torchcal.measure.PointTargets`
     with the run's tracker sigma): :func:`torchcal.io.csv.read_measurements`. A run whose config
     names a sensor (``sensor.kind``) reads the sensor contract and builds the instrument the fit
-    used (:func:`torchcal.pipeline_sensor.sensor_instrument`: STS rows outside the sensor's
+    used (:func:`torchcal.app.sensor.sensor_instrument`: STS rows outside the sensor's
     ranges are reported on ``progress`` and left out, as in the fit). This is the one place
     that knows which contract a run reads.
     """
     if is_sensor_run(cfg):
-        from .pipeline_sensor import read_sensor_set, sensor_instrument
+        from .sensor import read_sensor_set, sensor_instrument
 
         data = read_sensor_set(path, model.robot, model.device)
         instrument, data, _ = sensor_instrument(cfg, data, noise, progress)
         return data, instrument
-    from .io.csv import read_measurements
+    from ..io.csv import read_measurements
 
     return read_measurements(path, model.robot, int(model.tools.count)), None
 
 
 def config_fixed(cfg) -> tuple[str, ...]:
     """Parameter groups the run's fit held fixed: a sensor rig's gravity unless the STS angles determine it."""
-    if is_sensor_run(cfg) and (cfg.sensor.kind != "sts" or cfg.sensor.get("position_only", False)):
+    if is_sensor_run(cfg) and (cfg.sensor.kind != "sts" or cfg.sensor.position_only):
         return ("gravity",)
     return ()
 
@@ -121,7 +119,7 @@ def _run_file(run_dir: Path, name: str) -> Path:
 
 
 def _noise_prior_options(cfg, model):
-    from .pipeline import config_noise, config_prior, solver_options
+    from .fit import config_noise, config_prior, solver_options
 
     noise = config_noise(cfg, model.robot)
     opts = solver_options(cfg)
@@ -133,9 +131,9 @@ def _history_from_data(cfg, parent: Path, model, online: OnlineCalibration, note
     """A plain fit run: its identification rows (or synthetic ones) as the first, already absorbed batch."""
     fit_json = _run_file(parent, "fit.json")
     pinned = read_json(fit_json).get("pinned_names") if fit_json.is_file() else None
-    ident = cfg.get("data", {}).get("identification", None)
+    ident = cfg.data.identification
     if ident and Path(ident).is_file():
-        from .pipeline_common import DATA_HASH_FILE, file_sha256
+        from .common import DATA_HASH_FILE, file_sha256
 
         record = _run_file(parent, DATA_HASH_FILE)
         fitted = read_json(record).get("data.identification", {}) if record.is_file() else {}
@@ -169,7 +167,7 @@ def synthetic_history(parent: Path, model) -> Measurements:
     model's own, so the rows sit at their optimum (residual and joint errors zero) and carry only
     information, no pull.
     """
-    from .sim.sampling import approach_directions, quasi_random_commands
+    from ..sim.sampling import approach_directions, quasi_random_commands
 
     metrics = _run_file(parent, "metrics.json")
     try:
@@ -217,10 +215,10 @@ def _stored_instrument(cfg, state, noise):
     lit = state.get("literal") if isinstance(state, dict) else None
     if not lit or lit.get("instrument") is not None or not is_sensor_run(cfg):
         return None
-    from .identify.online import _measurements_from_state
-    from .pipeline_sensor import sensor_instrument
+    from ..identify.online import measurements_from_state
+    from .sensor import sensor_instrument
 
-    instrument, _, _ = sensor_instrument(cfg, _measurements_from_state(lit["data"]), noise)
+    instrument, _, _ = sensor_instrument(cfg, measurements_from_state(lit["data"]), noise)
     return instrument
 
 
@@ -233,23 +231,23 @@ def _lineage(parent: Path) -> list[str]:
 def _evaluate(cfg, model, new: Measurements, progress) -> tuple[dict, list[dict]]:
     """Residual statistics of the new rows and of the config's validation set when readable (mm; sensors: and deg)."""
     sets = {"update": new}
-    val = cfg.get("data", {}).get("validation", None)
+    val = cfg.data.validation
     if val and not Path(val).is_file():
         progress.warn(f"the config's validation set '{val}' is not readable: not evaluated")
     elif val:
         if is_sensor_run(cfg):
-            from .pipeline_sensor import read_sensor_set
+            from .sensor import read_sensor_set
 
             sets["validation"] = read_sensor_set(val, model.robot, model.device)
         else:
-            from .io.csv import read_measurements
+            from ..io.csv import read_measurements
 
             sets["validation"] = read_measurements(val, model.robot, int(model.tools.count)).to(model.device)
     if is_sensor_run(cfg):
-        from .pipeline_sensor import evaluate_pose_sets
+        from .sensor import evaluate_pose_sets
 
         return evaluate_pose_sets(model, sets, progress)
-    from .pipeline import evaluate, table6
+    from .fit import evaluate, table6
 
     evaluations = {name.capitalize(): evaluate(model, d) for name, d in sets.items()}
     out = {name.lower(): {"rows": len(sets[name.lower()]), "poses": sets[name.lower()].n_poses,
@@ -279,13 +277,13 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
     parent = Path(run_dir).resolve()
     if not parent.is_dir():
         raise RunDirError(f"{run_dir}: not a folder; give a run directory written by 'torchcal fit' or 'torchcal update'")
-    cfg = load_run_config(parent)
-    dev = torch.device(device) if device is not None else torch.device(cfg.get("device", "cpu") or "cpu")
-    count = cfg.get("threads", None)
+    cfg = run_config(parent)
+    dev = torch.device(device) if device is not None else torch.device(cfg.device or "cpu")
+    count = cfg.threads
     old_override = threads.get_override()
     if count:
         threads.set_threads(int(count))
-    from .io.progress_view import showing
+    from ..io.progress_view import showing
 
     try:  # stages as progress tasks: a bar on a terminal, plain lines (and a heartbeat) elsewhere and in run.log
         with showing(console):
@@ -297,7 +295,7 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
 def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
     """Refuse rows the update cannot use as the parent's robot: no approach directions for a backlash model,
     or points the calibrated model misses by more than any calibration error (another robot, frame or unit)."""
-    from .io.csv import DataError, Problem
+    from ..io.csv import DataError, Problem
 
     je = getattr(model, "joint_errors", None)
     if je is not None and not new.has_direction:
@@ -310,7 +308,7 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
                 f"which need each row's approach directions (+1 / -1 per joint)"))])
     if is_sensor_run(cfg):
         return
-    from .pipeline import NOMINAL_IMPLAUSIBLE_MM, evaluate
+    from .fit import NOMINAL_IMPLAUSIBLE_MM, evaluate
 
     with torch.no_grad():
         ev = evaluate(model, new)
@@ -323,9 +321,9 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
 
 
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console) -> UpdateResult:
-    from .pipeline import _Progress
+    from .fit import Progress
 
-    progress = _Progress(console)
+    progress = Progress(console)
     with progress.step(f"reading the run {parent} and {new_path}", quiet=True):
         model = load_model(parent, device=dev)
         noise = _noise_prior_options(cfg, model)[0]

@@ -8,7 +8,7 @@ k/N, elapsed, ETA) elsewhere, and writes the same lines to ``run.log``.
 Without a reporter a task costs a few attribute updates.
 
 Example:
-    >>> from torchcal import progress
+    >>> from torchcal.core import progress
     >>> seen = []
     >>> class Keep(progress.Reporter):
     ...     def update(self, task):

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import torch
 
-from .basis import chebyshev_with_derivative
-from .kinematics.transforms import skew, so3_exp
+from ..core.basis import chebyshev_with_derivative
+from ..kinematics.transforms import skew, so3_exp
 
 
 def so3_right_jacobian(w: torch.Tensor) -> torch.Tensor:

@@ -13,7 +13,7 @@ remaining poses it takes next the one whose approach directions best cancel
 the running direction x position moments of every joint (Chebyshev c_0..c_3
 of the normalized position and a per-bin direction count, the quantities
 :func:`~torchcal.analysis.confounding.backlash_confounding` and
-:class:`~torchcal.coverage.DirectionCoverage` look at), starting
+:class:`~torchcal.core.coverage.DirectionCoverage` look at), starting
 from a seeded random pose. On the FANUC with 250 poses this leaves both
 approach directions in every position bin of every joint and max_i
 |corr(s_i, q_i)| ≈ 0.08-0.10, R² ≈ 0.05 (sequence order: 0.85 / 0.82;
@@ -37,12 +37,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .exceptions import TorchcalError
-from .progress import task as progress_task
-from .analysis.confounding import direction_position_dependence
-from .coverage import DirectionCoverage
-from .basis import chebyshev, normalize
-from .sim.sampling import approach_directions, quasi_random_commands
+from ..core.exceptions import TorchcalError
+from ..core.progress import task as progress_task
+from .confounding import direction_position_dependence
+from ..core.coverage import DirectionCoverage
+from ..core.basis import chebyshev, normalize
+from ..sim.sampling import approach_directions, quasi_random_commands
 
 MAX_POSES = 100_000
 """Largest pose plan: candidate draws (2 x count, ~2 kB each) and the decorrelating order (O(N^2)) stay tractable."""
@@ -89,8 +89,8 @@ class PosePlan:
         return self.q.shape[0]
 
     def measurements(self, tools: int = 1):
-        """The plan as :class:`~torchcal.measurements.Measurements` (xyz NaN), each pose with ``tools`` tool rows."""
-        from .measurements import Measurements
+        """The plan as :class:`~torchcal.core.measurements.Measurements` (xyz NaN), each pose with ``tools`` tool rows."""
+        from ..core.measurements import Measurements
 
         N = self.q.shape[0]
         T = int(tools)
@@ -107,7 +107,7 @@ class PosePlan:
         """pandas DataFrame ``pose, q1..qN`` in file units (deg, mm for prismatic joints)."""
         import pandas as pd
 
-        from .io.csv import joint_columns, joints_to_file
+        from ..io.csv import joint_columns, joints_to_file
 
         q = joints_to_file(self.q, robot)
         cols = {"pose": np.arange(len(self))}
@@ -117,7 +117,7 @@ class PosePlan:
 
     def to_csv(self, path, robot):
         """Write ``pose, q1..qN`` (deg / mm) in visiting order; returns the path."""
-        from .io.csv import write_table
+        from ..io.csv import write_table
 
         return write_table(path, self.frame(robot))
 

@@ -1,6 +1,6 @@
 """The fit pipeline for 6-DOF measurements (Paper III): a config with ``sensor: {kind: sts | pose}``.
 
-Stages, as for point targets (:mod:`torchcal.pipeline`), with the sensor's own:
+Stages, as for point targets (:mod:`torchcal.app.fit`), with the sensor's own:
 
 1. load: robot, sensor CSVs (:func:`torchcal.io.sensor_csv.read_pose_measurements`:
    position + rotation per row, optional per-row standard deviations), noise;
@@ -10,7 +10,7 @@ Stages, as for point targets (:mod:`torchcal.pipeline`), with the sensor's own:
 3. instrument: the STS (position + yaw, roll, level; rows outside the sensor's
    ranges reported and left out, never silently used), a generic 6-DOF probe
    (position + rotation vector), or position only;
-4. fit (:func:`torchcal.fit` on a :class:`~torchcal.measure.rig.SensorRig`),
+4. fit (:func:`torchcal.fit` on a :class:`~torchcal.models.sensor_rig.SensorRig`),
    model.pt at once;
 5. evaluate: position (mm) and orientation (deg) residuals of every set, nominal
    (hand-eye frames, nominal robot) and modeled, joint errors zero.
@@ -23,18 +23,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig
+from collections.abc import Mapping
 
-from . import units
-from .analysis.stats import ResidualStats, percent_decrease, residual_stats
-from .identify import fit
-from .identify.hand_eye import hand_eye
-from .io.config import ConfigError
-from .io.rundir import make_run_dir, run_log, save_model, write_json
-from .kinematics import load_robot
-from .kinematics.transforms import homogeneous, rpy_to_matrix
-from .measure.pose import rotation_error
-from .measurements import Measurements
+from ..core import units
+from ..analysis.stats import percent_decrease, residual_stats
+from ..identify import fit
+from ..identify.hand_eye import hand_eye
+from .config import ConfigError
+from ..io.rundir import make_run_dir, run_log, save_model, write_json
+from ..kinematics import load_robot
+from ..kinematics.transforms import homogeneous, rpy_to_matrix
+from ..measure.pose import rotation_error
+from ..core.measurements import Measurements
 
 log = logging.getLogger("torchcal")
 
@@ -57,7 +57,7 @@ class SensorInputs:
 
 def config_pose_frame(value) -> torch.Tensor | None:
     """{xyz_mm, rpy_deg} -> (4, 4) SI; 'estimate' / 'auto' -> None (from the data)."""
-    if isinstance(value, (dict, DictConfig)):
+    if isinstance(value, Mapping):
         rpy = units.deg_to_rad(torch.tensor([float(v) for v in value["rpy_deg"]], dtype=torch.float64))
         xyz = units.mm_to_m(torch.tensor([float(v) for v in value["xyz_mm"]], dtype=torch.float64))
         return homogeneous(rpy_to_matrix(rpy), xyz)
@@ -74,33 +74,25 @@ def up_vector(cfg) -> torch.Tensor:
 
 
 def read_sensor_set(path, robot, device) -> Measurements:
-    from .io.sensor_csv import read_pose_measurements
+    from ..io.sensor_csv import read_pose_measurements
 
     return read_pose_measurements(path, robot).to(device)
 
 
 def load_sensor_inputs(cfg) -> SensorInputs:
     """Stage 1: robot, config checks against it, noise, prior, solver options, the sensor CSVs."""
-    from .io.config import check_config
-    from .pipeline_common import _collect_warnings, config_noise, config_prior, joint_variance_source, solver_options
+    from .config import check_config
+    from .common import collect_warnings, config_noise, config_prior, joint_variance_source, solver_options
 
     label = cfg.config_file or "config"
     notes: list[str] = []
-    with _collect_warnings(notes):
+    with collect_warnings(notes):
         robot = load_robot(cfg.robot)
     check_config(cfg, label, robot.joint_map.n)
-    if isinstance(cfg.model.order, str) and (int(cfg.model.folds) > 0 or cfg.model.fine is not None):
-        raise ConfigError(f"{label}: key 'model.order': auto on a sensor run chooses by leave-one-pose-out or the "
-                          "validation set (model.folds: 0) and without fine tables (model.fine: null)")
-    if cfg.constraint.c is not None and cfg.model.fine is not None:
-        raise ConfigError(f"{label}: key 'constraint.c': the slope bound is not available with model.fine (fine tables) "
-                          "for sensor runs")
-    if cfg.data.truth:
-        raise ConfigError(f"{label}: key 'data.truth': the compensation check is for point-target runs")
     device = torch.device(cfg.device)
     torch.manual_seed(int(cfg.seed))
     noise = config_noise(cfg, robot, label)
-    with _collect_warnings(notes):
+    with collect_warnings(notes):
         ident = read_sensor_set(cfg.data.identification, robot, device)
         val = read_sensor_set(cfg.data.validation, robot, device) if cfg.data.validation else None
     return SensorInputs(robot, ident, val, noise, joint_variance_source(cfg, robot), config_prior(cfg),
@@ -116,7 +108,7 @@ def measured_poses(data: Measurements) -> torch.Tensor:
 
 def initial_frames(cfg, robot, data: Measurements, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, dict]:
     """(X tracker <- base, M flange -> sensor, summary): each from the config, else from the data (hand-eye)."""
-    from .model import RobotModel
+    from ..models.robot import RobotModel
 
     X = config_pose_frame(cfg.measurement_frame)
     M = config_pose_frame(cfg.sensor.mount)
@@ -146,10 +138,10 @@ def config_pose_std(cfg) -> torch.Tensor | None:
 
 def sensor_instrument(cfg, data: Measurements, noise, progress=None):
     """The instrument for ``data`` and the rows it uses -> (instrument, data, excluded file rows)."""
-    from .measure import PointTargets
-    from .measure.pose import PoseInstrument
-    from .measure.sts import STSInstrument
-    from .measure.tracker import TrackerNoise
+    from ..measure import PointTargets
+    from ..measure.pose import PoseInstrument
+    from ..measure.sts import STSInstrument
+    from ..measure.tracker import TrackerNoise
 
     kind = cfg.sensor.kind
     if cfg.sensor.position_only:
@@ -166,7 +158,7 @@ def sensor_instrument(cfg, data: Measurements, noise, progress=None):
 
 
 class SensorRigFactory:
-    """make(orders) -> a fresh all-zero :class:`~torchcal.measure.rig.SensorRig` with the initial frames.
+    """make(orders) -> a fresh all-zero :class:`~torchcal.models.sensor_rig.SensorRig` with the initial frames.
 
     fine: None, or a :class:`~torchcal.error_models.fine.FineJointErrors` whose copy every rig gets.
     """
@@ -179,8 +171,8 @@ class SensorRigFactory:
     def __call__(self, orders, backlash="default", fine: bool = True):
         import copy
 
-        from .measure.rig import SensorRig
-        from .model import RobotModel
+        from ..models.sensor_rig import SensorRig
+        from ..models.robot import RobotModel
 
         model = RobotModel(self.robot, torch.zeros(1, 3, dtype=torch.float64),
                            list(orders) if not isinstance(orders, int) else orders,
@@ -196,7 +188,7 @@ def config_fine(cfg, robot, ident: Measurements):
     f = cfg.model.fine
     if f is None:
         return None, None, False
-    from .error_models.fine import DEFAULT_PRIOR, DEFAULT_SPACING, FineJointErrors
+    from ..error_models.fine import DEFAULT_PRIOR, DEFAULT_SPACING, FineJointErrors
 
     spacing = units.deg_to_rad(float(f["spacing_deg"])) if "spacing_deg" in f else DEFAULT_SPACING
     prior = units.deg_to_rad(float(f["prior_deg"])) if "prior_deg" in f else DEFAULT_PRIOR
@@ -225,7 +217,7 @@ def pose_residuals(rig, data: Measurements, nominal: bool = False) -> tuple[torc
 
 def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[dict, list[dict]]:
     """-> ({set: {position_mm: {nominal, modeled, decrease_percent}, orientation_deg: {...}}}, Table 6 rows)."""
-    from .pipeline_common import _row
+    from .common import stats_row
 
     out, table = {}, []
     for name, data in sets.items():
@@ -234,8 +226,8 @@ def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[di
         ps = [residual_stats(units.m_to_mm(x.cpu())) for x in (pn, pm)]
         rs = [residual_stats(units.rad_to_deg(x.cpu())) for x in (rn, rm)]
         label = name.capitalize()
-        table += [_row(label, "Nominal position", ps[0], None), _row(label, "Modeled position", ps[1], ps[0]),
-                  _row(label, "Nominal angle (deg)", rs[0], None), _row(label, "Modeled angle (deg)", rs[1], rs[0])]
+        table += [stats_row(label, "Nominal position", ps[0], None), stats_row(label, "Modeled position", ps[1], ps[0]),
+                  stats_row(label, "Nominal angle (deg)", rs[0], None), stats_row(label, "Modeled angle (deg)", rs[1], rs[0])]
         out[name] = {"rows": len(data), "position_mm": {"nominal": vars(ps[0]), "modeled": vars(ps[1]),
                                                        "decrease_percent": percent_decrease(ps[0].mean, ps[1].mean)},
                      "orientation_deg": {"nominal": vars(rs[0]), "modeled": vars(rs[1]),
@@ -249,8 +241,8 @@ def choose_sensor_orders(cfg, inp: SensorInputs, make, ident: Measurements, inst
                          progress, files: dict) -> list[int]:
     """``model.order: auto`` for a sensor run: the order search of point-target runs on the sensor's own residuals
     (leave-one-pose-out, or the validation set), then the backlash orders; writes orders.json."""
-    from .identify.backlash import select_backlash_orders
-    from .identify.order import select_orders
+    from ..identify.backlash import select_backlash_orders
+    from ..identify.order import select_orders
 
     val, val_instrument = inp.val, None
     if val is not None:
@@ -277,16 +269,16 @@ def choose_sensor_orders(cfg, inp: SensorInputs, make, ident: Measurements, inst
 
 def run_sensor_fit(cfg, console=None):
     """``torchcal fit`` for a sensor config: the stages of this module, written to a run directory."""
-    from .pipeline_common import (
+    from .common import (
         RunResult,
-        _Progress,
+        Progress,
         config_backlash,
         config_compliance,
         config_error_variable,
         write_preamble_files,
     )
 
-    progress = _Progress(console)
+    progress = Progress(console)
     with progress.step("reading the robot and the sensor data", quiet=True):
         inp = load_sensor_inputs(cfg)
     with progress.step("estimating the measurement frame and the sensor mount", quiet=True):
@@ -324,7 +316,7 @@ def run_sensor_fit(cfg, console=None):
             rig = make(orders)
             blocks = []
             if fine is not None:
-                from .error_models.fine import SmoothnessPenalty
+                from ..error_models.fine import SmoothnessPenalty
 
                 if smooth is not None:
                     blocks.append(SmoothnessPenalty(rig.model.fine, smooth.to(inp.device)))
@@ -336,7 +328,7 @@ def run_sensor_fit(cfg, console=None):
                     rig.load_state_dict(first.state_dict(), strict=False)
             constraint = None
             if cfg.constraint.c is not None:  # Paper I's slope bound on the robot's modeled error at the sensor origin
-                from .pipeline_constraint import identify_constrained
+                from .constraint import identify_constrained
 
                 rig, result, constraint = identify_constrained(cfg, inp, make, orders, run_dir, progress, files, data=ident,
                                                                fit_options={"instrument": instrument, "fixed": fixed})
@@ -359,6 +351,11 @@ def run_sensor_fit(cfg, console=None):
                 metrics["constraint"] = constraint
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
             progress.info(f"done: {run_dir}")
+        if cfg.report:  # after run_log: the run is complete (no PARTIAL marker) and its log whole
+            from .common import write_run_report
+
+            with progress.step("writing the calibration report", quiet=True):
+                write_run_report(run_dir, files, progress)
     except KeyboardInterrupt as exc:
         exc.run_dir = run_dir
         raise
@@ -367,7 +364,7 @@ def run_sensor_fit(cfg, console=None):
 
 def predict_pose_file(run_dir, input, output, model) -> int:
     """``torchcal predict`` on a sensor run: the modeled x, y, z, r11..r33 for the commands of a sensor CSV."""
-    from .io.sensor_csv import read_pose_measurements, write_pose_measurements
+    from ..io.sensor_csv import read_pose_measurements, write_pose_measurements
 
     data = read_pose_measurements(input, model.robot, require_pose=False).to(model.device)
     with torch.no_grad():

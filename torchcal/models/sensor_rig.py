@@ -2,7 +2,7 @@
 
     T_s0^LT0(q) = T_m^LT0 E_0^m F_a(q + v) T_s0^n E_s0^n          (13), (16)
 
-The wrapped :class:`~torchcal.model.RobotModel` supplies T_m^LT0 E_0^m (its
+The wrapped :class:`~torchcal.models.robot.RobotModel` supplies T_m^LT0 E_0^m (its
 ``base``: nominal = the known tracker -> measurement frame transform, times a
 small correction, (14)-(15)) and F_a (its joint errors, (3)-(9)); the rig adds
 the flange -> sensor ``mount`` T_s0^n E_s0^n (nominal = the measured mount,
@@ -27,26 +27,18 @@ import torch
 from torch import nn
 
 from ..error_models.frame import FrameCorrection
-from ..params import DIMENSIONLESS, ParamGroup
+from ..core.params import DIMENSIONLESS, ParamGroup
+from ..measure.gravity import gravity_from_xy
 
 GRAVITY_PRIOR_SIGMA = 0.05
 """Declared prior sigma of (g_x, g_y), dimensionless (about 2.9 deg of tilt), centred on 0 like every
 prior: a tracker stands upright on its stand, so gravity is close to its z axis."""
 
 
-def gravity_from_xy(g_xy: torch.Tensor) -> torch.Tensor:
-    """Paper III (27): (..., 2) (g_x, g_y) -> (..., 3) unit vector (g_x, g_y, sqrt(1 - g_x^2 - g_y^2)).
-
-    The vector is the 'up' direction of the level (z component positive); |g_xy| must stay below 1.
-    """
-    gz2 = (1.0 - (g_xy * g_xy).sum(-1)).clamp(min=1e-12)
-    return torch.cat([g_xy, torch.sqrt(gz2)[..., None]], -1)
-
-
 class SensorRig(nn.Module):
     """A robot carrying a 6-DOF sensor, measured by a tracker: Paper III (13)-(16), (27).
 
-    model: the robot's :class:`~torchcal.model.RobotModel` (its ``base`` is
+    model: the robot's :class:`~torchcal.models.robot.RobotModel` (its ``base`` is
     the measurement frame: robot base in the tracker frame; its tools are not
     used); mount: (4, 4) nominal flange -> sensor transform T_s0^n (m),
     identity by default; gravity: initial (g_x, g_y) or a unit (3,) vector in
@@ -78,7 +70,7 @@ class SensorRig(nn.Module):
         if gravity is not None:
             g = torch.as_tensor(gravity, dtype=dtype, device=device)
             if g.shape == (3,):
-                from .gravity import check_gravity
+                from ..measure.gravity import check_gravity
 
                 g = check_gravity(g, "SensorRig(gravity=...)")[:2]
             elif g.shape != (2,) or not bool((g * g).sum() < 1):
@@ -89,8 +81,8 @@ class SensorRig(nn.Module):
     @classmethod
     def for_robot(cls, robot, orders=3, backlash=None, base_nominal=None, mount=None, gravity=None,
                   compliance=False, error_variable=None) -> SensorRig:
-        """A rig around a fresh :class:`~torchcal.model.RobotModel` of ``robot`` (one zero tool vector)."""
-        from ..model import RobotModel
+        """A rig around a fresh :class:`~torchcal.models.robot.RobotModel` of ``robot`` (one zero tool vector)."""
+        from .robot import RobotModel
 
         model = RobotModel(robot, torch.zeros(1, 3, dtype=torch.float64), orders, backlash,
                            None if base_nominal is None else torch.as_tensor(base_nominal, dtype=torch.float64),
@@ -165,9 +157,9 @@ class SensorRig(nn.Module):
         parameter group of the rig but 'gravity' (which moves no frame), plus 'v' (B, 6, n): rows 0-2 the
         velocity of the sensor origin, rows 3-5 the angular velocity (tracker frame), so that
         dR = S(omega) R. Same chain as :meth:`sensor_pose`, the robot part as in
-        :meth:`RobotModel.point_jacobians <torchcal.model.RobotModel.point_jacobians>`.
+        :meth:`RobotModel.point_jacobians <torchcal.models.robot.RobotModel.point_jacobians>`.
         """
-        from ..jacobian import twist_jacobian
+        from .jacobian import twist_jacobian
 
         m = self.model
         d = m._parts(q, direction, v)
@@ -206,7 +198,7 @@ class SensorRig(nn.Module):
     @classmethod
     def from_spec(cls, spec: dict[str, Any], robot=None) -> SensorRig:
         """Rebuild an (all-zero) rig from :meth:`spec`; load the state dict to restore values."""
-        from ..model import RobotModel
+        from .robot import RobotModel
 
         inner = dict(spec["model"])
         inner["robot"] = spec.get("robot", inner["robot"])  # save_model resolves the top-level path
@@ -214,4 +206,4 @@ class SensorRig(nn.Module):
         return cls(model, torch.tensor(spec["mount_nominal"], dtype=torch.float64))
 
 
-__all__ = ["GRAVITY_PRIOR_SIGMA", "SensorRig", "gravity_from_xy"]
+__all__ = ["GRAVITY_PRIOR_SIGMA", "SensorRig"]

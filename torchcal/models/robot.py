@@ -12,7 +12,7 @@ paper's reading and the default — or the URDF joint variable θ_i (per joint,
 ``error_variable``; the FANUC's J3 gear turns with q3 while θ3 = q2 + q3).
 
 Everything is SI inside (m, rad); convert at the file boundary with
-:mod:`torchcal.units`.
+:mod:`torchcal.core.units`.
 """
 
 from __future__ import annotations
@@ -22,14 +22,14 @@ from typing import Any
 import torch
 from torch import nn
 
-from .error_models.compliance import build_compliance
-from .error_models.fine import build_fine
-from .error_models.frame import FrameCorrection, ToolSet
-from .error_models.joint import JointErrors
+from ..error_models.compliance import build_compliance
+from ..error_models.fine import build_fine
+from ..error_models.frame import FrameCorrection, ToolSet
+from ..error_models.joint import JointErrors
 from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
-from .kinematics.fk import chain_frames
-from .kinematics.robot import ChainBuffers, Robot
-from .kinematics.transforms import twist_to_transform
+from ..kinematics.fk import chain_frames
+from ..kinematics.robot import ChainBuffers, Robot
+from ..kinematics.transforms import twist_to_transform
 
 
 def joint_series(je: JointErrors, u: torch.Tensor):
@@ -169,6 +169,24 @@ class RobotModel(ChainBuffers, nn.Module):
         """Nominal flange pose F_n(q) (B, 4, 4) in the robot's nominal base frame: no error terms."""
         return chain_frames(self.origins, self.axes, self.prismatic, self.joint_variables(q), None, self.tip)[2]
 
+
+    def flange_snapshot(self):
+        """This model frozen for the fast flange backends of compensation (:class:`ChainSnapshot`): copies of
+        its chain and masked series, detached; ``live`` is the model itself where its flange depends on the
+        whole configuration (gravity compliance, fine joint tables), which the backends then evaluate live."""
+        from ..kinematics.snapshot import ChainSnapshot
+
+        je = self.joint_errors
+        with torch.no_grad():
+            return ChainSnapshot(
+                coupling=self.coupling.detach().clone(), offset=self.offset.detach().clone(),
+                error_coupling=self.error_coupling.detach().clone(), error_offset=self.error_offset.detach().clone(),
+                ranges=je.ranges.detach().clone(), coef=(je.coef * je.mask).detach().clone(),
+                backlash=(je.backlash * je.backlash_mask).detach().clone() if je.has_backlash else None,
+                origins=self.origins.detach().clone(), axes=self.axes.detach().clone(),
+                prismatic=self.prismatic.detach().clone(), tip=self.tip.detach().clone(),
+                base=self.base.correction().detach().clone(),
+                live=self if (self.compliance is not None or self.fine is not None) else None)
     def tool_points(self, flange: torch.Tensor, tool: torch.Tensor) -> torch.Tensor:
         """Tool positions (B, 3) for flange poses (B, 4, 4) and tool indices (B,)."""
         p_t = self.tools()[tool]
@@ -292,7 +310,7 @@ class RobotModel(ChainBuffers, nn.Module):
     def parameter_groups(self) -> list:
         """Kind, unit and prior scale of every learnable parameter, declared by the module that owns it.
 
-        -> list of :class:`torchcal.params.ParamGroup` in ``named_parameters()``
+        -> list of :class:`torchcal.core.params.ParamGroup` in ``named_parameters()``
         order ('joint_errors.coef', 'joint_errors.backlash', 'base.twist',
         'tools.delta'[, 'compliance.coef'][, 'fine.values']).
         """
@@ -325,7 +343,7 @@ class RobotModel(ChainBuffers, nn.Module):
     @classmethod
     def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> RobotModel:
         """Rebuild an (all-zero) model from :meth:`spec`; load the state dict to restore values."""
-        from .kinematics.robot import load_robot
+        from ..kinematics.robot import load_robot
 
         robot = robot or load_robot(spec["robot"])
         b = spec.get("backlash")
@@ -335,7 +353,7 @@ class RobotModel(ChainBuffers, nn.Module):
                     torch.tensor(spec["base_nominal"], dtype=torch.float64), compliance=spec.get("compliance") or False,
                     error_variable=spec.get("error_variable", "joint"), fine=spec.get("fine"))
         if spec.get("coverage") is not None:
-            from .coverage import DirectionCoverage
+            from ..core.coverage import DirectionCoverage
 
             model.coverage = DirectionCoverage.from_dict(spec["coverage"])
         return model

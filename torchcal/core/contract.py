@@ -1,9 +1,9 @@
 """The model contract: what a calibrated model offers, as :class:`typing.Protocol` s.
 
 Three models are identified: the robot's joint-dependent error model
-(:class:`torchcal.model.RobotModel`, Paper II), the machine tool's axis
-perturbation model (:class:`torchcal.machine.MachineModel`, Paper I) and the
-6-DOF sensor rig (:class:`torchcal.measure.rig.SensorRig`, Paper III). Each
+(:class:`torchcal.models.robot.RobotModel`, Paper II), the machine tool's axis
+perturbation model (:class:`torchcal.models.machine.MachineModel`, Paper I) and the
+6-DOF sensor rig (:class:`torchcal.models.sensor_rig.SensorRig`, Paper III). Each
 implements :class:`CalibratedModel` (predict what the instrument sees, its
 parameter groups, a spec to rebuild it); each *capability* beyond that is a
 protocol of its own, in the manner of theseus' ``CostFunction``: a consumer
@@ -37,7 +37,7 @@ class CalibratedModel(Protocol):
         ...
 
     def parameter_groups(self) -> list:
-        """The identified parameters (:class:`torchcal.params.ParamGroup`): names, roles, priors, masks."""
+        """The identified parameters (:class:`torchcal.core.params.ParamGroup`): names, roles, priors, masks."""
         ...
 
     def spec(self) -> dict[str, Any]:
@@ -58,8 +58,12 @@ class PredictsPoints(CalibratedModel, Protocol):
 class CompensatesCommands(PredictsPoints, Protocol):
     """Joint-space compensation, Paper II (46)-(52): a joint-error series on a robot chain."""
 
-    joint_errors: Any
     robot: Any
+
+    def flange_snapshot(self) -> Any:
+        """The chain and its error series frozen for the fast flange backends
+        (:class:`torchcal.kinematics.snapshot.ChainSnapshot`)."""
+        ...
 
     def nominal_flange(self, q: torch.Tensor) -> torch.Tensor:
         ...

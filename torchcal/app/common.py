@@ -1,8 +1,8 @@
-"""What both fit pipelines share (:mod:`torchcal.pipeline`, point targets; :mod:`torchcal.pipeline_sensor`,
+"""What both fit pipelines share (:mod:`torchcal.app.fit`, point targets; :mod:`torchcal.app.sensor`,
 Paper III's sensor runs): config -> objects (noise, prior, solver options, model options), the run result,
 the run directory's preamble files, Table 6 rows, progress and warning collection.
 
-Moved here unchanged from :mod:`torchcal.pipeline` (which re-exports every name) so that neither pipeline
+Moved here unchanged from :mod:`torchcal.app.fit` (which re-exports every name) so that neither pipeline
 imports the other's internals: ``pipeline`` -> ``pipeline_sensor`` -> ``pipeline_common`` (the layers of
 ``[tool.importlinter]`` in pyproject.toml).
 """
@@ -14,17 +14,17 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Mapping
 
-from omegaconf import DictConfig, OmegaConf
 
-from . import units
-from .analysis.stats import ResidualStats, percent_decrease
-from .identify import FitResult, NoiseModel, Prior
-from .io.atomic import atomic_write_text
-from .io.config import ConfigError, to_yaml
-from .io.rundir import collect_versions, write_json
-from .model import RobotModel
-from .progress import task as progress_task
+from ..core import units
+from ..analysis.stats import ResidualStats, percent_decrease
+from ..identify import FitResult, NoiseModel, Prior
+from ..io.atomic import atomic_write_text
+from .config import ConfigError, to_yaml
+from ..io.rundir import collect_versions, write_json
+from ..models.robot import RobotModel
+from ..core.progress import task as progress_task
 
 log = logging.getLogger("torchcal")
 
@@ -76,7 +76,7 @@ def config_noise(cfg, robot, label: str | None = None) -> NoiseModel:
     The tracker sigma is the config's (default 0.005 mm): a property of the tracker, not of the robot.
 
     Example:
-        >>> from torchcal.io.config import make_config
+        >>> from torchcal.app.config import make_config
         >>> from torchcal.kinematics import load_robot
         >>> cfg = make_config({"robot": "fanuc_lrmate200i", "tools": [[0, 0, 100]], "data": {"identification": "x.csv"}})
         >>> noise = config_noise(cfg, load_robot("fanuc_lrmate200i"))   # the robot's Table 5 variances
@@ -102,8 +102,8 @@ def config_prior(cfg) -> Prior | None:
     p = cfg.prior
     if not p.enabled:
         return None
-    backlash = p.get("backlash_deg")
-    compliance = p.get("compliance_deg")
+    backlash = p.backlash_deg
+    compliance = p.compliance_deg
     extra = {} if compliance is None else {"compliance": units.deg_to_rad(compliance)}
     return Prior(rotation=units.deg_to_rad(p.rotation_deg), translation=units.mm_to_m(p.translation_mm),
                  frame_rotation=units.deg_to_rad(p.frame_rotation_deg), frame_translation=units.mm_to_m(p.frame_translation_mm),
@@ -129,7 +129,7 @@ def solver_options(cfg) -> dict:
 def config_compliance(cfg):
     """model.compliance as RobotModel takes it: False, True, 'auto', 'gravity', 'functions' or a plain dict."""
     c = cfg.model.compliance
-    return dict(OmegaConf.to_container(c)) if isinstance(c, DictConfig) else c
+    return dict(c) if isinstance(c, Mapping) else c
 
 
 def config_error_variable(cfg):
@@ -138,7 +138,7 @@ def config_error_variable(cfg):
     return None if ev is None else (str(ev) if isinstance(ev, str) else [str(e) for e in ev])
 
 
-def _row(set_name: str, label: str, s: ResidualStats, ref: ResidualStats | None) -> dict:
+def stats_row(set_name: str, label: str, s: ResidualStats, ref: ResidualStats | None) -> dict:
     row = {"set": set_name, "residual": label, "count": s.count}
     for k in STAT_KEYS:
         row[k] = getattr(s, k)
@@ -147,10 +147,10 @@ def _row(set_name: str, label: str, s: ResidualStats, ref: ResidualStats | None)
 
 
 # ------------------------------------------------------------------ reporting
-class _Progress:
+class Progress:
     """Log lines to the run log and, when a rich console is given, to the console too; stages as progress tasks.
 
-    Every :meth:`step` is a :func:`torchcal.progress.task`: the installed
+    Every :meth:`step` is a :func:`torchcal.core.progress.task`: the installed
     :class:`torchcal.io.progress_view.ProgressView` shows it (a bar on a terminal,
     plain lines with a heartbeat elsewhere and in run.log), together with the
     library's own tasks inside it. warnings: every :meth:`warn` text, in order
@@ -168,7 +168,7 @@ class _Progress:
     def _show(self, text: str, markup: bool = True) -> None:
         if self.console is None:
             return
-        from .io.progress_view import current_view
+        from ..io.progress_view import current_view
 
         view = current_view()
         if view is not None and view.console is self.console:
@@ -213,7 +213,7 @@ class _Progress:
 
 
 @contextmanager
-def _collect_warnings(into: list[str], name: str = "torchcal"):
+def collect_warnings(into: list[str], name: str = "torchcal"):
     """Keep the WARNING records of the ``torchcal`` logger emitted in the block (e.g. a CSV read as a
     European export) in ``into``, to be replayed into the run log once it exists."""
 
@@ -252,14 +252,27 @@ def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
     files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
     hashes = {}
     for key in ("identification", "validation"):
-        p = cfg.data.get(key, None)
+        p = getattr(cfg.data, key)
         if p and Path(p).is_file():
             hashes[f"data.{key}"] = {"path": str(p), "sha256": file_sha256(p)}
     files["data_hashes"] = write_json(run_dir / DATA_HASH_FILE, hashes)
 
 
 
+def write_run_report(run_dir: Path, files: dict, progress: Progress) -> None:
+    """report.html (:func:`torchcal.report.write_report`) of a finished run; a report that cannot be written is a
+    warning, never the loss of the run it describes."""
+    from ..report import write_report
+
+    try:
+        files["report"] = write_report(run_dir)
+    except Exception as exc:  # noqa: BLE001 - the run's files are complete; say why the report is missing
+        progress.warn(f"{run_dir}: report.html not written ({type(exc).__name__}: {exc}); "
+                      f"run `torchcal report {run_dir}` to retry")
+
+
 __all__ = [
+    "write_run_report",
     "STAT_KEYS",
     "RunResult",
     "config_backlash",

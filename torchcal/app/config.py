@@ -1,7 +1,17 @@
-"""Config-driven runs: a typed OmegaConf schema, YAML files and dotted ``key=value`` overrides.
+"""Config-driven runs: YAML files and dotted ``key=value`` overrides, parsed once into frozen, typed objects.
+
+Why one module: the config schema (every key with its default and doc), its parsing and the checks of every
+key; the one place a user reads to write a config.
+
+:func:`load_config` / :func:`make_config` merge the file and the overrides over the defaults (OmegaConf, which
+names unknown keys), resolve paths, and return a :class:`FitConfig`: a frozen dataclass whose every field has
+its precise type (``model.order`` an int, a per-joint tuple or "auto"), checked once by :func:`check_config`
+(every key, and keys that exclude each other; per-joint lengths again once the robot is loaded). The stages get
+that object; nothing below this module imports omegaconf (an import contract in pyproject.toml). A variant of
+a config is :func:`updated`; a run directory's ``config.yaml`` reads back with :func:`run_config`.
 
 Every value in a config is in the calibration engineer's units (mm, deg,
-deg²); :mod:`torchcal.pipeline` converts them with :mod:`torchcal.units`.
+deg²); :mod:`torchcal.app.fit` converts them with :mod:`torchcal.core.units`.
 Unknown keys, in the file or in an override, are an error naming the key and
 the file (OmegaConf struct mode), so a typo never silently falls back to a
 default.
@@ -14,16 +24,19 @@ overrides resolve against the current directory, like any other shell argument.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import typing
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence, Union
 
 import yaml
-from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
-from .. import units
-from ..exceptions import ConfigError  # defined low (torchcal.exceptions) so that any layer can raise it
+from ..core import units
+from ..core.exceptions import ConfigError  # defined low (torchcal.core.exceptions) so that any layer can raise it
 from ..error_models.joint import MAX_ORDER
 from ..identify import SOLVERS, Prior
 
@@ -31,7 +44,7 @@ from ..identify import SOLVERS, Prior
 _PRIOR = Prior()
 
 
-@dataclass
+@dataclass(frozen=True)
 class DataConfig:
     """CSV files in the contract of :mod:`torchcal.io.csv`."""
 
@@ -55,14 +68,14 @@ SENSOR_KINDS = ("sts", "pose")
 """``sensor.kind``: Paper III's SmartTrack sensor (position + yaw, roll, level angles) or a generic 6-DOF probe."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ModelConfig:
-    order: Any = 6
+    order: Union[int, tuple[int, ...], str] = 6
     """Chebyshev order: an int (all joints), a per-joint list, or "auto" (chosen by validation / cross-validation)."""
-    backlash: Any = True
+    backlash: Union[bool, int, tuple[int, ...]] = True
     """Backlash term on eps_z: true (its own default order, 2; with order: auto chosen per joint after the
     joint orders), false, or its order (int or per-joint list, -1 switches a joint's off)."""
-    candidates: list[int] = field(default_factory=lambda: list(range(0, MAX_ORDER + 1)))
+    candidates: tuple[int, ...] = tuple(range(0, MAX_ORDER + 1))
     """Orders tried by order: auto."""
     folds: int = 0
     """order: auto without a validation set: 0 = leave-one-pose-out residuals of one fit per trial
@@ -70,14 +83,14 @@ class ModelConfig:
     margin: float = 1.0
     """order: auto, per-joint stage: keep a change only if it lowers the held-out error by more than this many
     standard errors of the paired (per-pose) difference."""
-    compliance: Any = False
+    compliance: Union[bool, str, Mapping[str, Any]] = False
     """Gravity compliance (arm sag): false, true (torques from the URDF inertials when every moving link has
     one, else arm-angle functions), "gravity" or "functions", or {mode: ..., joints: [joint names]}."""
-    fine: Any = None
+    fine: Optional[Mapping[str, Any]] = None
     """Fine-grained joint-angle error tables (torchcal.error_models.fine, sensor runs): null (off) or
     {spacing_deg: knot spacing, smoothness_deg: sigma of a knot's second difference (number or per joint),
     prior_deg: sigma of each value, warm_start: fit without the tables first}."""
-    error_variable: Any = None
+    error_variable: Union[None, str, tuple[str, ...]] = None
     """The variable each joint's error series is evaluated on: null (the robot's ``error_variable:``, 'command'
     by default), 'command' (the controller command q_i, Paper II (24)), 'joint' (the URDF joint variable), or a
     per-joint list of those."""
@@ -86,18 +99,18 @@ class ModelConfig:
     δq_i = Σ_j f_ij(q_j), machine tools, any serial chain)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class NoiseConfig:
     sigma_m: float = 0.005
     """Tracker standard deviation per axis, mm (Paper II 5.2): a property of the tracker, not of the robot."""
-    joint_var_fwd: Optional[list[float]] = None
+    joint_var_fwd: Optional[tuple[float, ...]] = None
     """Joint variance per joint, forward approach, deg² (mm² for prismatic joints); null = the robot's
     ``repeatability:`` (its YAML; e.g. Paper II Table 5 for the bundled FANUC). Give both or neither."""
-    joint_var_bwd: Optional[list[float]] = None
+    joint_var_bwd: Optional[tuple[float, ...]] = None
     """Joint variance per joint, backward approach, deg² (mm²); null = the robot's ``repeatability:``."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class PriorConfig:
     enabled: bool = True
     """False: no prior (redundant combinations are left to the solver's damping)."""
@@ -115,11 +128,11 @@ class PriorConfig:
     """Prior sigma of the compliance coefficients, deg per unit configuration function; null: the default."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ConstraintConfig:
     """Paper I's slope constraint (13)-(31): ‖h̄_i‖ ≤ c over the whole axis (joint) space."""
 
-    c: Any = None
+    c: Union[None, float, str] = None
     """null (unconstrained), a number (mm per half axis range), or auto (BORDER + constraint sweep, the knee)."""
     points: int = 2048
     """Quasi-random points over the whole command box (plus its corners) where the bound is enforced."""
@@ -127,14 +140,14 @@ class ConstraintConfig:
     """Fresh points, never seen by the penalty, where the bound is checked and reported."""
     tol: float = 0.01
     """Relative tolerance of the bound at the penalty points: max slope ≤ c (1 + tol)."""
-    border_axes: Optional[list[str]] = None
+    border_axes: Optional[tuple[str, ...]] = None
     """c: auto, the two axes (joint names) of the BORDER space; null: B and Z for the XYZCB machine (Paper I),
     else the two joints whose data span least of their range."""
     border_k: int = 30
     """c: auto, k of the reverse k-nearest-neighbour counts (Paper I 3.4)."""
     border_n: int = 10
     """c: auto, number of boundary points held out as the extrapolation check."""
-    sweep: Optional[list[float]] = None
+    sweep: Optional[tuple[float, ...]] = None
     """c: auto, the c values tried (mm); null: a geometric grid below the unconstrained model's largest slope."""
     knee_tol_mm: float = 0.01
     """c: auto, the knee: the smallest c before the boundary max or the sub-identification mean rises by more than this."""
@@ -144,24 +157,24 @@ class ConstraintConfig:
     errors have large, legitimate slopes on a robot)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class SensorConfig:
     """Paper III: a 6-DOF sensor on the flange instead of point targets (the CSV then carries r11..r33)."""
 
     kind: Optional[str] = None
     """null (point targets, the tools), 'sts' (Paper III's tracking sensor) or 'pose' (a generic 6-DOF probe)."""
-    mount: Any = "estimate"
+    mount: Union[str, Mapping[str, tuple[float, ...]]] = "estimate"
     """Nominal flange -> sensor frame {xyz_mm: [...], rpy_deg: [...]}, or estimate (from the data, no guess)."""
-    gravity: Optional[list[float]] = None
+    gravity: Optional[tuple[float, ...]] = None
     """sts only: the unit gravity vector in the tracker frame (first guess; refined); null: [0, 0, -1]."""
     position_only: bool = False
     """Fit the sensor origin only (the orientation is still evaluated)."""
-    pose_std: Optional[list[float]] = None
+    pose_std: Optional[tuple[float, ...]] = None
     """pose only: per-axis standard deviations [sx, sy, sz (mm), srx, sry, srz (deg)] weighting every row,
     instead of the file's sx..srz columns (or the default)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class SolverConfig:
     method: str = "lm"
     """'lm' (Levenberg-Marquardt, joint errors eliminated per row) or 'lbfgs'."""
@@ -171,7 +184,7 @@ class SolverConfig:
     """Stop when the relative cost reduction falls below this."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class CompensationConfig:
     tol_deg: Optional[float] = None
     """Stopping tolerance on |dq| (deg; mm for prismatic joints), e.g. the encoder resolution (Paper II (51));
@@ -184,7 +197,7 @@ FLEET_ENGINES = ("local", "ray")
 """``fleet.engine``: where the fleet's cells of units are fitted."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class FleetConfig:
     """``torchcal fleet CONFIG``: one identification file per unit (``data.identification`` a folder)."""
 
@@ -200,17 +213,17 @@ class FleetConfig:
     (torchcal.identify.fleet.parameter_outliers)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class FitConfig:
     """The schema of ``torchcal fit CONFIG.yaml``."""
 
     robot: str = MISSING
     """Bundled robot name (e.g. fanuc_lrmate200i), a joint-map YAML or a URDF."""
-    tools: Any = None
+    tools: Union[None, tuple[tuple[float, ...], ...], Mapping[str, int]] = None
     """Nominal tool vectors [x, y, z] in the flange frame, mm (a list; the CSV 'tool' column indexes it),
     or ``{count: T}`` when they are not known (e.g. reflectors glued on the flange): the fit then estimates
     them from the data first (:mod:`torchcal.identify.alignment`)."""
-    measurement_frame: Any = "auto"
+    measurement_frame: Union[str, Mapping[str, tuple[float, ...]]] = "auto"
     """The robot base seen in the measurement (tracker) frame, the model's nominal T_0^m (26):
     ``base`` (identity: the tracker frame is at the robot base, as Paper II assumes), ``estimate``
     (from the data, no guess needed: :mod:`torchcal.identify.alignment`), ``auto`` (``base`` when the
@@ -230,11 +243,13 @@ class FitConfig:
     device: str = "cpu"
     """torch device, e.g. cpu, cuda, cuda:1."""
     threads: Optional[int] = None
-    """CPU threads of every stage (torch, its BLAS and numba); null: chosen per stage by work size and the CPUs this process may use (torchcal.threads)."""
+    """CPU threads of every stage (torch, its BLAS and numba); null: chosen per stage by work size and the CPUs this process may use (torchcal.core.threads)."""
     out: str = "runs"
     """Run directory; if it already holds a run, the run goes beside it (<out>-2, ...); if it is another
     non-empty folder, to <out>/<timestamp> (see torchcal.io.rundir.make_run_dir)."""
     plots: bool = True
+    report: bool = True
+    """Write report.html (torchcal.report: a self-contained calibration report) at the end of the run."""
     config_file: Optional[str] = None
     """Set by load_config: the YAML this config came from (provenance)."""
 
@@ -248,9 +263,80 @@ WHOLE_VALUE_KEYS = ("tools", "measurement_frame", "sensor.mount", "constraint.c"
 PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out")
 
 
+# ------------------------------------------------------------- parsing vs. the typed objects
+# The classes above are what a run gets: frozen, precisely typed (a value may be an int, a per-joint tuple or
+# "auto"). OmegaConf, which merges files and overrides and names unknown keys, takes no unions of containers
+# and no tuples; it parses against a mirror of these classes derived here (such fields become Any there), and
+# check_config then pins down what the unions allow. One definition of every key, its default and its doc.
+_PRIMITIVES = (int, float, bool, str)
+
+
+def _parse_type(hint):
+    """The OmegaConf-compatible annotation for a field's precise one (Any where OmegaConf cannot express it)."""
+    if is_dataclass(hint):
+        return _parse_class(hint)
+    if hint in _PRIMITIVES:
+        return hint
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Union and len(args) == 2 and type(None) in args:
+        inner = _parse_type(next(a for a in args if a is not type(None)))
+        return Any if inner is Any else Optional[inner]
+    if origin is tuple and len(args) == 2 and args[1] is Ellipsis and args[0] in _PRIMITIVES:
+        return list[args[0]]
+    return Any
+
+
+@functools.cache
+def _parse_class(cls):
+    """A mutable dataclass mirroring ``cls`` with OmegaConf-compatible annotations (tuples as lists)."""
+    hints = typing.get_type_hints(cls)
+    specs = []
+    for f in fields(cls):
+        typ = _parse_type(hints[f.name])
+        if f.default_factory is not dataclasses.MISSING:  # a section
+            specs.append((f.name, typ, field(default_factory=_parse_class(f.default_factory))))
+        elif isinstance(f.default, tuple):
+            specs.append((f.name, typ, field(default_factory=functools.partial(list, f.default))))
+        else:
+            specs.append((f.name, typ, field(default=f.default)))
+    return dataclasses.make_dataclass(f"_Parsed{cls.__name__}", specs)
+
+
+def _frozen_value(v):
+    """Lists -> tuples, all the way down (mappings keep their keys)."""
+    if isinstance(v, (list, tuple)):
+        return tuple(_frozen_value(x) for x in v)
+    if isinstance(v, dict):
+        return {k: _frozen_value(x) for k, x in v.items()}
+    return v
+
+
+def _freeze(cls, values: Mapping):
+    """``cls`` (a frozen config class) from plain containers; unknown keys were refused by the parse before."""
+    kwargs = {}
+    for f in fields(cls):
+        if f.name not in values:
+            continue
+        v = values[f.name]
+        sub = f.default_factory if f.default_factory is not dataclasses.MISSING else None
+        kwargs[f.name] = _freeze(sub, v or {}) if sub is not None and is_dataclass(sub) else _frozen_value(v)
+    return cls(**kwargs)
+
+
+def _plain_value(v):
+    """Tuples -> lists, sections -> dicts: the YAML / JSON / check view of a config value."""
+    if is_dataclass(v):
+        return {f.name: _plain_value(getattr(v, f.name)) for f in fields(v)}
+    if isinstance(v, (list, tuple)):
+        return [_plain_value(x) for x in v]
+    if isinstance(v, Mapping):
+        return {k: _plain_value(x) for k, x in v.items()}
+    return v
+
+
 def schema() -> DictConfig:
-    """A fresh structured (struct-mode) config holding every default."""
-    return OmegaConf.structured(FitConfig)
+    """A fresh structured (struct-mode) config holding every default: what files and overrides are parsed into."""
+    return OmegaConf.structured(_parse_class(FitConfig))
 
 
 def _keys_at(node_type, parts: list[str]) -> list[str]:
@@ -339,7 +425,8 @@ def apply_overrides(cfg: DictConfig, overrides: Sequence[str], base: Path | None
     return cfg
 
 
-def make_config(values: dict | None = None, overrides: Sequence[str] = (), base_dir=".", label: str = "config") -> DictConfig:
+def make_config(values: dict | None = None, overrides: Sequence[str] = (), base_dir=".", label: str = "config",
+                check_device: bool = True) -> FitConfig:
     """Build a checked config from a mapping (programmatic runs, experiments), like :func:`load_config` does from a file.
 
     values: nested dict in the schema's keys; base_dir: folder relative paths in
@@ -352,8 +439,65 @@ def make_config(values: dict | None = None, overrides: Sequence[str] = (), base_
         raise _explain(exc, label) from None
     _resolve_paths(cfg, base, ("robot",) + PATH_KEYS)
     cfg = apply_overrides(cfg, overrides)
-    check_config(cfg, label)
-    return cfg
+    return _finish(cfg, label, check_device)
+
+
+def _finish(cfg: DictConfig, label: str, check_device: bool = True) -> FitConfig:
+    """The parsed config -> the frozen, typed :class:`FitConfig`, checked once (:func:`check_config`)."""
+    for key in ("robot", "data.identification"):
+        try:
+            OmegaConf.select(cfg, key, throw_on_missing=True)
+        except MissingMandatoryValue:
+            raise ConfigError(f"{label}: key '{key}': is required but not set") from None
+        except OmegaConfBaseException as exc:  # interpolation errors and the like
+            raise _explain(exc, label) from None
+    try:
+        values = OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as exc:
+        raise _explain(exc, label) from None
+    frozen = _freeze(FitConfig, values)
+    check_config(frozen, label, check_device=check_device)
+    return frozen
+
+
+def updated(cfg: FitConfig, changes: Mapping[str, Any], label: str = "config") -> FitConfig:
+    """A copy of ``cfg`` with dotted keys replaced (``{"out": ..., "data.n_poses": None}``), checked again.
+
+    The frozen config's one way to a variant (sweep cells, fleet units): a key that does not exist is an error.
+    """
+    values = to_dict(cfg)
+    for key, value in changes.items():
+        node, parts = values, key.split(".")
+        for part in parts[:-1]:
+            node = node[part]
+        if parts[-1] not in node:
+            raise ConfigError(f"{label}: unknown config key '{key}'")
+        node[parts[-1]] = _plain_value(value)
+    frozen = _freeze(FitConfig, values)
+    check_config(frozen, label, check_device=False)
+    return frozen
+
+
+def config_from_text(text: str, label: str = "config", check_device: bool = True) -> FitConfig:
+    """A resolved config's YAML (a run directory's ``config.yaml``, what :func:`to_yaml` wrote) -> FitConfig.
+
+    Paths in it are absolute already. check_device=False: a run fitted on CUDA still loads on a CPU machine.
+    """
+    try:
+        raw = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{label}: not valid YAML: {exc}") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{label}: a config must be a mapping of keys, got {type(raw).__name__}")
+    return make_config(raw, label=label, check_device=check_device)
+
+
+def run_config(run_dir) -> FitConfig:
+    """The frozen config a run directory was made with (its ``config.yaml``); RunDirError-style message if absent."""
+    path = Path(run_dir) / "config.yaml"
+    if not path.is_file():
+        raise ConfigError(f"{path}: no config.yaml; is {run_dir} a run directory?")
+    return config_from_text(path.read_text(encoding="utf-8"), str(path), check_device=False)
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -383,10 +527,11 @@ class _DuplicateKey(ConfigError):
         self.key, self.first, self.second = key, first, second
 
 
-def load_config(path, overrides: Sequence[str] = ()) -> DictConfig:
+def load_config(path, overrides: Sequence[str] = ()) -> FitConfig:
     """Read a YAML config, merge it over the schema's defaults, then apply ``overrides`` (``["model.order=4"]``).
 
-    -> a struct-mode DictConfig (unknown keys cannot be added later either).
+    -> the frozen, typed :class:`FitConfig` (checked; per-joint lists are checked against the robot by
+    :func:`check_config` with ``n_joints`` once it is loaded).
     Raises :class:`ConfigError` naming the file / override and the key.
 
     Example:
@@ -420,8 +565,7 @@ def load_config(path, overrides: Sequence[str] = ()) -> DictConfig:
     _resolve_paths(cfg, path.parent.resolve(), ("robot",) + PATH_KEYS)
     cfg = apply_overrides(cfg, overrides)
     cfg.config_file = str(path.resolve())
-    check_config(cfg, str(path))
-    return cfg
+    return _finish(cfg, str(path))
 
 
 # ------------------------------------------------------------------------ checks
@@ -434,7 +578,7 @@ def _is_number(x) -> bool:
 
 
 def _plain(x):
-    return OmegaConf.to_container(x, resolve=True) if isinstance(x, (DictConfig, ListConfig)) else x
+    return _plain_value(x)
 
 
 def _check_frame(frame: dict, key: str, fail) -> None:
@@ -448,7 +592,7 @@ def _check_frame(frame: dict, key: str, fail) -> None:
             fail(f"{key}.{sub}", f"{v!r}: give {what}")
 
 
-def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = None) -> None:
+def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = None, check_device: bool = True) -> None:
     """Values that the types alone do not pin down; ``n_joints`` (once the robot is loaded) checks per-joint lists.
 
     Raises :class:`ConfigError` naming ``label`` and the key.
@@ -456,27 +600,18 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
     def fail(key, msg):
         raise ConfigError(f"{label}: key '{key}': {msg}")
 
-    for key in ("robot", "data.identification"):
-        try:
-            OmegaConf.select(cfg, key, throw_on_missing=True)
-        except MissingMandatoryValue:
+    for key, value in (("robot", cfg.robot), ("data.identification", cfg.data.identification)):
+        if value in (MISSING, None, ""):
             fail(key, "is required but not set")
-        except OmegaConfBaseException as exc:  # interpolation errors and the like
-            raise _explain(exc, label) from None
-    try:
-        OmegaConf.to_container(cfg, resolve=True)
-    except OmegaConfBaseException as exc:
-        raise _explain(exc, label) from None
-
-    fleet = cfg.get("fleet")
-    if fleet is not None:
+    fleet = cfg.fleet
+    if True:
         if fleet.engine not in FLEET_ENGINES:
             fail("fleet.engine", f"must be one of {', '.join(FLEET_ENGINES)}, got {fleet.engine!r}")
         if int(fleet.cell) < 1:
             fail("fleet.cell", f"must be a positive number of units, got {fleet.cell}")
         if not float(fleet.threshold) > 0:
             fail("fleet.threshold", f"must be positive, got {fleet.threshold}")
-    n_poses = cfg.data.get("n_poses")
+    n_poses = cfg.data.n_poses
     if n_poses is not None and (not _is_int(n_poses) or n_poses < 1):
         fail("data.n_poses", f"{n_poses!r}: give a positive number of poses (or null for all)")
     tools = _plain(cfg.tools)
@@ -534,12 +669,34 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
 
     if cfg.model.kind not in MODEL_KINDS:
         fail("model.kind", f"{cfg.model.kind!r}: give one of {', '.join(MODEL_KINDS)}")
+    # keys that exclude each other: checked here, with the rest, not by the stage that would trip over them
+    auto = isinstance(_plain(cfg.model.order), str)
+    if cfg.data.truth and not cfg.data.validation:
+        fail("data.truth", "the compensation check runs on the validation set; set data.validation")
+    if sensor["kind"] is not None:
+        if auto and (int(cfg.model.folds) > 0 or cfg.model.fine is not None):
+            fail("model.order", "auto on a sensor run chooses by leave-one-pose-out or the validation set "
+                 "(model.folds: 0) and without fine tables (model.fine: null)")
+        if cfg.constraint.c is not None and cfg.model.fine is not None:
+            fail("constraint.c", "the slope bound is not available with model.fine (fine tables) for sensor runs")
+        if cfg.data.truth:
+            fail("data.truth", "the compensation check is for point-target runs")
+    if cfg.model.kind == "axis_perturbation":
+        for key, bad, why in (("model.order", auto and int(cfg.model.folds) > 0,
+                               "auto on a machine tool chooses by leave-one-pose-out or the validation set "
+                               "(model.folds: 0)"),
+                              ("data.truth", bool(cfg.data.truth), "the compensation check simulates robots; run "
+                               "experiments/paper1_machine_tool for machine tools"),
+                              ("model.compliance", cfg.model.compliance not in (False, None),
+                               "gravity compliance belongs to model.kind=joint_dependent")):
+            if bad:
+                fail(key, f"not with model.kind=axis_perturbation: {why}")
     c = _plain(cfg.constraint.c)
     if not (c is None or c == "auto" or (_is_number(c) and c > 0)):
         fail("constraint.c", f"{c!r}: give null (unconstrained), a positive number (mm per half axis range) or auto")
     for key in ("points", "check_points", "border_k", "border_n"):
-        if not _is_int(cfg.constraint[key]) or cfg.constraint[key] < 1:
-            fail(f"constraint.{key}", f"{cfg.constraint[key]!r}: give a positive integer")
+        if not _is_int(getattr(cfg.constraint, key)) or getattr(cfg.constraint, key) < 1:
+            fail(f"constraint.{key}", f"{getattr(cfg.constraint, key)!r}: give a positive integer")
     if not cfg.constraint.tol > 0 or not cfg.constraint.knee_tol_mm > 0:
         fail("constraint.tol" if not cfg.constraint.tol > 0 else "constraint.knee_tol_mm", "must be positive")
     if cfg.constraint.reference not in ("nominal", "constant"):
@@ -615,13 +772,13 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
 
     if not cfg.noise.sigma_m > 0:
         fail("noise.sigma_m", f"{cfg.noise.sigma_m}: the tracker sigma (mm) must be positive")
-    given = [key for key in ("joint_var_fwd", "joint_var_bwd") if cfg.noise[key] is not None]
+    given = [key for key in ("joint_var_fwd", "joint_var_bwd") if getattr(cfg.noise, key) is not None]
     if len(given) == 1:
         other = ({"joint_var_fwd", "joint_var_bwd"} - set(given)).pop()
         fail(f"noise.{other}", f"is null but noise.{given[0]} is set: give both joint variance lists, or neither "
                                "(then the robot's repeatability is used)")
     for key in given:
-        var = _plain(cfg.noise[key])
+        var = _plain(getattr(cfg.noise, key))
         if any(v < 0 for v in var):
             fail(f"noise.{key}", f"{var}: variances (deg²) cannot be negative")
         if n_joints is not None and len(var) != n_joints:
@@ -638,8 +795,8 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
 
     if cfg.prior.enabled:
         for key in ("rotation_deg", "translation_mm", "frame_rotation_deg", "frame_translation_mm"):
-            if not cfg.prior[key] > 0:
-                fail(f"prior.{key}", f"{cfg.prior[key]}: a prior sigma must be positive (or set prior.enabled=false)")
+            if not getattr(cfg.prior, key) > 0:
+                fail(f"prior.{key}", f"{getattr(cfg.prior, key)}: a prior sigma must be positive (or set prior.enabled=false)")
         if cfg.prior.compliance_deg is not None and not cfg.prior.compliance_deg > 0:
             fail("prior.compliance_deg", f"{cfg.prior.compliance_deg}: a prior sigma must be positive (or null)")
         if cfg.prior.backlash_deg is not None and not cfg.prior.backlash_deg > 0:
@@ -662,7 +819,7 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
         dev = torch.device(cfg.device)
     except (RuntimeError, ValueError) as exc:
         fail("device", f"'{cfg.device}' is not a torch device ({exc})")
-    if dev.type == "cuda" and not torch.cuda.is_available():
+    if check_device and dev.type == "cuda" and not torch.cuda.is_available():
         fail("device", f"'{cfg.device}' requested but CUDA is not available here (use device=cpu)")
     if cfg.threads is not None and cfg.threads < 1:
         fail("threads", f"{cfg.threads}: must be at least 1 (or null to choose by work size)")
@@ -670,14 +827,15 @@ def check_config(cfg: DictConfig, label: str = "config", n_joints: int | None = 
         fail("out", "needs a folder for the run directory")
 
 
-def to_yaml(cfg: DictConfig) -> str:
-    """The fully resolved config as YAML (what a run directory's config.yaml holds)."""
-    return OmegaConf.to_yaml(cfg, resolve=True)
+def to_yaml(cfg: FitConfig) -> str:
+    """The fully resolved config as YAML (what a run directory's config.yaml holds; :func:`config_from_text`
+    reads it back)."""
+    return yaml.safe_dump(to_dict(cfg), sort_keys=False, allow_unicode=True)
 
 
-def to_dict(cfg: DictConfig) -> dict:
-    """The fully resolved config as plain Python containers."""
-    return OmegaConf.to_container(cfg, resolve=True)
+def to_dict(cfg: FitConfig) -> dict:
+    """The fully resolved config as plain Python containers (lists, dicts)."""
+    return _plain_value(cfg)
 
 
 __all__ = [
@@ -691,9 +849,12 @@ __all__ = [
     "SolverConfig",
     "apply_overrides",
     "check_config",
+    "config_from_text",
     "load_config",
     "make_config",
+    "run_config",
     "schema",
     "to_dict",
     "to_yaml",
+    "updated",
 ]

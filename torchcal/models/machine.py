@@ -16,7 +16,7 @@ the tables dq are evaluated at the command q itself (the controller looks the
 tables up at the command it was given). Several tools per command are rows of
 the data with the same q.
 
-It mirrors the surface of :class:`torchcal.model.RobotModel` that the
+It mirrors the surface of :class:`torchcal.models.robot.RobotModel` that the
 identification, persistence and analysis code use, so :func:`torchcal.fit`,
 :func:`torchcal.io.rundir.save_model` / ``load_model`` and the slope
 constraint (:mod:`torchcal.identify.constrained`) work on it unchanged.
@@ -29,12 +29,12 @@ from typing import Any
 import torch
 from torch import nn
 
-from .error_models.axis_perturbation import AxisPerturbation
-from .error_models.frame import FrameCorrection, ToolSet
+from ..error_models.axis_perturbation import AxisPerturbation
+from ..error_models.frame import FrameCorrection, ToolSet
 from .jacobian import joint_axis_jacobian, twist_jacobian
-from .kinematics.fk import chain_frames
-from .kinematics.robot import ChainBuffers, Robot
-from .kinematics.transforms import twist_to_transform
+from ..kinematics.fk import chain_frames
+from ..kinematics.robot import ChainBuffers, Robot
+from ..kinematics.transforms import twist_to_transform
 
 TOOL_TERMS = ("z", "xyz")
 
@@ -182,7 +182,7 @@ class MachineModel(ChainBuffers, nn.Module):
     @classmethod
     def from_spec(cls, spec: dict[str, Any], robot: Robot | None = None) -> MachineModel:
         """Rebuild an (all-zero) model from :meth:`spec`; load the state dict to restore values."""
-        from .kinematics.robot import load_robot
+        from ..kinematics.robot import load_robot
 
         robot = robot or load_robot(spec["robot"])
         return cls(robot, torch.tensor(spec["tools"], dtype=torch.float64), spec["orders"],

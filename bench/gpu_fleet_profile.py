@@ -1,0 +1,67 @@
+"""Device probe: where the GPU fleet's time goes (structured vs dense path, then a torch.profiler table).
+
+    python bench/gpu_fleet_profile.py [--units 100]
+"""
+
+from __future__ import annotations
+
+import torchcal  # noqa: F401  first: OMP_WAIT_POLICY=PASSIVE before torch loads
+
+import argparse
+import time
+
+import torch
+
+import torchcal.sim
+from torchcal.core import units as U
+from torchcal.identify.fleet import fit_fleet
+from torchcal.sim.fleet import fleet_truths
+
+TOOLS = U.mm_to_m(torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]],
+                               dtype=torch.float64))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--units", type=int, default=100)
+    args = ap.parse_args()
+    gpu = torch.device("cuda")
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    noise = torchcal.NoiseModel.from_robot(robot)
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 250, 0)
+    fleet = fleet_truths(robot, TOOLS, args.units, 0, [7, 23, 42, 61, 88])
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+    units = [torchcal.simulate(t, q, [0, 1, 2], noise, k, directions=dirs).to(gpu) for k, t in enumerate(fleet.truths)]
+
+    def make():
+        return torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True).to(gpu)
+
+    best = {}
+    for structured in (True, False):
+        times = []
+        for _ in range(3):
+            torch.cuda.synchronize()
+            t = time.perf_counter()
+            r = fit_fleet(make, units, noise, structured=structured)
+            torch.cuda.synchronize()
+            times.append(time.perf_counter() - t)
+        best[structured] = min(times[1:])
+        print(f"structured={structured}: {[f'{x:.3f}' for x in times]} s; iterations max "
+              f"{int(max(u.nit for u in r.results)) if hasattr(r, 'results') else '?'}", flush=True)
+    fast = min(best, key=best.get)
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        fit_fleet(make, units, noise, structured=fast)
+        torch.cuda.synchronize()
+    ka = prof.key_averages()
+    print(ka.table(sort_by="self_cpu_time_total", row_limit=22, max_name_column_width=48))
+    print(ka.table(sort_by="self_cuda_time_total", row_limit=12, max_name_column_width=48))
+    n_launch = sum(e.count for e in ka if e.key in ("cudaLaunchKernel", "cudaLaunchKernelExC"))
+    n_sync = sum(e.count for e in ka if "Synchronize" in e.key or e.key in ("aten::item", "aten::nonzero"))
+    print(f"kernel launches {n_launch}, host syncs (item/nonzero/synchronize) {n_sync}")
+
+
+if __name__ == "__main__":
+    main()

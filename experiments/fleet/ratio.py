@@ -1,0 +1,92 @@
+"""The fleet target's ratio, measured interleaved: (one batched solve of M units) / (ONE separate fit), side by side.
+
+Issue 18: a fleet of 100 simulated FANUCs (250 x 3 poses each, order 6 +
+backlash, own truths from torchcal.sim.fleet) in one batched solve within
+10x the time of ONE fit on 2 cores. The machine is shared, so the two are
+timed alternately in one process (fit, fleet, fit, fleet, ...) and each
+fleet solve is divided by the mean of the fits around it; the median of
+those ratios is printed, with every run. "ONE fit" is torchcal.fit on one
+unit's data with the same model, noise and prior (its whole call: gauge
+fixing included, as the fleet's time includes its gauge).
+
+    python experiments/fleet/ratio.py [--units 100] [--repeats 2] [--dense] [--threads N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import torchcal  # noqa: F401  (before torch: the OpenMP wait policy)
+import torch
+
+import torchcal.sim
+from torchcal.core import units as U
+from torchcal.identify import fit
+from torchcal.identify.fleet import fit_fleet
+from torchcal.sim.fleet import fleet_truths
+
+TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]  # Paper II Table 4
+
+
+def fleet_data(units: int, seed: int = 0, damaged=(7, 23, 42, 61, 88)):
+    """(make, identification data per unit, noise) of experiments/fleet/run.py's fleet."""
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    tools = U.mm_to_m(torch.tensor(TOOLS_MM, dtype=torch.float64))
+    noise = torchcal.NoiseModel.from_robot(robot)
+    fleet = fleet_truths(robot, tools, units, seed, [d for d in damaged if d < units])
+    lim = robot.joint_map.limits
+    q = torchcal.sim.quasi_random_commands(lim, 250, seed)
+    g = torch.Generator().manual_seed(seed)
+    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+    ident = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * seed + k, directions=dirs) for k, t in enumerate(fleet.truths)]
+
+    def make():
+        return torchcal.RobotModel(robot, tools, orders=6, backlash=True)
+
+    return make, ident, noise
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--units", type=int, default=100)
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--dense", action="store_true", help="the dense batched path (before the factored one)")
+    ap.add_argument("--threads", type=int, default=None, help="fix the thread count of both (default: by work)")
+    a = ap.parse_args(argv)
+    if a.threads:
+        from torchcal.core.threads import set_threads
+
+        set_threads(a.threads)
+    make, ident, noise = fleet_data(a.units)
+    opts = {"structured": False} if a.dense else {}
+    fit(make(), ident[0], noise)  # warm-up: imports, allocator
+    fit_fleet(make, ident[:2], noise, **opts)  # warm-up: compiled kernels
+    ones, ratios = [], []
+
+    def one(k):
+        t = time.perf_counter()
+        r = fit(make(), ident[k % len(ident)], noise)
+        ones.append(time.perf_counter() - t)
+        return r
+
+    one(0)
+    for rep in range(a.repeats):
+        before = ones[-1]
+        t = time.perf_counter()
+        out = fit_fleet(make, ident, noise, **opts)
+        tf = time.perf_counter() - t
+        one(rep + 1)
+        ref = 0.5 * (before + ones[-1])
+        ratios.append(tf / ref)
+        print(f"run {rep}: fleet of {a.units} {tf:.2f} s, one fit {before:.3f} / {ones[-1]:.3f} s -> ratio {tf / ref:.1f} "
+              f"(batched iterations {out.batch.iterations}, unit iterations {sum(r.nit for r in out.results)})", flush=True)
+    print(f"ratio fleet / one fit: median {statistics.median(ratios):.1f} (target <= 10); one fit median "
+          f"{statistics.median(ones):.3f} s; threads {torch.get_num_threads()}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,126 @@
+"""The fleet's factored Jacobian and normal matrix against the dense ones (torchcal.identify.structured)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchcal
+import torchcal.sim
+from torchcal.identify import fleet_kernel
+from torchcal.identify.batched import _schur_steps
+from torchcal.identify.fleet import FleetProblem
+from torchcal.identify.structured import (RobotStructure, contract, dense_jacobian, factored_linearization,
+                                          gram_parts, pair_basis, structured_steps)
+from torchcal.sim.fleet import fleet_truths
+
+TOOLS = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]], dtype=torch.float64)
+
+
+@pytest.fixture(scope="module")
+def problems():
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    noise = torchcal.NoiseModel.from_robot(robot)
+    fleet = fleet_truths(robot, TOOLS, 3, 0, [1])
+    lim = robot.joint_map.limits
+    # the units' own programs (different commands and pose counts): padding and pose slots differ per unit
+    units = [torchcal.simulate(t, torchcal.sim.quasi_random_commands(lim, 24 + 5 * k, k), [0, 1, 2], noise, 10 + k)
+             for k, t in enumerate(fleet.truths)]
+
+    def make():
+        return torchcal.RobotModel(robot, TOOLS, orders=3, backlash=2)
+
+    dense = FleetProblem(make, units, noise, structured=False)
+    fact = FleetProblem(make, units, noise)
+    g = torch.Generator().manual_seed(3)
+    X = fact.start() + 1e-4 * torch.randn(fact.M, fact.layout.size, generator=g, dtype=torch.float64) * fact.keep
+    return dense, fact, X, g
+
+
+def _rel(a, b):
+    return float((a - b).abs().max() / b.abs().max())
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_factored_jacobian_is_the_dense_one(problems, compiled):
+    """E x Phi reassembled column by column is RobotModel.point_jacobians' A (whitened, masked rows), to rounding;
+    the residual and the joint-error Jacobian too, in the torch form and in the compiled one."""
+    dense, fact, X, g = problems
+    if compiled and not fleet_kernel.available("cpu"):
+        pytest.skip("numba not importable")
+    assert fact.structure is not None
+    V = 1e-4 * torch.randn(fact.M, fact.R, fact.n, generator=g, dtype=torch.float64)
+    w = torch.arange(fact.M)
+    f, A, C = dense.linearize(X, V, w)
+    st = fact.stack
+    fn = fleet_kernel.factored_linearization_fused if compiled else factored_linearization
+    raw, Jv, E, Phi = fn(fact.superset, fact.structure, fact._params(X), st["q"], st["tool"], st["direction"], V,
+                         st["xyz"])
+    s = fact.scale[:, :, None] / fact.instrument.weight.sigma
+    assert _rel(raw * s, f) < 1e-10
+    assert _rel(Jv * s[..., None], C) < 1e-10
+    Ad = dense_jacobian(E * s[..., None], Phi, fact.structure) * fact.keep[:, None, None, :]
+    assert _rel(Ad, A) < 1e-10
+
+
+def _dense_normal(dense, f, A, C, w_v):
+    """sum_r A_r^T (I - C_r H_vv,r^-1 C_r^T) A_r: the Schur complement of the joint errors, densely."""
+    m, R, d, P = A.shape
+    H = C.transpose(-1, -2) @ C + torch.diag_embed(w_v)
+    M = torch.eye(d, dtype=A.dtype) - C @ torch.linalg.solve(H, C.transpose(-1, -2))
+    Af = A.reshape(m, R * d, P)
+    return Af.transpose(1, 2) @ (M @ A).reshape(m, R * d, P)
+
+
+def test_khatri_rao_normal_matrix_is_the_dense_one(problems):
+    """At v = 0 (the rows of a pose share their basis values) the per-pose Gram matrices contracted with the
+    Chebyshev basis give the dense J^T M J to 1e-10 relative, by the torch route and the compiled one."""
+    dense, fact, X, _ = problems
+    V = torch.zeros(fact.M, fact.R, fact.n, dtype=torch.float64)
+    w = torch.arange(fact.M)
+    f, A, C = dense.linearize(X, V, w)
+    ref = _dense_normal(dense, f, A, C, dense.w_v)
+    ff, Cf, E, Phi, Phi_p = fact.linearize(X, V, w)
+    H = Cf.transpose(-1, -2) @ Cf + torch.diag_embed(fact.w_v)
+    M = torch.eye(3, dtype=E.dtype) - Cf @ torch.linalg.solve(H, Cf.transpose(-1, -2))
+    kf = fact.keep.to(E)
+    paths = [gram_parts]
+    if fleet_kernel.available("cpu"):
+        paths.append(lambda E, ME, slots, st: fleet_kernel.gram_fused(fleet_kernel.pose_last(E, slots),
+                                                                      fleet_kernel.pose_last(ME, slots), st.n, st.A))
+    for parts in paths:
+        S = contract(parts(E, M @ E, fact.slots, fact.structure), Phi_p, fact.structure) * kf[:, :, None] * kf[:, None, :]
+        assert _rel(S, ref) < 1e-10
+        assert torch.equal(S, S.transpose(1, 2))
+        # units measured with one program share the pair products of their basis values: unit 0 alone
+        S0 = contract(parts(E[:1], (M @ E)[:1], fact.slots[:1], fact.structure), Phi_p[:1], fact.structure,
+                      pp=pair_basis(Phi_p[0], fact.n)) * kf[:1, :, None] * kf[:1, None, :]
+        assert _rel(S0, ref[:1]) < 1e-10
+
+
+def test_structured_steps_are_the_dense_steps(problems):
+    """With joint errors (rows of a pose no longer share basis values), the preconditioned iterations on the
+    exact product give the dense Levenberg-Marquardt step."""
+    dense, fact, X, g = problems
+    # padding rows (units with fewer rows) keep v = 0, as in a solve
+    V = 2e-5 * torch.randn(fact.M, fact.R, fact.n, generator=g, dtype=torch.float64) * fact.rows[..., None]
+    w = torch.arange(fact.M)
+    f, A, C = dense.linearize(X, V, w)
+    lin = fact.linearize(X, V, w)
+    for mu0 in (1e-8, 1e-2):
+        mu = torch.full((fact.M,), mu0, dtype=torch.float64)
+        a = _schur_steps(f, A, C, dense.w_v, V, dense.lam, X - dense.mean, mu, dense.keep)
+        args = (lin, fact.structure, fact.slots, fact.w_v, V, fact.lam, X - fact.mean, mu, fact.keep)
+        for (refine, tol), bound in (((30, 1e-14), 1e-8), ((3, 1e-7), 1e-4)):  # to convergence; the default
+            for x, y in zip(a, structured_steps(*args, refine=refine, tol=tol)):
+                assert _rel(y, x) < bound
+
+
+def test_unsupported_models_take_the_dense_path():
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    model = torchcal.RobotModel(robot, TOOLS, orders=1, compliance=True)
+    from torchcal.identify.layout import ParameterLayout
+    from torchcal.measure import PointTargets
+
+    assert not RobotStructure.supports(model, PointTargets(torch.zeros(2, 3, dtype=torch.float64), sigma=1e-5),
+                                       ParameterLayout(model))

@@ -1,0 +1,93 @@
+"""The CLI's file commands beyond fit / predict / compensate: tracker and T-Mac imports, pose planning, controller
+tables, the calibration report.
+
+Each takes paths and the user's options (mm, deg), calls the library, writes its files (atomically, through the
+library's writers) and returns what a front end shows. The CLI (:mod:`torchcal.cli`) parses, checks the
+overwrite policy and prints; it calls nothing below this layer (an import contract checks it), so a second
+front end (a notebook, a service) gets the same commands.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..core import units
+
+
+def import_tracker_file(output, joints, targets, bases, robot: str | None, drift_threshold_mm: float,
+                        correct_drift: bool, outlier_mm: float):
+    """``torchcal import-tracker``: tracker exports -> the measurement CSV ``output``.
+
+    -> :class:`torchcal.io.tracker.TrackerImport` (``table``, ``report`` lines, ``summary_table()``).
+    """
+    from ..io.csv import write_table
+    from ..io.tracker import import_tracker
+    from ..kinematics import load_robot
+
+    rob = load_robot(robot) if robot else None
+    res = import_tracker(joints, list(targets), list(bases or []), rob, drift_threshold_mm, correct_drift, outlier_mm)
+    write_table(output, res.table)
+    return res
+
+
+def import_tmac_file(source, output, robot: str, convention: str, exclude=()) -> Path:
+    """``torchcal import-tmac``: a UR10 + Leica T-Mac export -> the sensor CSV ``output``; -> its path."""
+    from ..io.tmac import convert_tmac
+    from ..kinematics import load_robot
+
+    return convert_tmac(source, output, load_robot(robot), convention, exclude or ())
+
+
+def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=None, min_distance_mm: float = 200.0,
+                    min_height_mm: float = 0.0, max_incidence_deg: float = 60.0, order: str = "decorrelate"):
+    """``torchcal plan-poses``: ``count`` measurement poses -> ``output`` (pose, q1..qN in deg / mm).
+
+    tracker_mm: the tracker's position [x, y, z] in the robot base frame (mm) or None. The count is checked
+    before the robot loads (a huge count used to die in numpy's allocator). -> (plan, robot): the
+    :class:`torchcal.analysis.planning.PosePlan` (its ``stats``) and the loaded robot (joint names).
+    """
+    from ..analysis.planning import MAX_POSES, PlanningError, plan_poses
+    from ..kinematics import load_robot
+
+    if not 1 <= count <= MAX_POSES:
+        raise PlanningError(f"COUNT {count}: plan between 1 and {MAX_POSES} poses")
+    rob = load_robot(robot)
+    tracker = None if tracker_mm is None else [units.mm_to_m(float(v)) for v in tracker_mm]
+    plan = plan_poses(rob, count, seed=seed, tracker=tracker, min_tool_distance=units.mm_to_m(min_distance_mm),
+                      min_height=units.mm_to_m(min_height_mm), max_incidence_deg=max_incidence_deg, order=order)
+    plan.to_csv(output, rob)
+    return plan, rob
+
+
+def table_output_names(fmt: str) -> list[str] | None:
+    """The files (glob patterns, relative to the output folder) a folder format of ``export-tables`` writes;
+    None for the file formats (csv, siemens-cec), whose output is the path itself."""
+    from ..export.linuxcnc_hal import FILES as VOL_FILES, FORMAT as VOL
+
+    if fmt == "linuxcnc":
+        return ["*.comp", "linuxcnc_comp.ini"]
+    if fmt == VOL:
+        return list(VOL_FILES)
+    if fmt == "all":
+        return ["tables.csv", "cec_tables.mpf", "linuxcnc/*.comp", "linuxcnc/linuxcnc_comp.ini",
+                *[f"linuxcnc_volumetric/{f}" for f in VOL_FILES]]
+    return None
+
+
+def export_tables(run_dir, out, fmt: str = "csv", points: int | None = None, max_points: int = 2000):
+    """``torchcal export-tables``: a machine run's compensation tables in a controller format; -> what was
+    written (a path, or {name: path}); refusals and end-slope notes come as warnings."""
+    from ..export.controller import export_run_tables
+
+    return export_run_tables(run_dir, out, fmt, points, max_points)
+
+
+def write_report(run_dir, out=None) -> Path:
+    """``torchcal report``: the run directory's self-contained ``report.html`` (:mod:`torchcal.report`)."""
+    from ..report import write_report as _write
+
+    return _write(run_dir, out)
+
+
+__all__ = ["export_tables", "import_tmac_file", "import_tracker_file", "plan_poses_file", "table_output_names",
+           "write_report"]

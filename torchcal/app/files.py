@@ -1,0 +1,253 @@
+"""The file commands on a fitted run: ``torchcal predict`` and ``torchcal compensate`` (CSV in, CSV out).
+
+Both load a run directory's model, ask the model contract (:mod:`torchcal.core.contract`) whether it can do
+what is asked (a machine-tool or sensor run cannot compensate joint commands: one clear message), read the
+CSV contract (mm, deg), refuse joints that look like radians, and write every input row back, in order, with
+the answer and a reason for each flagged row. Writing goes through :func:`torchcal.io.csv.write_table`
+(atomic, one overwrite policy).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from ..core import units
+from ..core.measurements import Measurements
+from ..core.progress import task as progress_task
+from ..io.csv import write_table
+
+
+def _refuse_radians(path, data: Measurements, robot, units_checked: bool) -> None:
+    """Commands that look like radians would be driven as degrees: refuse unless the user says they are degrees."""
+    if units_checked:
+        return
+    from ..io.unit_checks import OVERRIDE, UnitsError, radian_columns, radian_message
+
+    rad = radian_columns(data.q, robot)
+    if rad:
+        raise UnitsError(radian_message(path, data.q, robot, rad) + f"; pass {OVERRIDE} if they really are degrees")
+
+
+def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> int:
+    """``torchcal predict``: the points x, y, z (mm, measurement frame) an identified model predicts for
+    the commands of a CSV (tool, q1..qN [, dir1..dirN]); other columns are kept, measured x, y, z replaced.
+    A file without a 'tool' column (``torchcal plan-poses`` writes commands only) gets every tool of the
+    run for every row, tool by tool, with the 'tool' column added.
+
+    -> the number of rows written. Raises RunDirError / DataError naming the folder or file.
+    """
+    from ..io.csv import points_to_file, read_table
+    from ..io.rundir import RunDirError, load_model
+
+    with progress_task(f"loading the run {run_dir}"):
+        model = load_model(run_dir, device=device)
+    from ..core.contract import PredictsPoints, implements, require
+
+    if not implements(model, PredictsPoints) and hasattr(model, "sensor_pose"):
+        from .sensor import predict_pose_file  # a sensor run (Paper III): modeled x, y, z, r11..r33
+
+        with progress_task(f"predicting the sensor poses of {input}"):
+            return predict_pose_file(run_dir, input, output, model)
+    try:
+        require(model, "predict points", f"torchcal predict {run_dir}")
+    except TypeError as exc:
+        raise RunDirError(str(exc)) from None
+    import pandas as pd
+
+    from ..io.csv import parse_table
+
+    T = model.tools.count
+    with progress_task(f"reading {input}"):
+        data, df = read_table(input, model.robot, None, require_xyz=False)
+        per_tool = "tool" not in df.columns
+        if not per_tool:  # the rows name their tools: checked against the run's
+            data = parse_table(df, input, model.robot, T, require_xyz=False)
+    _refuse_radians(input, data, model.robot, units_checked)
+    data = data.to(model.device)
+    # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
+    tools = range(T) if per_tool else [None]
+    parts = []
+    with torch.no_grad(), progress_task(f"predicting {len(df) * len(tools)} rows"):
+        for t in tools:
+            tool = data.tool if t is None else torch.full_like(data.tool, t)
+            mm = points_to_file(model.points(data.q, tool, data.direction if data.has_direction else None))
+            out = df.copy()
+            if t is not None:
+                out.insert(1 if "pose" in out.columns else 0, "tool", t)
+            for i, c in enumerate(("x", "y", "z")):
+                out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
+            parts.append(out)
+    out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
+    write_table(output, out)
+    return len(out)
+
+
+@dataclass
+class CompensationFile:
+    """What :func:`compensate_file` wrote: row count and how many rows are flagged, and why."""
+
+    rows: int
+    not_converged: int
+    outside_limits: int
+    flagged: int
+    direction_outside: int
+    result: Any = field(default=None, repr=False)
+
+
+def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
+                             max_correction_deg: float | None = None, prismatic=None) -> dict:
+    """Keyword arguments for compensate(): the given values, else the run's config, else compensate()'s defaults.
+
+    max_correction_deg: the correction bound, deg for revolute joints and the same number in mm for prismatic
+    ones (``prismatic``: (n,) bool), as an (n,) SI tensor; the step bound is the smaller of it and
+    compensate()'s default step (a 30 deg bound must not allow 30 deg Newton steps).
+    """
+    from ..io.rundir import load_run_config
+
+    try:
+        comp = load_run_config(run_dir).get("compensation", None) or {}
+    except Exception:  # a run folder without (or with an older) config.yaml still compensates
+        comp = {}
+    out = compensation_kwargs(tol_deg if tol_deg is not None else comp.get("tol_deg"),
+                              max_iter if max_iter is not None else comp.get("max_iter"))
+    if max_correction_deg is not None:
+        if prismatic is None:
+            bound = units.deg_to_rad(float(max_correction_deg))
+        else:
+            bound = units.joint_scale(torch.as_tensor(prismatic).cpu()) * float(max_correction_deg)
+        from ..compensate.bounds import DEFAULT_BOUND, DEFAULT_STEP_DEG, per_joint_bound
+
+        if prismatic is None:
+            step = min(bound, units.deg_to_rad(DEFAULT_STEP_DEG))
+        else:
+            step = torch.minimum(bound, per_joint_bound(DEFAULT_BOUND, bound.numel(), bound.dtype, "cpu", "max_step",
+                                                        prismatic))
+        out.update(max_correction=bound, max_step=step)
+    return out
+
+
+def compensate_file(run_dir, input, output, device=None, tol_deg: float | None = None, max_iter: int | None = None,
+                    max_correction_deg: float | None = None, units_checked: bool = False,
+                    free_tool_axis=None) -> CompensationFile:
+    """``torchcal compensate``: compensated commands for every row of a CSV (q1..qN [, dir1..dirN], deg / mm).
+
+    free_tool_axis: None (6-DOF), or the tool axis (3,) in the flange frame whose rotation is left free
+    (axisymmetric tools: 5-DOF compensation); the point on the axis is the identified tool of each row's
+    'tool' column, else the flange origin.
+
+    Writes q1..qN compensated plus converged, iterations, within_limits,
+    max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside]; every
+    input row is kept, in order, other columns too. Raises RunDirError /
+    DataError naming the folder or file.
+    """
+    from ..compensate import compensate
+    from ..io.csv import joint_columns, joints_to_file, read_table, write_table
+    from ..io.rundir import load_model
+
+    from ..core.contract import require
+    from ..io.rundir import RunDirError
+
+    with progress_task(f"loading the run {run_dir}"):
+        model = load_model(run_dir, device=device)
+    try:  # the model contract: machine tools and sensor rigs have no joint-error Newton solve
+        require(model, "compensate commands", f"torchcal compensate {run_dir}")
+    except TypeError as exc:
+        raise RunDirError(str(exc)) from None
+    robot = model.robot
+    with progress_task(f"reading {input}"):
+        data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
+    _refuse_radians(input, data, robot, units_checked)
+    from ..io.csv import target_kind
+
+    if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
+        return _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg,
+                                        free_tool_axis)
+    data = data.to(model.device)
+    opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
+    if free_tool_axis is not None:
+        opts["free_tool_axis"] = torch.as_tensor(free_tool_axis, dtype=model.dtype, device=model.device)
+        if "tool" in df.columns:  # each row's identified tool point lies on the free axis
+            from ..io.csv import parse_table
+
+            tools = parse_table(df, input, robot, model.tools.count, require_xyz=False, require_pose=False).tool
+            with torch.no_grad():
+                opts["tool_point"] = model.tools().to(model.device, model.dtype)[tools.to(model.device)]
+    with progress_task(f"compensating {len(df)} commands"):
+        res = compensate(model, data.q, data.direction if data.has_direction else None, **opts)
+    q_file = joints_to_file(res.q, robot)
+    out = df.copy()
+    for i, c in enumerate(joint_columns(robot.joint_map.n)):
+        out[c] = q_file[:, i]  # every row kept, in input order; failures are marked below
+    out["converged"] = res.converged.cpu().numpy()
+    out["iterations"] = res.iterations.cpu().numpy()
+    out["within_limits"] = res.within_limits.cpu().numpy()
+    # largest correction in file units (deg / mm): a flagged or large one is visible per row
+    out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
+    if res.direction_outside is not None:
+        out["direction_outside"] = res.direction_outside.cpu().numpy()
+    out["reason"] = res.reasons(opts.get("max_correction"), robot.joint_map.prismatic)
+    write_table(output, out)
+    nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
+    return CompensationFile(len(df), nc, ol, int((~res.converged | ~res.within_limits).sum()),
+                            0 if res.direction_outside is None else int(res.direction_outside.sum()), res)
+
+
+def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,
+                             max_correction_deg, free_tool_axis=None) -> CompensationFile:
+    """``torchcal compensate`` on Cartesian targets (x, y, z mm; rx, ry, rz deg or qw, qx, qy, qz; robot base
+    frame; q1..qN the seeds on the controller's branch; tool optional, default 0): writes q1..qN calibrated,
+    x_cmd .. rz_cmd the corrected target for a controller that runs nominal IK with its nominal tool data,
+    converged, within_limits, max_dq (against the nominal IK's commands) and reason (empty when converged)."""
+    from ..compensate.targets import compensate_targets, pose_rpy, target_poses
+    from ..io.csv import joint_columns, joints_to_file, parse_table, read_targets
+
+    robot = model.robot
+    if "tool" in df.columns:  # checked against the run's tools
+        data = parse_table(df, input, robot, model.tools.count, require_xyz=False, require_pose=False)
+    _, pos, ori = read_targets(df, input)
+    T = target_poses(pos, ori).to(model.device)
+    data = data.to(model.device)
+    with progress_task(f"compensating {len(df)} Cartesian targets"):
+        res = compensate_targets(model, T, data.q, data.tool, data.direction if data.has_direction else None,
+                                 free_tool_axis=None if free_tool_axis is None else
+                                 torch.as_tensor(free_tool_axis, dtype=model.dtype, device=model.device),
+                                 **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg,
+                                                            robot.joint_map.prismatic))
+    q_file = joints_to_file(res.q, robot)
+    out = df.copy()
+    for i, c in enumerate(joint_columns(robot.joint_map.n)):
+        out[c] = q_file[:, i]
+    cmd = pose_rpy(res.command_target).cpu()
+    for i, c in enumerate(("x_cmd", "y_cmd", "z_cmd")):
+        out[c] = units.m_to_mm(cmd[:, i]).numpy()
+    for i, c in enumerate(("rx_cmd", "ry_cmd", "rz_cmd")):
+        out[c] = units.rad_to_deg(cmd[:, 3 + i]).numpy()
+    comp = res.compensation
+    out["converged"] = res.converged.cpu().numpy()
+    out["within_limits"] = comp.within_limits.cpu().numpy()
+    out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
+    out["reason"] = res.reason
+    write_table(output, out)
+    flagged = int((~res.converged).sum())
+    return CompensationFile(len(df), int((~comp.converged).sum()), int((~comp.within_limits).sum()), flagged,
+                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp)
+
+
+def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:
+    """Keyword arguments for :func:`torchcal.compensate.compensate`: tolerance deg -> rad; None keeps its defaults.
+
+    The tolerance is a joint-space step norm; like the paper's (51) it is one
+    number for all joints (read as mm for prismatic ones, converted the same way).
+    """
+    out = {}
+    if tol_deg is not None:
+        out["tol"] = units.deg_to_rad(float(tol_deg))
+    if max_iter is not None:
+        out["max_iter"] = int(max_iter)
+    return out
+
+
+__all__ = ["CompensationFile", "compensate_file", "compensation_kwargs", "predict_file", "run_compensation_options"]

@@ -1,0 +1,570 @@
+"""The factored linearization and step of :mod:`.structured`, compiled with numba: row by row in registers.
+
+Why one module: the compiled twins of :mod:`.structured`'s torch functions, kept together so that numba's cache
+(keyed on this file) and the tests that hold each kernel to its torch form stay in one place.
+
+Why this module exists. The torch form of the factored linearization
+(:func:`torchcal.identify.structured.factored_linearization`) walks the chain
+as ~200 elementwise ops over (rows, joints, 3, 3) tensors; each streams its
+operands through memory with trailing dimensions of 3, so it cost 15-18 ms
+per FANUC unit (750 rows, ~4 000 flops a row): 20 µs a row, whatever the
+batch. The step's per-row half (a 6 x 6 Cholesky factor per row for the
+joint errors, M = I - W^T W, the gradient, the per-pose Gram matrices
+E^T M E, the exact products A^T M A x) was likewise dozens of small
+(rows, 6, 6) / (rows, 3, 57) torch ops and batched 57 x 9 x 57 products
+(1.8 GFLOP/s). Here the same arithmetic runs row by row (pose by pose) in
+scalars and small scratch arrays, rows split over the threads; the Gram
+matrices are formed with the pose axis innermost (unit stride, so they
+vectorize over poses) and written in the layout the contraction's batched
+products read. Same formulas, term for term, as the torch form
+(chain_frames, so3_exp with its Taylor branch, so3_right_jacobian,
+twist_jacobian, joint_axis_jacobian, the Chebyshev recurrence and its
+derivative); the tests hold both to rounding. CPU, float64, numba importable
+(``TORCHCAL_NO_NUMBA`` unset); everything else takes the torch form.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import torch
+
+try:  # numba is a dependency, but the torch form computes the same numbers without it
+    import numba
+
+    HAVE_NUMBA = os.environ.get("TORCHCAL_NO_NUMBA", "") == ""
+except ImportError:  # pragma: no cover
+    numba = None
+    HAVE_NUMBA = False
+
+if HAVE_NUMBA:
+    njit = numba.njit
+    prange = numba.prange
+else:  # pragma: no cover
+    def njit(*args, **kwargs):
+        return lambda f: f
+
+    prange = range
+
+_CHUNK = 64  # rows per task
+_JOBS = 32  # poses per task (scratch is allocated per task: numba's allocations cost ~µs each)
+
+
+@njit(cache=True)
+def _exp_coeffs(w0, w1, w2):
+    """a, b of exp(S(w)) = I + a S + b S^2 (so3_exp, Taylor branch below theta^2 = 1e-8)."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < 1e-8:
+        return 1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+    t = math.sqrt(t2)
+    return math.sin(t) / t, (1.0 - math.cos(t)) / t2
+
+
+@njit(cache=True)
+def _rj_coeffs(w0, w1, w2):
+    """a, b of J_r(w) = I - a S + b S^2 (so3_right_jacobian, Taylor branch below theta^2 = 1e-8)."""
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < 1e-8:
+        return 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
+    t = math.sqrt(t2)
+    return (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
+
+
+@njit(cache=True)
+def _rot(out, w0, w1, w2, a, b):
+    """out (3, 3) = I + a S(w) + b S(w)^2."""
+    # S = [[0, -w2, w1], [w2, 0, -w0], [-w1, w0, 0]]; S^2 = w w^T - |w|^2 I
+    n2 = w0 * w0 + w1 * w1 + w2 * w2
+    out[0, 0] = 1.0 + b * (w0 * w0 - n2)
+    out[0, 1] = -a * w2 + b * w0 * w1
+    out[0, 2] = a * w1 + b * w0 * w2
+    out[1, 0] = a * w2 + b * w1 * w0
+    out[1, 1] = 1.0 + b * (w1 * w1 - n2)
+    out[1, 2] = -a * w0 + b * w1 * w2
+    out[2, 0] = -a * w1 + b * w2 * w0
+    out[2, 1] = a * w0 + b * w2 * w1
+    out[2, 2] = 1.0 + b * (w2 * w2 - n2)
+
+
+@njit(cache=True)
+def _mm(out, x, y):
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = x[i, 0] * y[0, j] + x[i, 1] * y[1, j] + x[i, 2] * y[2, j]
+
+
+@njit(parallel=True, cache=True)
+def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, coupling, offset, ecoup, eoff,
+                   lo, width, oR, op, axes, prismatic, tipR, tipp, Kc, Kb, A, p_out, Jv_out, E_out, Phi_out):
+    """Tool points p_out (B, 3), Jv_out (B, 3, n), factored E_out (B, 3, n A + 6 + 3 T), Phi_out (B, n, K) of rows
+    qv (B, n) (commands plus joint errors), s (B, n), tool (B,), unit (B,): every unit's masked coef
+    (M, n, 6, Kc), backlash (M, n, Kb), base T0 (M, 3, 3) / (M, 3), its twist Jacobian factors RJb, Rbb
+    (M, 3, 3) and tool points pts (M, T, 3)."""
+    B, n = qv.shape
+    K = Phi_out.shape[2]
+    ne = n * A
+    nchunks = (B + _CHUNK - 1) // _CHUNK
+    for c in prange(nchunks):
+        theta = np.empty(n)
+        u = np.empty(n)
+        bs = np.empty((n, K))
+        dbs = np.empty((n, K))
+        e = np.empty((n, 6))
+        de = np.empty((n, 6))
+        jR = np.empty((n, 3, 3))
+        jp = np.empty((n, 3))
+        Ex = np.empty((n, 3, 3))
+        R = np.empty((3, 3))
+        Rn = np.empty((3, 3))
+        M3 = np.empty((3, 3))
+        RJ = np.empty((3, 3))
+        Jax = np.empty((3, n))
+        slope = np.empty((3, n))
+        Je = np.empty((3, 6))
+        for r in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
+            mu = unit[r]
+            for i in range(n):
+                x = offset[i]
+                y = eoff[i]
+                for j in range(n):
+                    x += coupling[i, j] * qv[r, j]
+                    y += ecoup[i, j] * qv[r, j]
+                theta[i] = x
+                u[i] = y
+            for i in range(n):
+                lam = 2.0 * (u[i] - lo[i]) / width[i] - 1.0
+                bs[i, 0] = 1.0
+                dbs[i, 0] = 0.0
+                if K > 1:
+                    bs[i, 1] = lam
+                    dbs[i, 1] = 1.0
+                for k in range(2, K):
+                    bs[i, k] = 2.0 * lam * bs[i, k - 1] - bs[i, k - 2]
+                    dbs[i, k] = 2.0 * bs[i, k - 1] + 2.0 * lam * dbs[i, k - 1] - dbs[i, k - 2]
+                sc = 2.0 / width[i]
+                for k in range(K):
+                    dbs[i, k] *= sc
+                for t in range(6):
+                    x = 0.0
+                    y = 0.0
+                    for k in range(Kc):
+                        x += bs[i, k] * coef[mu, i, t, k]
+                        y += dbs[i, k] * coef[mu, i, t, k]
+                    e[i, t] = x
+                    de[i, t] = y
+                if Kb > 0 and use_s:
+                    x = 0.0
+                    y = 0.0
+                    for k in range(Kb):
+                        x += bs[i, k] * bl[mu, i, k]
+                        y += dbs[i, k] * bl[mu, i, k]
+                    e[i, 2] += x * s[r, i]
+                    de[i, 2] += y * s[r, i]
+            # the chain: Π origin_i · E_i · joint_i(θ_i), rotations and translations apart (chain_frames)
+            for a in range(3):
+                for b in range(3):
+                    R[a, b] = T0R[mu, a, b]
+            p0, p1, p2 = T0p[mu, 0], T0p[mu, 1], T0p[mu, 2]
+            for i in range(n):
+                p0 += R[0, 0] * op[i, 0] + R[0, 1] * op[i, 1] + R[0, 2] * op[i, 2]
+                p1 += R[1, 0] * op[i, 0] + R[1, 1] * op[i, 1] + R[1, 2] * op[i, 2]
+                p2 += R[2, 0] * op[i, 0] + R[2, 1] * op[i, 1] + R[2, 2] * op[i, 2]
+                _mm(Rn, R, oR[i])
+                ea, eb = _exp_coeffs(e[i, 0], e[i, 1], e[i, 2])
+                _rot(Ex[i], e[i, 0], e[i, 1], e[i, 2], ea, eb)
+                p0 += Rn[0, 0] * e[i, 3] + Rn[0, 1] * e[i, 4] + Rn[0, 2] * e[i, 5]
+                p1 += Rn[1, 0] * e[i, 3] + Rn[1, 1] * e[i, 4] + Rn[1, 2] * e[i, 5]
+                p2 += Rn[2, 0] * e[i, 3] + Rn[2, 1] * e[i, 4] + Rn[2, 2] * e[i, 5]
+                _mm(R, Rn, Ex[i])
+                for a in range(3):
+                    for b in range(3):
+                        jR[i, a, b] = R[a, b]
+                jp[i, 0], jp[i, 1], jp[i, 2] = p0, p1, p2
+                if prismatic[i]:
+                    d0, d1, d2 = axes[i, 0] * theta[i], axes[i, 1] * theta[i], axes[i, 2] * theta[i]
+                    p0 += R[0, 0] * d0 + R[0, 1] * d1 + R[0, 2] * d2
+                    p1 += R[1, 0] * d0 + R[1, 1] * d1 + R[1, 2] * d2
+                    p2 += R[2, 0] * d0 + R[2, 1] * d1 + R[2, 2] * d2
+                else:
+                    _rot(M3, axes[i, 0], axes[i, 1], axes[i, 2], math.sin(theta[i]), 1.0 - math.cos(theta[i]))
+                    _mm(Rn, R, M3)
+                    for a in range(3):
+                        for b in range(3):
+                            R[a, b] = Rn[a, b]
+            p0 += R[0, 0] * tipp[0] + R[0, 1] * tipp[1] + R[0, 2] * tipp[2]
+            p1 += R[1, 0] * tipp[0] + R[1, 1] * tipp[1] + R[1, 2] * tipp[2]
+            p2 += R[2, 0] * tipp[0] + R[2, 1] * tipp[1] + R[2, 2] * tipp[2]
+            _mm(Rn, R, tipR)
+            tl = tool[r]
+            t0, t1, t2 = pts[mu, tl, 0], pts[mu, tl, 1], pts[mu, tl, 2]
+            x0 = Rn[0, 0] * t0 + Rn[0, 1] * t1 + Rn[0, 2] * t2 + p0
+            x1 = Rn[1, 0] * t0 + Rn[1, 1] * t1 + Rn[1, 2] * t2 + p1
+            x2 = Rn[2, 0] * t0 + Rn[2, 1] * t1 + Rn[2, 2] * t2 + p2
+            p_out[r, 0], p_out[r, 1], p_out[r, 2] = x0, x1, x2
+            for q in range(E_out.shape[2]):
+                E_out[r, 0, q] = 0.0
+                E_out[r, 1, q] = 0.0
+                E_out[r, 2, q] = 0.0
+            for i in range(n):
+                # twist_jacobian's point rows: [-S(p - o) R J_r(eps), R exp(S(eps))^T]
+                ra, rb = _rj_coeffs(e[i, 0], e[i, 1], e[i, 2])
+                _rot(M3, e[i, 0], e[i, 1], e[i, 2], -ra, rb)
+                _mm(RJ, jR[i], M3)
+                d0, d1, d2 = x0 - jp[i, 0], x1 - jp[i, 1], x2 - jp[i, 2]
+                for k in range(3):
+                    c0, c1, c2 = RJ[0, k], RJ[1, k], RJ[2, k]
+                    Je[0, k] = -(d1 * c2 - d2 * c1)
+                    Je[1, k] = -(d2 * c0 - d0 * c2)
+                    Je[2, k] = -(d0 * c1 - d1 * c0)
+                    for a in range(3):  # R exp(S(eps))^T: column k = R @ row k of exp
+                        Je[a, 3 + k] = jR[i, a, 0] * Ex[i, k, 0] + jR[i, a, 1] * Ex[i, k, 1] + jR[i, a, 2] * Ex[i, k, 2]
+                z0 = jR[i, 0, 0] * axes[i, 0] + jR[i, 0, 1] * axes[i, 1] + jR[i, 0, 2] * axes[i, 2]
+                z1 = jR[i, 1, 0] * axes[i, 0] + jR[i, 1, 1] * axes[i, 1] + jR[i, 1, 2] * axes[i, 2]
+                z2 = jR[i, 2, 0] * axes[i, 0] + jR[i, 2, 1] * axes[i, 1] + jR[i, 2, 2] * axes[i, 2]
+                if prismatic[i]:
+                    Jax[0, i], Jax[1, i], Jax[2, i] = z0, z1, z2
+                else:
+                    Jax[0, i] = z1 * d2 - z2 * d1
+                    Jax[1, i] = z2 * d0 - z0 * d2
+                    Jax[2, i] = z0 * d1 - z1 * d0
+                for a in range(3):
+                    x = 0.0
+                    for t in range(6):
+                        x += Je[a, t] * de[i, t]
+                    slope[a, i] = x
+                    for t in range(6):
+                        E_out[r, a, i * A + t] = Je[a, t]
+                    if A == 7:
+                        E_out[r, a, i * A + 6] = Je[a, 2] * s[r, i] if use_s else 0.0
+            for a in range(3):
+                for j in range(n):
+                    x = 0.0
+                    for i in range(n):
+                        x += Jax[a, i] * coupling[i, j] + slope[a, i] * ecoup[i, j]
+                    Jv_out[r, a, j] = x
+            # base twist: twist_jacobian at the base frame; tools: the flange rotation on the row's tool
+            d0, d1, d2 = x0 - T0p[mu, 0], x1 - T0p[mu, 1], x2 - T0p[mu, 2]
+            for k in range(3):
+                c0, c1, c2 = RJb[mu, 0, k], RJb[mu, 1, k], RJb[mu, 2, k]
+                E_out[r, 0, ne + k] = -(d1 * c2 - d2 * c1)
+                E_out[r, 1, ne + k] = -(d2 * c0 - d0 * c2)
+                E_out[r, 2, ne + k] = -(d0 * c1 - d1 * c0)
+                for a in range(3):
+                    E_out[r, a, ne + 3 + k] = Rbb[mu, a, k]
+                    E_out[r, a, ne + 6 + 3 * tl + k] = Rn[a, k]
+            for i in range(n):
+                for k in range(K):
+                    Phi_out[r, i, k] = bs[i, k]
+
+
+def available(device) -> bool:
+    """Whether the compiled kernel serves tensors on ``device`` (CPU, numba importable)."""
+    return HAVE_NUMBA and torch.device(device).type == "cpu"
+
+
+@torch.no_grad()
+def factored_linearization_fused(model, st, params: dict, q, tool, direction, v, obs):
+    """:func:`torchcal.identify.structured.factored_linearization` by :func:`linearize_rows` (same arguments,
+    same results to rounding)."""
+    from ..kinematics.transforms import so3_exp, twist_to_transform
+    from ..models.jacobian import so3_right_jacobian
+
+    je = model.joint_errors
+    m, R, n = q.shape
+    B = m * R
+    f64 = dict(dtype=torch.float64, device=q.device)
+    coef = (params["joint_errors.coef"] * je.mask).contiguous()
+    Kb = st.Kb
+    bl = (params["joint_errors.backlash"] * je.backlash_mask).contiguous() if Kb > 0 else torch.zeros(m, n, 1, **f64)
+    twist = params["base.twist"]
+    T0 = model.base.nominal @ twist_to_transform(twist)  # (m, 4, 4)
+    T0R, T0p = T0[:, :3, :3].contiguous(), T0[:, :3, 3].contiguous()
+    RJb = (T0R @ so3_right_jacobian(twist[:, :3])).contiguous()
+    Rbb = (T0R @ so3_exp(twist[:, :3]).transpose(-1, -2)).contiguous()
+    pts = (model.tools.nominal + params["tools.delta"]).contiguous()
+    use_s = direction is not None and Kb > 0
+    s = direction.reshape(B, n).to(**f64).contiguous() if direction is not None else torch.zeros(B, n, **f64)
+    unit = torch.arange(m, device=q.device).repeat_interleave(R)
+    qv = (q + v).reshape(B, n).contiguous()
+    p_out = torch.empty(B, 3, **f64)
+    Jv = torch.empty(B, 3, n, **f64)
+    E = torch.empty(B, 3, st.ne + st.Nd, **f64)
+    Phi = torch.empty(B, n, st.K, **f64)
+    npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+    linearize_rows(npy(qv), npy(s), use_s, npy(tool.reshape(B)), npy(unit), npy(coef), npy(bl), npy(T0R), npy(T0p),
+                   npy(RJb), npy(Rbb), npy(pts), npy(model.coupling), npy(model.offset), npy(model.error_coupling),
+                   npy(model.error_offset), npy(je.ranges[:, 0]), npy(je.ranges[:, 1] - je.ranges[:, 0]),
+                   npy(model.origins[:, :3, :3]), npy(model.origins[:, :3, 3]), npy(model.axes),
+                   npy(model.prismatic), npy(model.tip[:3, :3]), npy(model.tip[:3, 3]), st.Kc, Kb, st.A,
+                   p_out.numpy(), Jv.numpy(), E.numpy(), Phi.numpy())
+    return p_out.view(m, R, 3) - obs, Jv.view(m, R, 3, n), E.view(m, R, 3, -1), Phi.view(m, R, n, st.K)
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def gram_last(ZT, YT, n, A, pair, Gs, Gsd, Gdd):
+    """Per-pose Gram matrices G_p = sum over the pose's rows of E_r^T Y_r, the pose axis last and innermost
+    (unit stride: the products vectorize over poses, whatever the column count). ZT, YT: (m, S, Q, Pp), the
+    S = T d rows and coordinates of every pose (zero where a pose has fewer rows). Written where the
+    contraction reads them: Gs (npair, m, A, A, Pp) the joint pairs i <= j (pair (n, n) their index),
+    Gsd (m, n, A, Nd, Pp) structured x dense, Gdd (m, Nd, Nd) dense x dense summed over the poses."""
+    m, S, Q, Pp = ZT.shape
+    ne = n * A
+    Nd = Q - ne
+    for job in prange(m * Q):
+        u = job // Q
+        q1 = job % Q
+        acc = np.empty(Pp)
+        q0 = (q1 // A) * A if q1 < ne else ne
+        for q2 in range(q0, Q):
+            for p in range(Pp):
+                acc[p] = 0.0
+            for s in range(S):
+                for p in range(Pp):
+                    acc[p] += ZT[u, s, q1, p] * YT[u, s, q2, p]
+            if q1 < ne:
+                i, a = q1 // A, q1 % A
+                if q2 < ne:
+                    j, b = q2 // A, q2 % A
+                    k = pair[i, j]
+                    for p in range(Pp):
+                        Gs[k, u, a, b, p] = acc[p]
+                else:
+                    for p in range(Pp):
+                        Gsd[u, i, a, q2 - ne, p] = acc[p]
+            else:
+                x = 0.0
+                for p in range(Pp):
+                    x += acc[p]
+                Gdd[u, q1 - ne, q2 - ne] = x
+                Gdd[u, q2 - ne, q1 - ne] = x
+
+
+def pose_last(t: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+    """(m, R, d, Q) per-row values -> (m, T d, Q, Pp) per pose, pose axis last (zero where a pose has fewer rows)."""
+    m, R, d, Q = t.shape
+    Pp, T = slots.shape[1:]
+    g = torch.cat([t, t.new_zeros(m, 1, d, Q)], 1)[torch.arange(m)[:, None, None], slots]  # (m, Pp, T, d, Q)
+    return g.permute(0, 2, 3, 4, 1).reshape(m, T * d, Q, Pp).contiguous()
+
+
+def gram_fused(ZT: torch.Tensor, YT: torch.Tensor, n: int, A: int):
+    """(Gs (npair, m, A, A, Pp), Gsd (m, n, A, Nd, Pp), Gdd (m, Nd, Nd), pi, pj) of :func:`gram_last` from
+    the pose-last E and M E (m, T d, Q, Pp) (:func:`pose_last`, or written so by :func:`schur_rows`)."""
+    m, S, Q, Pp = ZT.shape
+    pi, pj = torch.triu_indices(n, n)
+    pair = torch.zeros(n, n, dtype=torch.long)
+    pair[pi, pj] = torch.arange(pi.numel())
+    Nd = Q - n * A
+    Gs = torch.empty(pi.numel(), m, A, A, Pp, dtype=ZT.dtype)
+    Gsd = torch.empty(m, n, A, Nd, Pp, dtype=ZT.dtype)
+    Gdd = torch.empty(m, Nd, Nd, dtype=ZT.dtype)
+    gram_last(ZT.numpy(), YT.numpy(), n, A, pair.numpy(), Gs.numpy(), Gsd.numpy(), Gdd.numpy())
+    return Gs, Gsd, Gdd, pi, pj
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, Li_o, W_o, z_o, M_o, ZT, YT, gx, dg):
+    """The per-row half of a factored Gauss-Newton step, pose by pose (one task per unit and pose).
+
+    Each row's joint errors eliminated (H_vv = C^T C + diag(w_v), damped by mu on its diagonal; L its
+    Cholesky factor): Li_o = L^-1 (m, R, n, n), W_o = Li C^T (m, R, n, d), z_o = Li g_v (m, R, n), M_o =
+    I - W^T W (m, R, d, d); E and M E of the pose's rows, pose axis last, into ZT, YT (m, T d, Q, Pp) (zero for
+    empty slots; what :func:`gram_last` reads);
+    per pose, the extended gradient gx (m, Pp, size) of the residual with the joint errors' response taken
+    out, y = f - W^T z, and the diagonal dg (m, Pp, size) of A^T A, each row with its own basis values."""
+    m, R, d, Q = E.shape
+    Pp, T = slots.shape[1], slots.shape[2]
+    K = Phi.shape[3]
+    ne = n * A
+    Nd = Q - ne
+    ns = ne * K
+    jobs = m * Pp
+    nchunks = (jobs + _JOBS - 1) // _JOBS
+    for ch in prange(nchunks):  # scratch allocated once per chunk of poses, not per pose
+      Y = np.empty((d, Q))
+      H = np.empty((n, n))
+      L = np.empty((n, n))
+      Li = np.empty((n, n))
+      W = np.empty((n, d))
+      zz = np.empty(n)
+      gv = np.empty(n)
+      yy = np.empty(d)
+      Mr = np.empty((d, d))
+      h = np.empty(Q)
+      e2 = np.empty(Q)
+      for job in range(ch * _JOBS, min(jobs, (ch + 1) * _JOBS)):
+        u = job // Pp
+        p = job % Pp
+        for q in range(gx.shape[2]):
+            gx[u, p, q] = 0.0
+            dg[u, p, q] = 0.0
+        for t in range(T):
+            r = slots[u, p, t]
+            if r >= R:
+                for c in range(d):
+                    for q in range(Q):
+                        ZT[u, t * d + c, q, p] = 0.0
+                        YT[u, t * d + c, q, p] = 0.0
+                continue
+            for i in range(n):
+                for j in range(n):
+                    x = 0.0
+                    for c in range(d):
+                        x += C[u, r, c, i] * C[u, r, c, j]
+                    H[i, j] = x
+                H[i, i] += w_v[u, r, i]
+                x = 0.0
+                for c in range(d):
+                    x += C[u, r, c, i] * f[u, r, c]
+                gv[i] = x + w_v[u, r, i] * V[u, r, i]
+            for i in range(n):
+                H[i, i] *= 1.0 + mu[u]
+            # Cholesky H = L L^T and L^-1
+            for i in range(n):
+                for j in range(i + 1):
+                    x = H[i, j]
+                    for k in range(j):
+                        x -= L[i, k] * L[j, k]
+                    if i == j:
+                        L[i, i] = math.sqrt(x)
+                    else:
+                        L[i, j] = x / L[j, j]
+                for j in range(i + 1, n):
+                    L[i, j] = 0.0
+            for j in range(n):
+                for i in range(n):
+                    if i < j:
+                        Li[i, j] = 0.0
+                        continue
+                    x = 1.0 if i == j else 0.0
+                    for k in range(j, i):
+                        x -= L[i, k] * Li[k, j]
+                    Li[i, j] = x / L[i, i]
+            for i in range(n):
+                for c in range(d):
+                    x = 0.0
+                    for k in range(i + 1):
+                        x += Li[i, k] * C[u, r, c, k]
+                    W[i, c] = x
+                x = 0.0
+                for k in range(i + 1):
+                    x += Li[i, k] * gv[k]
+                zz[i] = x
+            for a in range(d):
+                x = f[u, r, a]
+                for i in range(n):
+                    x -= W[i, a] * zz[i]
+                yy[a] = x
+                for b in range(d):
+                    x = 1.0 if a == b else 0.0
+                    for i in range(n):
+                        x -= W[i, a] * W[i, b]
+                    Mr[a, b] = x
+            for i in range(n):
+                z_o[u, r, i] = zz[i]
+                for j in range(n):
+                    Li_o[u, r, i, j] = Li[i, j]
+                for c in range(d):
+                    W_o[u, r, i, c] = W[i, c]
+            for a in range(d):
+                for b in range(d):
+                    M_o[u, r, a, b] = Mr[a, b]
+            for q in range(Q):
+                x = 0.0
+                s2 = 0.0
+                for a in range(d):
+                    ea = E[u, r, a, q]
+                    x += ea * yy[a]
+                    s2 += ea * ea
+                h[q] = x
+                e2[q] = s2
+                for a in range(d):
+                    Y[a, q] = Mr[a, 0] * E[u, r, 0, q] + Mr[a, 1] * E[u, r, 1, q] + Mr[a, 2] * E[u, r, 2, q]
+            for c in range(d):
+                for q in range(Q):
+                    ZT[u, t * d + c, q, p] = E[u, r, c, q]
+                    YT[u, t * d + c, q, p] = Y[c, q]
+            for i in range(n):
+                for a in range(A):
+                    col = i * A + a
+                    for k in range(K):
+                        ph = Phi[u, r, i, k]
+                        gx[u, p, col * K + k] += h[col] * ph
+                        dg[u, p, col * K + k] += e2[col] * ph * ph
+            for q in range(Nd):
+                gx[u, p, ns + q] += h[ne + q]
+                dg[u, p, ns + q] += e2[ne + q]
+
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def apply_rows(E, Phi, dbx, slots, n, A, final, M, Li, W, z, f, C, sx, dv, lin):
+    """A db of every row (E_r times the step's extended values weighted by the row's basis values);
+    final=False: the extended product A^T M A db, summed per pose into sx (m, Pp, size); final=True: the
+    joint-error steps dv = -Li^T (z + W A db) (m, R, n) and the linearized residual lin = f + A db + C dv."""
+    m, R, d, Q = E.shape
+    Pp, T = slots.shape[1], slots.shape[2]
+    K = Phi.shape[3]
+    ne = n * A
+    Nd = Q - ne
+    ns = ne * K
+    jobs = m * Pp
+    nchunks = (jobs + _JOBS - 1) // _JOBS
+    for ch in prange(nchunks):
+      wq = np.empty(Q)
+      Adb = np.empty(d)
+      MA = np.empty(d)
+      tmp = np.empty(n)
+      for job in range(ch * _JOBS, min(jobs, (ch + 1) * _JOBS)):
+        u = job // Pp
+        p = job % Pp
+        if not final:
+            for q in range(sx.shape[2]):
+                sx[u, p, q] = 0.0
+        for t in range(T):
+            r = slots[u, p, t]
+            if r >= R:
+                continue
+            for i in range(n):
+                for a in range(A):
+                    col = i * A + a
+                    x = 0.0
+                    for k in range(K):
+                        x += Phi[u, r, i, k] * dbx[u, col * K + k]
+                    wq[col] = x
+            for q in range(Nd):
+                wq[ne + q] = dbx[u, ns + q]
+            for a in range(d):
+                x = 0.0
+                for q in range(Q):
+                    x += E[u, r, a, q] * wq[q]
+                Adb[a] = x
+            if not final:
+                for a in range(d):
+                    MA[a] = M[u, r, a, 0] * Adb[0] + M[u, r, a, 1] * Adb[1] + M[u, r, a, 2] * Adb[2]
+                for i in range(n):
+                    for a in range(A):
+                        col = i * A + a
+                        h = E[u, r, 0, col] * MA[0] + E[u, r, 1, col] * MA[1] + E[u, r, 2, col] * MA[2]
+                        for k in range(K):
+                            sx[u, p, col * K + k] += h * Phi[u, r, i, k]
+                for q in range(Nd):
+                    sx[u, p, ns + q] += E[u, r, 0, ne + q] * MA[0] + E[u, r, 1, ne + q] * MA[1] + E[u, r, 2, ne + q] * MA[2]
+            else:
+                for i in range(n):
+                    x = z[u, r, i]
+                    for c in range(d):
+                        x += W[u, r, i, c] * Adb[c]
+                    tmp[i] = x
+                for j in range(n):
+                    x = 0.0
+                    for i in range(j, n):
+                        x += Li[u, r, i, j] * tmp[i]
+                    dv[u, r, j] = -x
+                for a in range(d):
+                    x = f[u, r, a] + Adb[a]
+                    for j in range(n):
+                        x += C[u, r, a, j] * dv[u, r, j]
+                    lin[u, r, a] = x

@@ -9,32 +9,17 @@ import sys
 import time
 
 import torchcal  # noqa: F401  (before torch: OpenMP wait policy)
-import torch
 
-import torchcal.sim
-from torchcal.core import units as U
 from torchcal.identify import fit
 from torchcal.identify.fleet import fit_fleet
-from torchcal.sim.fleet import fleet_truths
 
-TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]
 
 
 def setup(M, seed=0, damaged=(7,)):
-    robot = torchcal.load_robot("fanuc_lrmate200i")
-    tools = U.mm_to_m(torch.tensor(TOOLS_MM, dtype=torch.float64))
-    noise = torchcal.NoiseModel.from_robot(robot)
-    fleet = fleet_truths(robot, tools, M, seed, [d for d in damaged if d < M])
-    lim = robot.joint_map.limits
-    q = torchcal.sim.quasi_random_commands(lim, 250, seed)
-    g = torch.Generator().manual_seed(seed)
-    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
-    ident = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * seed + k, directions=dirs) for k, t in enumerate(fleet.truths)]
+    """(make, identification data per unit, noise): ratio.py's fleet, one damaged unit by default."""
+    from ratio import fleet_data  # the same folder: run as a script
 
-    def make():
-        return torchcal.RobotModel(robot, tools, orders=6, backlash=True)
-
-    return make, ident, noise
+    return fleet_data(M, seed, damaged)
 
 
 def main(argv=None):

@@ -81,14 +81,14 @@ def jacobian_lipschitz(kernel: FlangeKernel, length: float) -> float | None:
     orientation rows times ``length``), or None for an arm with prismatic joints (no bound derived for them).
 
     Column i of the body Jacobian w.r.t. the joint variables is (ω_i × r_i, ω_i): a unit axis and its lever
-    arm to the flange, |r_i| <= R (R: the sum of the chain's joint offsets and the tip, a bound on any joint's
-    distance to the flange). Turning a joint by dθ turns ω_i and r_i by at most |dθ| (and moves r_i by at most
+    arm to the flange, |r_i| <= R (R: the sum of the joint offsets after joint 1 and the tip, a bound on any
+    joint's distance to the flange). Turning a joint by dθ turns ω_i and r_i by at most |dθ| (and moves r_i by at most
     R |dθ|), so a column changes by at most sqrt((2R)² + length²) |dθ| and the matrix by sqrt(n) times that
     (Frobenius); commands enter through the coupling C (θ = C q + b, J_q = J_θ C): ||C||_2 ||C||_1 more.
     """
     if bool(kernel.prismatic.any()):
         return None
-    R = float(kernel.op.norm(dim=-1).sum() + kernel.tipp.norm())
+    R = float(kernel.op[1:].norm(dim=-1).sum() + kernel.tipp.norm())  # joint 1's own offset is upstream of every axis
     C = kernel.coupling.double().cpu()
     c2, c1 = float(torch.linalg.matrix_norm(C, 2)), float(C.abs().sum(0).max())
     return c2 * c1 * math.sqrt(kernel.n * ((2.0 * R) ** 2 + length ** 2))

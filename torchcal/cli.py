@@ -599,32 +599,33 @@ def import_tmac_cmd(
 
 
 # ------------------------------------------------------------------ plan-poses
-def _tool_axis(text: str) -> list[float]:
-    """'X,Y,Z' -> a nonzero direction [x, y, z] (flange frame); a ConfigError naming --tool-axis otherwise."""
+def _three_numbers(text: str, option: str, what: str) -> list[float]:
+    """'X,Y,Z' (or ';'-separated) -> three finite numbers; a ConfigError naming the option and what it wants."""
     from .app.config import ConfigError
 
     try:
         v = [float(x) for x in text.replace(";", ",").split(",")]
     except ValueError:
         v = []
-    if len(v) != 3 or not all(x == x and abs(x) != float("inf") for x in v) or not any(v):
-        raise ConfigError(f"--tool-axis '{text}': expected a nonzero direction X,Y,Z in the flange frame")
+    if len(v) != 3 or not all(x == x and abs(x) != float("inf") for x in v):
+        raise ConfigError(f"{option} '{text}': expected {what}")
+    return v
+
+
+def _tool_axis(text: str) -> list[float]:
+    """'X,Y,Z' -> a nonzero direction [x, y, z] (flange frame); a ConfigError naming --tool-axis otherwise."""
+    what = "a nonzero direction X,Y,Z in the flange frame"
+    v = _three_numbers(text, "--tool-axis", what)
+    if not any(v):
+        from .app.config import ConfigError
+
+        raise ConfigError(f"--tool-axis '{text}': expected {what}")
     return v
 
 
 def _parse_xyz_mm(text: str | None, option: str):
     """'X,Y,Z' in mm -> [x, y, z] (mm), or None; a ConfigError naming the option otherwise."""
-    if text is None:
-        return None
-    from .app.config import ConfigError
-
-    try:
-        xyz = [float(v) for v in text.replace(";", ",").split(",")]
-    except ValueError:
-        xyz = []
-    if len(xyz) != 3 or any(v != v or v in (float("inf"), float("-inf")) for v in xyz):
-        raise ConfigError(f"{option} '{text}': expected three numbers X,Y,Z in mm (robot base frame)")
-    return xyz
+    return None if text is None else _three_numbers(text, option, "three numbers X,Y,Z in mm (robot base frame)")
 
 
 @app.command("plan-poses")

@@ -577,8 +577,7 @@ def _is_number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and x == x and abs(x) != float("inf")
 
 
-def _plain(x):
-    return _plain_value(x)
+_plain = _plain_value  # the checks read plain lists and dicts
 
 
 def _check_frame(frame: dict, key: str, fail) -> None:
@@ -604,13 +603,12 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
         if value in (MISSING, None, ""):
             fail(key, "is required but not set")
     fleet = cfg.fleet
-    if True:
-        if fleet.engine not in FLEET_ENGINES:
-            fail("fleet.engine", f"must be one of {', '.join(FLEET_ENGINES)}, got {fleet.engine!r}")
-        if int(fleet.cell) < 1:
-            fail("fleet.cell", f"must be a positive number of units, got {fleet.cell}")
-        if not float(fleet.threshold) > 0:
-            fail("fleet.threshold", f"must be positive, got {fleet.threshold}")
+    if fleet.engine not in FLEET_ENGINES:
+        fail("fleet.engine", f"must be one of {', '.join(FLEET_ENGINES)}, got {fleet.engine!r}")
+    if int(fleet.cell) < 1:
+        fail("fleet.cell", f"must be a positive number of units, got {fleet.cell}")
+    if not float(fleet.threshold) > 0:
+        fail("fleet.threshold", f"must be positive, got {fleet.threshold}")
     n_poses = cfg.data.n_poses
     if n_poses is not None and (not _is_int(n_poses) or n_poses < 1):
         fail("data.n_poses", f"{n_poses!r}: give a positive number of poses (or null for all)")

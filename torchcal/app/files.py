@@ -170,9 +170,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     if free_tool_axis is not None:
         opts["free_tool_axis"] = torch.as_tensor(free_tool_axis, dtype=model.dtype, device=model.device)
         if "tool" in df.columns:  # each row's identified tool point lies on the free axis
-            from ..io.csv import parse_table
-
-            tools = parse_table(df, input, robot, model.tools.count, require_xyz=False, require_pose=False).tool
+            tools = _with_run_tools(model, input, df, data).tool
             with torch.no_grad():
                 opts["tool_point"] = model.tools().to(model.device, model.dtype)[tools.to(model.device)]
     with progress_task(f"compensating {len(df)} commands"):
@@ -195,6 +193,16 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
                             0 if res.direction_outside is None else int(res.direction_outside.sum()), res)
 
 
+def _with_run_tools(model, input, df, data):
+    """The rows read again with their 'tool' column checked against the run's tools (a file without one keeps
+    ``data``: tool 0 on every row)."""
+    if "tool" not in df.columns:
+        return data
+    from ..io.csv import parse_table
+
+    return parse_table(df, input, model.robot, model.tools.count, require_xyz=False, require_pose=False)
+
+
 def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,
                              max_correction_deg, free_tool_axis=None) -> CompensationFile:
     """``torchcal compensate`` on Cartesian targets (x, y, z mm; rx, ry, rz deg or qw, qx, qy, qz; robot base
@@ -202,11 +210,10 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     x_cmd .. rz_cmd the corrected target for a controller that runs nominal IK with its nominal tool data,
     converged, within_limits, max_dq (against the nominal IK's commands) and reason (empty when converged)."""
     from ..compensate.targets import compensate_targets, pose_rpy, target_poses
-    from ..io.csv import joint_columns, joints_to_file, parse_table, read_targets
+    from ..io.csv import joint_columns, joints_to_file, read_targets
 
     robot = model.robot
-    if "tool" in df.columns:  # checked against the run's tools
-        data = parse_table(df, input, robot, model.tools.count, require_xyz=False, require_pose=False)
+    data = _with_run_tools(model, input, df, data)
     _, pos, ori = read_targets(df, input)
     T = target_poses(pos, ori).to(model.device)
     data = data.to(model.device)

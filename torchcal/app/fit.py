@@ -474,7 +474,7 @@ def _names_short(names: list[str], limit: int = 12) -> str:
     return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
-def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, progress: Progress) -> dict:
+def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, progress: Progress) -> tuple[dict, list[dict]]:
     """Stage 6, what the identification data cannot determine; each finding is a warning (console, run log, metrics).
 
     - tools of the config never measured in the identification file;
@@ -486,7 +486,8 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
     - backlash on: how far direction and position are confounded, per joint and per backlash coefficient by
       name (:func:`torchcal.analysis.confounding.backlash_confounding`), warned when high.
     -> {'unobserved_tools', 'parameters', 'equations', 'undetermined': [names], 'one_sided_backlash': [joints],
-    'barely_determined': [combinations], 'confounding': {...} (with backlash)}.
+    'barely_determined': [combinations], 'confounding': {...} (with backlash)}, and the rows of parameters.csv
+    (:func:`parameter_uncertainty`; empty when the identifiability check could not be made).
     """
     ident, src = inp.ident, inp.ident.source or "data.identification"
     names = list(inp.robot.joint_map.names)
@@ -566,10 +567,10 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
 
         ia = identifiability(model, ident, inp.noise, inp.prior, pinned=result.pinned, v=result.v)
         combos = ia.undetermined
-        out["_uncertainty"] = parameter_uncertainty(ia)  # written as parameters.csv by the caller
+        uncertainty = parameter_uncertainty(ia)
     except Exception as exc:  # a diagnostic must not cost the run
         log.warning("identifiability check skipped: %s: %s", type(exc).__name__, exc)
-        combos = []
+        combos, uncertainty = [], []
     if combos:
         out["barely_determined"] = [str(c) for c in combos]
         many = len(combos) > 1
@@ -577,7 +578,7 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
                       f"{'are' if many else 'is'} barely determined by the data (relative singular value < "
                       f"{ia.rtol:g}, torchcal.analysis.identifiability); the fit holds {'them' if many else 'it'} "
                       f"near the prior, e.g. {combos[0]}")
-    return out
+    return out, uncertainty
 
 
 def parameter_uncertainty(ia) -> list[dict]:
@@ -753,8 +754,7 @@ def _run_stages(cfg, console, plotter) -> RunResult:
                 if plotter is not None:
                     _submit_plots(plotter, plot_folder, comp=comp)
             with progress.step("checking what the data determine", quiet=True):
-                metrics["data_checks"] = check_data(cfg, inp, model, make, orders, result, progress)
-                uncertainty = metrics["data_checks"].pop("_uncertainty", None)
+                metrics["data_checks"], uncertainty = check_data(cfg, inp, model, make, orders, result, progress)
                 if uncertainty:
                     import pandas as pd
 

@@ -29,6 +29,7 @@ from ..core import units
 from ..analysis.stats import percent_decrease, residual_stats
 from ..identify import fit
 from ..identify.hand_eye import hand_eye
+from .common import write_run_report
 from .config import ConfigError
 from ..io.rundir import make_run_dir, run_log, save_model, write_json
 from ..kinematics import load_robot
@@ -352,8 +353,6 @@ def run_sensor_fit(cfg, console=None):
             files["metrics"] = write_json(run_dir / "metrics.json", metrics)
             progress.info(f"done: {run_dir}")
         if cfg.report:  # after run_log: the run is complete (no PARTIAL marker) and its log whole
-            from .common import write_run_report
-
             with progress.step("writing the calibration report", quiet=True):
                 write_run_report(run_dir, files, progress)
     except KeyboardInterrupt as exc:

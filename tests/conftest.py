@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
-import torch
+import torchcal  # noqa: F401  before torch, as users do: it sets OMP_WAIT_POLICY=PASSIVE (torchcal.core.threads)
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 torch.set_default_dtype(torch.float64)
 

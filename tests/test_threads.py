@@ -83,14 +83,16 @@ def test_fused_kernel_is_loaded_from_numba_cache_in_a_new_process():
         pytest.skip("numba not available")
     code = """
         import torch, torchcal
-        from torchcal.compensate import compensate, fused, newton
+        from torchcal.compensate import compensate, fused, fused_targets, newton
         newton.FUSED_MIN_POSES = 0  # a handful of poses would run on the torch ops
         robot = torchcal.load_robot("fanuc_lrmate200i")
         model = torchcal.RobotModel(robot, torch.zeros(1, 3, dtype=torch.float64), orders=1, backlash=True)
         q = torch.zeros(4, 6, dtype=torch.float64) + 0.3
-        compensate(model, q, torch.ones_like(q))
-        print(sum(fused.flange_soa.stats.cache_misses.values()), sum(fused.flange_soa.stats.cache_hits.values()))
+        compensate(model, q, torch.ones_like(q))  # the compiled pass (fused_targets)
+        compensate(model, q, torch.ones_like(q), sigma=True)  # the batched solver on the compiled flange
+        k = (fused.flange_soa, fused_targets.targets_soa)
+        print(sum(sum(f.stats.cache_misses.values()) for f in k), *(sum(f.stats.cache_hits.values()) for f in k))
     """
     _run(code)  # compiles (and writes the cache) if no earlier process did
-    misses, hits = map(int, _run(code).split())
-    assert misses == 0 and hits >= 1
+    misses, hits_flange, hits_pass = map(int, _run(code).split())
+    assert misses == 0 and hits_flange >= 1 and hits_pass >= 1

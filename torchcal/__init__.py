@@ -68,6 +68,8 @@ _LAZY = {
     # compensation, simulation, planning
     "compensate": ("torchcal.compensate", None),  # the subpackage, callable as its compensate()
     "compensate_targets": ("torchcal.compensate.targets", "compensate_targets"),
+    "seeds_for_flags": ("torchcal.compensate.flags", "seeds_for_flags"),
+    "configuration_flags": ("torchcal.compensate.flags", "configuration_flags"),
     # fleets: many units of one type
     "fit_fleet": ("torchcal.identify.fleet", "fit_fleet"),
     "CompensationResult": ("torchcal.compensate", "CompensationResult"),

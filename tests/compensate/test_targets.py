@@ -48,7 +48,9 @@ def test_targets_reach_the_model_and_round_trip(fanuc, tools_m):
         goal = homogeneous(res.command_target[:, :3, :3],
                            res.command_target[:, :3, 3] - (res.command_target[:, :3, :3] @ t_nom[..., None])[..., 0])
         back = damped_least_squares(nominal, seed, goal, None)
-    assert float((back.q[ok] - res.q[ok]).abs().max()) < 1e-8
+    # (off a singular surface: next to one, two solutions of the corrected target lie close together, and which
+    # one an IK finds depends on its steps, not on the target)
+    assert float((back.q[clear] - res.q[clear]).abs().max()) < 1e-8
     # and the correction matters: the uncorrected target sends the tool off by the model's error
     with torch.no_grad():
         off = _tool_pose(model.flange(q_ctrl, s, base=False), model.tools()[tool])

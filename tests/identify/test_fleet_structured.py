@@ -124,3 +124,36 @@ def test_unsupported_models_take_the_dense_path():
 
     assert not RobotStructure.supports(model, PointTargets(torch.zeros(2, 3, dtype=torch.float64), sigma=1e-5),
                                        ParameterLayout(model))
+
+
+def test_compiled_rows_are_the_torch_rows(problems):
+    """The compiled per-row half of the step (each row's elimination, the per-pose Gram matrices formed in the same
+    pass and contracted, the gradient and diagonal from per-block sums, the exact products) against the batched
+    torch form, with joint errors (the rows of a pose differ) and units of different pose counts (padding)."""
+    from torchcal.identify.structured import _RowsFused, _RowsTorch
+
+    dense, fact, X, g = problems
+    if not fleet_kernel.available("cpu"):
+        pytest.skip("numba not importable")
+    V = 2e-5 * torch.randn(fact.M, fact.R, fact.n, generator=g, dtype=torch.float64) * fact.rows[..., None]
+    lin = fact.linearize(X, V, torch.arange(fact.M))
+    mu = torch.tensor([1e-8, 1e-3, 1e-1], dtype=torch.float64)
+    st = fact.structure
+    a = _RowsFused(lin, fact.slots, fact.w_v, V, mu, st)
+    b = _RowsTorch(lin, fact.slots, fact.w_v, V, mu, st)
+    assert _rel(a.S, b.S) < 1e-10 and torch.equal(a.S, a.S.transpose(1, 2))
+    assert _rel(a.gx, b.gx) < 1e-10 and _rel(a.diag_x, b.diag_x) < 1e-10
+    dbx = torch.randn(fact.M, st.size, generator=g, dtype=torch.float64)
+    assert _rel(a.product(dbx), b.product(dbx)) < 1e-10
+    for x, y in zip(a.finish(dbx), b.finish(dbx)):
+        assert _rel(x, y) < 1e-10
+    # units measured with one program: the shared pair products and basis values take the other contraction
+    robot = fact.superset.robot
+    same = FleetProblem(lambda: torchcal.RobotModel(robot, TOOLS, orders=3, backlash=2), [fact.units[0]] * 2,
+                        torchcal.NoiseModel.from_robot(robot))
+    assert same.pp is not None
+    V = V[:2, :same.R] * same.rows[..., None]
+    lin = same.linearize(X[:2], V, torch.arange(2))
+    a = _RowsFused(lin, same.slots, same.w_v, V, mu[:2], st, same.pp)
+    b = _RowsTorch(lin, same.slots, same.w_v, V, mu[:2], st)
+    assert _rel(a.S, b.S) < 1e-10 and torch.equal(a.S, a.S.transpose(1, 2))

@@ -10,8 +10,10 @@ the answer and a reason for each flagged row. Writing goes through :func:`torchc
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..core import units
@@ -144,7 +146,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     DataError naming the folder or file.
     """
     from ..compensate import compensate
-    from ..io.csv import joint_columns, joints_to_file, read_table, write_table
+    from ..io.csv import joint_columns, joints_to_file, write_table
     from ..io.rundir import load_model
 
     from ..core.contract import require
@@ -157,14 +159,19 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     except TypeError as exc:
         raise RunDirError(str(exc)) from None
     robot = model.robot
+    from ..io.csv import parse_table, read_raw_table, target_kind
+
     with progress_task(f"reading {input}"):
-        data, df = read_table(input, robot, None, require_xyz=False, require_pose=False)
+        df = read_raw_table(Path(input))
+        unseeded = None
+        if target_kind(df) is not None and _has_flags(df, robot):  # the controller's branch by configuration flags
+            df, unseeded = _seeds_from_flags(model, Path(input), df)
+        data = parse_table(df, Path(input), robot, None, False, False)
     _refuse_radians(input, data, robot, units_checked)
-    from ..io.csv import target_kind
 
     if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
         return _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg,
-                                        free_tool_axis)
+                                        free_tool_axis, unseeded)
     data = data.to(model.device)
     opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
     if free_tool_axis is not None:
@@ -203,8 +210,50 @@ def _with_run_tools(model, input, df, data):
     return parse_table(df, input, model.robot, model.tools.count, require_xyz=False, require_pose=False)
 
 
+def _has_flags(df, robot) -> bool:
+    """The table names the controller's branch by configuration flags (shoulder, elbow, wrist) and gives no
+    seed commands (with both, the seeds win: they are the controller's own commands)."""
+    from ..compensate.flags import FLAG_NAMES
+    from ..io.csv import joint_columns
+
+    cols = set(df.columns)
+    return set(FLAG_NAMES) <= cols and not set(joint_columns(robot.joint_map.n)) & cols
+
+
+def _seeds_from_flags(model, path, df):
+    """q1..qN seed columns (file units) for a targets table with flag columns (:mod:`torchcal.compensate.flags`);
+    -> (the table with them, (R,) bool rows for which no nominal IK solution with the flags was found).
+    Raises DataError naming every flag cell that is not +1 or -1."""
+    from ..compensate.flags import FLAG_NAMES, seeds_for_flags
+    from ..compensate.targets import target_poses
+    from ..io.csv import DataError, Problem, joint_columns, joints_to_file, parse_numbers, read_targets
+
+    problems = []
+    flags = np.stack([parse_numbers(df, c, problems) for c in FLAG_NAMES], 1)
+    for r, j in zip(*np.nonzero(np.isfinite(flags) & (np.abs(flags) != 1.0))):
+        problems.append(Problem(int(r) + 1, FLAG_NAMES[j], f"a configuration flag must be +1 or -1, got {flags[r, j]:g}"))
+    if problems:
+        raise DataError(path, problems)
+    _, pos, ori = read_targets(df, path)
+    tool = torch.zeros(len(df), dtype=torch.long)
+    if "tool" in df.columns:
+        tool = torch.as_tensor(parse_numbers(df, "tool", problems), dtype=torch.float64).nan_to_num(0).long()
+    T = target_poses(pos, ori).to(model.device, model.dtype)
+    try:
+        with progress_task(f"nominal IK for the configuration flags of {len(df)} targets"):
+            q, found = seeds_for_flags(model, T, torch.from_numpy(flags).to(model.device, model.dtype),
+                                       tool.clamp(0, model.tools.count - 1).to(model.device))
+    except ValueError as exc:
+        raise DataError(path, [Problem(None, "shoulder", str(exc))]) from None
+    out = df.copy()
+    qf = joints_to_file(q, model.robot)
+    for i, c in enumerate(joint_columns(model.robot.joint_map.n)):
+        out[c] = qf[:, i]
+    return out, ~found.cpu()
+
+
 def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,
-                             max_correction_deg, free_tool_axis=None) -> CompensationFile:
+                             max_correction_deg, free_tool_axis=None, unseeded=None) -> CompensationFile:
     """``torchcal compensate`` on Cartesian targets (x, y, z mm; rx, ry, rz deg or qw, qx, qy, qz; robot base
     frame; q1..qN the seeds on the controller's branch; tool optional, default 0): writes q1..qN calibrated,
     x_cmd .. rz_cmd the corrected target for a controller that runs nominal IK with its nominal tool data,
@@ -233,12 +282,20 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     for i, c in enumerate(("rx_cmd", "ry_cmd", "rz_cmd")):
         out[c] = units.rad_to_deg(cmd[:, 3 + i]).numpy()
     comp = res.compensation
-    out["converged"] = res.converged.cpu().numpy()
+    converged = res.converged.cpu()
+    if unseeded is not None and bool(unseeded.any()):  # no command with the flags: nothing to send for the row
+        converged = converged & ~unseeded
+        rows = unseeded.nonzero()[:, 0].tolist()
+        for i in rows:
+            res.reason[i] = "configuration flags: no nominal IK solution with these flags was found"
+        cols = list(joint_columns(robot.joint_map.n)) + ["x_cmd", "y_cmd", "z_cmd", "rx_cmd", "ry_cmd", "rz_cmd"]
+        out.loc[out.index[rows], cols] = np.nan  # no command on some other branch
+    out["converged"] = converged.numpy()
     out["within_limits"] = comp.within_limits.cpu().numpy()
     out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
     out["reason"] = res.reason
     write_table(output, out)
-    flagged = int((~res.converged).sum())
+    flagged = int((~converged).sum())
     return CompensationFile(len(df), int((~comp.converged).sum()), int((~comp.within_limits).sum()), flagged,
                             0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp)
 

@@ -9,6 +9,8 @@ one and on its branch (configuration flags, :mod:`.branch`); rows that would nee
 branch, or cannot be reached are flagged with a reason, not swung (``CompensationResult.status``,
 ``reasons()``; ``direction_outside`` when the model records its identification data's direction
 coverage). ``free_tool_axis`` leaves the rotation about an axisymmetric tool's axis free (:mod:`.axis`).
+On the CPU the rows go through one compiled pass first (:mod:`.fused_targets`); Cartesian targets:
+:mod:`.targets`, configuration flags: :mod:`.flags`.
 """
 
 from .axis import ToolAxis

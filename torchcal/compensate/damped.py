@@ -189,7 +189,9 @@ def damped_least_squares(
         pn = axis.shift_rows(Rn, pn, c)
 
     def evaluate(q, s, c, Rn, pn):
-        """-> de (M, 6), the residual r and its Jacobian (5-DOF: projected)."""
+        """-> de (M, 6), the residual r and its Jacobian (5-DOF: projected), and whether the orientation error
+        is below 90 deg (the residual ½ vee(Ω_R - Ω_R^T) = sin(angle) axis vanishes at 180 deg too: an LM
+        started far away can settle on the pose turned half a turn, which is no solution)."""
         Ra, pa, J = ev.flange_jacobian(q, s)
         if c is not None:
             pa, J = axis.shift_rows(Ra, pa, c), axis.jacobian_rows(J, c)
@@ -197,9 +199,11 @@ def damped_least_squares(
         r, Jr = weighted(de, length), residual_jacobian(de, OR, J, length)
         if c is not None:
             r, Jr = axis.project_rows(r), axis.project_rows(Jr)
-        return de, r, Jr
+        # (5-DOF: the turn about the free axis may be anything; the axis itself is in the residual)
+        near = torch.ones_like(r[:, 0], dtype=torch.bool) if c is not None else OR.diagonal(dim1=-2, dim2=-1).sum(-1) > 1.0
+        return de, r, Jr, near
 
-    de, r, Jr = evaluate(q, s, c, Rn, pn)
+    de, r, Jr, near = evaluate(q, s, c, Rn, pn)
     cost = 0.5 * (r * r).sum(-1) + (prior(q, ref) if lam2 else 0.0)
     cost = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf")))
     A = Jr.transpose(1, 2) @ Jr
@@ -231,7 +235,7 @@ def damped_least_squares(
             qt = qb
             dq = qt - q
         # evaluate the trial with its Jacobian: most steps are accepted and need it next
-        de_t, rt, Jr_t = evaluate(qt, s, c, Rn, pn)
+        de_t, rt, Jr_t, near_t = evaluate(qt, s, c, Rn, pn)
         cost_t = 0.5 * (rt * rt).sum(-1) + (prior(qt, ref) if lam2 else 0.0)
         cost_t = torch.where(torch.isfinite(cost_t), cost_t, torch.full_like(cost_t, float("inf")))
         # Nielsen: the decrease the linear model predicts for the step taken (scaled or clipped:
@@ -246,13 +250,14 @@ def damped_least_squares(
         cost = torch.where(acc, cost_t, cost)
         r = torch.where(a1, rt, r)
         de = torch.where(a1, de_t, de)
+        near = torch.where(acc, near_t, near)
         Jr = torch.where(a1[..., None], Jr_t, Jr)
         mu = torch.where(acc, mu * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu * nu)
         nu = torch.where(acc, torch.full_like(nu, 2.0), 2.0 * nu)
         it += 1
         step = dq.norm(dim=-1)
         small = step < tol
-        conv = small & ((r * r).sum(-1).sqrt() <= residual_tol)
+        conv = small & ((r * r).sum(-1).sqrt() <= residual_tol) & near
         # stalled: a vanishing step far from zero error (least-squares optimum of an
         # unreachable target, or damping so large that nothing moves any more)
         stall = ((small | flat) & ~conv) | (mu > 1e20) | ~torch.isfinite(cost)
@@ -272,8 +277,8 @@ def damped_least_squares(
                 blk_out[rows] = blocked[d]
             sta_out[rows] = (stall & ~conv)[d] & ~blk_out[rows]
             keep = (~done).nonzero()[:, 0]
-            idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits = (
-                x[keep] for x in (idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits)
+            idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits, near = (
+                x[keep] for x in (idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits, near)
             )
             s = None if s is None else s[keep]
             c = None if c is None else c[keep]

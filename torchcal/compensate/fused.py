@@ -35,6 +35,18 @@ except ImportError:  # pragma: no cover - exercised only where numba cannot be i
     HAVE_NUMBA = False
 
 _CHUNK = 512  # poses per task: scratch is allocated once per chunk, not per pose
+_RAN = [False]  # a compiled kernel has run in this process (numba and its thread pool are loaded)
+
+
+def warm() -> bool:
+    """True once a compiled kernel has run in this process: small batches may take it from then on (what kept
+    them on the torch ops was the first call's ~0.6 s of loading)."""
+    return _RAN[0]
+
+
+def mark_warm() -> None:
+    """Record that a compiled kernel is about to run (see :func:`warm`)."""
+    _RAN[0] = True
 
 
 # Module-level functions, not closures: numba keys a closure's cache entry on its pickled free
@@ -176,13 +188,95 @@ def mul_arr_right(m, K):
             m[6] * K[0, 0] + m[7] * K[1, 0] + m[8] * K[2, 0], m[6] * K[0, 1] + m[7] * K[1, 1] + m[8] * K[2, 1],
             m[6] * K[0, 2] + m[7] * K[1, 2] + m[8] * K[2, 2])
 
+@njit(**inline)
+def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
+                oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
+                th, ue, zs, os_, ws, ds, ob):
+    """Pose b of :func:`flange_soa`: F_a(q, s) or F_n(q) of column b of qT (n, B) into column ob of
+    outR (3, 3, .), outp (3, .) [and outJ (6, n, .)]; th, ue (n,) and zs, os_, ws, ds (n, 3): scratch.
+    One definition shared by the flange kernel and the targets solver (:mod:`.fused_targets`)."""
+    n = qT.shape[0]
+    Km = table.shape[2]
+    for i in range(n):
+        x = offset[i]
+        for j in range(n):
+            x += coupling[i, j] * qT[j, b]
+        th[i] = x
+        y = eoffset[i]
+        for j in range(n):
+            y += ecoupling[i, j] * qT[j, b]
+        ue[i] = y
+    # running pose of the chain in scalars (registers)
+    R = (baseR[0, 0], baseR[0, 1], baseR[0, 2], baseR[1, 0], baseR[1, 1], baseR[1, 2],
+         baseR[2, 0], baseR[2, 1], baseR[2, 2])
+    p0, p1, p2 = basep[0], basep[1], basep[2]
+    for i in range(n):
+        if errors:
+            lam = 2.0 * (ue[i] - lo[i]) / width[i] - 1.0
+            w0, w1, w2, d0, d1, d2, bl = series(table, i, lam, Km, has_bl, False)
+            if has_bl and use_s:
+                w2 += bl * sT[i, b]
+            M = mul_arr(oR[i], exp_so3(w0, w1, w2))
+            tx, ty, tz = vec_arr(oR[i], (d0, d1, d2))
+            tx, ty, tz = tx + op[i, 0], ty + op[i, 1], tz + op[i, 2]
+        else:
+            o = oR[i]
+            M = (o[0, 0], o[0, 1], o[0, 2], o[1, 0], o[1, 1], o[1, 2], o[2, 0], o[2, 1], o[2, 2])
+            tx, ty, tz = op[i, 0], op[i, 1], op[i, 2]
+        gx, gy, gz = vec(R, (tx, ty, tz))
+        p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
+        if jacobian:
+            ax, ay, az = vec(R, vec(M, (axes[i, 0], axes[i, 1], axes[i, 2])))
+            zs[i, 0], zs[i, 1], zs[i, 2] = ax, ay, az
+            os_[i, 0], os_[i, 1], os_[i, 2] = p0, p1, p2
+            if errors:
+                scale = 2.0 / width[i]
+                v0, v1, v2, u0, u1, u2, vb = series(table, i, lam, Km, has_bl, True)
+                if has_bl and use_s:
+                    v2 += vb * sT[i, b]
+                jw = right_jacobian_apply(w0, w1, w2, v0 * scale, v1 * scale, v2 * scale)
+                ws[i, 0], ws[i, 1], ws[i, 2] = vec(R, vec(M, jw))
+                ds[i, 0], ds[i, 1], ds[i, 2] = vec(R, vec_arr(oR[i], (u0 * scale, u1 * scale, u2 * scale)))
+        if prismatic[i]:
+            # travel along the axis after E_i; no rotation
+            ux, uy, uz = vec(R, vec(M, (axes[i, 0] * th[i], axes[i, 1] * th[i], axes[i, 2] * th[i])))
+            p0, p1, p2 = p0 + ux, p1 + uy, p2 + uz
+            A = M
+        else:
+            A = rotate(M, th[i], z_axes, Ka[i], Ka2[i])
+        R = mul(R, A)
+    gx, gy, gz = vec(R, (tipp[0], tipp[1], tipp[2]))
+    p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
+    R = mul_arr_right(R, tipR)
+    for r in range(3):
+        for k in range(3):
+            outR[r, k, ob] = R[3 * r + k]
+    outp[0, ob], outp[1, ob], outp[2, ob] = p0, p1, p2
+    if jacobian:
+        for j in range(n):
+            for r in range(6):
+                outJ[r, j, ob] = 0.0
+        for i in range(n):
+            wx, wy, wz = (0.0, 0.0, 0.0) if prismatic[i] else (zs[i, 0], zs[i, 1], zs[i, 2])
+            rx, ry, rz = p0 - os_[i, 0], p1 - os_[i, 1], p2 - os_[i, 2]
+            vx, vy, vz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
+            if prismatic[i]:
+                vx, vy, vz = vx + zs[i, 0], vy + zs[i, 1], vz + zs[i, 2]
+            # through the joint variable: θ = A q + offset
+            add_column(outJ, ob, n, R, (vx, vy, vz), (wx, wy, wz), coupling[i])
+            if errors:
+                # the error series' slopes move with u = A_u q + b_u, not with the joint variable
+                sx, sy, sz = ws[i, 0], ws[i, 1], ws[i, 2]
+                tx, ty, tz = sy * rz - sz * ry + ds[i, 0], sz * rx - sx * rz + ds[i, 1], sx * ry - sy * rx + ds[i, 2]
+                add_column(outJ, ob, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling[i])
+
+
 @njit(parallel=True, cache=True)
 def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian):
     """F_a(q, s) (errors=True) or F_n(q) into outR (3, 3, B), outp (3, B); with jacobian=True also
     the body Jacobian w.r.t. the controller commands into outJ (6, n, B), as FlangeKernel."""
     n, B = qT.shape
-    Km = table.shape[2]
     nchunks = (B + _CHUNK - 1) // _CHUNK
     for c in numba.prange(nchunks):
         th = np.empty(n)
@@ -192,80 +286,9 @@ def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, 
         ws = np.empty((n, 3))  # velocity of E_i's rotation per unit joint motion, world
         ds = np.empty((n, 3))  # velocity of E_i's translation per unit joint motion, world
         for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
-            for i in range(n):
-                x = offset[i]
-                for j in range(n):
-                    x += coupling[i, j] * qT[j, b]
-                th[i] = x
-                y = eoffset[i]
-                for j in range(n):
-                    y += ecoupling[i, j] * qT[j, b]
-                ue[i] = y
-            # running pose of the chain in scalars (registers)
-            R = (baseR[0, 0], baseR[0, 1], baseR[0, 2], baseR[1, 0], baseR[1, 1], baseR[1, 2],
-                 baseR[2, 0], baseR[2, 1], baseR[2, 2])
-            p0, p1, p2 = basep[0], basep[1], basep[2]
-            for i in range(n):
-                if errors:
-                    lam = 2.0 * (ue[i] - lo[i]) / width[i] - 1.0
-                    w0, w1, w2, d0, d1, d2, bl = series(table, i, lam, Km, has_bl, False)
-                    if has_bl and use_s:
-                        w2 += bl * sT[i, b]
-                    M = mul_arr(oR[i], exp_so3(w0, w1, w2))
-                    tx, ty, tz = vec_arr(oR[i], (d0, d1, d2))
-                    tx, ty, tz = tx + op[i, 0], ty + op[i, 1], tz + op[i, 2]
-                else:
-                    o = oR[i]
-                    M = (o[0, 0], o[0, 1], o[0, 2], o[1, 0], o[1, 1], o[1, 2], o[2, 0], o[2, 1], o[2, 2])
-                    tx, ty, tz = op[i, 0], op[i, 1], op[i, 2]
-                gx, gy, gz = vec(R, (tx, ty, tz))
-                p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
-                if jacobian:
-                    ax, ay, az = vec(R, vec(M, (axes[i, 0], axes[i, 1], axes[i, 2])))
-                    zs[i, 0], zs[i, 1], zs[i, 2] = ax, ay, az
-                    os_[i, 0], os_[i, 1], os_[i, 2] = p0, p1, p2
-                    if errors:
-                        scale = 2.0 / width[i]
-                        v0, v1, v2, u0, u1, u2, vb = series(table, i, lam, Km, has_bl, True)
-                        if has_bl and use_s:
-                            v2 += vb * sT[i, b]
-                        jw = right_jacobian_apply(w0, w1, w2, v0 * scale, v1 * scale, v2 * scale)
-                        ws[i, 0], ws[i, 1], ws[i, 2] = vec(R, vec(M, jw))
-                        ds[i, 0], ds[i, 1], ds[i, 2] = vec(R, vec_arr(oR[i], (u0 * scale, u1 * scale, u2 * scale)))
-                if prismatic[i]:
-                    # travel along the axis after E_i; no rotation
-                    ux, uy, uz = vec(R, vec(M, (axes[i, 0] * th[i], axes[i, 1] * th[i], axes[i, 2] * th[i])))
-                    p0, p1, p2 = p0 + ux, p1 + uy, p2 + uz
-                    A = M
-                else:
-                    A = rotate(M, th[i], z_axes, Ka[i], Ka2[i])
-                R = mul(R, A)
-            gx, gy, gz = vec(R, (tipp[0], tipp[1], tipp[2]))
-            p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
-            R = mul_arr_right(R, tipR)
-            for r in range(3):
-                for k in range(3):
-                    outR[r, k, b] = R[3 * r + k]
-            outp[0, b], outp[1, b], outp[2, b] = p0, p1, p2
-            if jacobian:
-                for j in range(n):
-                    for r in range(6):
-                        outJ[r, j, b] = 0.0
-                for i in range(n):
-                    wx, wy, wz = (0.0, 0.0, 0.0) if prismatic[i] else (zs[i, 0], zs[i, 1], zs[i, 2])
-                    rx, ry, rz = p0 - os_[i, 0], p1 - os_[i, 1], p2 - os_[i, 2]
-                    vx, vy, vz = wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx
-                    if prismatic[i]:
-                        vx, vy, vz = vx + zs[i, 0], vy + zs[i, 1], vz + zs[i, 2]
-                    # through the joint variable: θ = A q + offset
-                    add_column(outJ, b, n, R, (vx, vy, vz), (wx, wy, wz), coupling[i])
-                    if errors:
-                        # the error series' slopes move with u = A_u q + b_u, not with the joint variable
-                        sx, sy, sz = ws[i, 0], ws[i, 1], ws[i, 2]
-                        tx, ty, tz = sy * rz - sz * ry + ds[i, 0], sz * rx - sx * rz + ds[i, 1], sx * ry - sy * rx + ds[i, 2]
-                        add_column(outJ, b, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling[i])
-
-
+            flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
+                        oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
+                        th, ue, zs, os_, ws, ds, b)
 
 
 def _kernels():
@@ -305,6 +328,7 @@ class FusedFlange:
         numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
         # dynamic scheduling, one block of _CHUNK poses at a time: with a static split a thread that shares its
         # core with another process holds up the whole call (a busy neighbour would cost 2x, not 1.33x)
+        mark_warm()
         with numba.parallel_chunksize(1):
             _kernels()(q, s, sT is not None, errors, *self.model, *self.chain, *(self.base if errors else self.no_base),
                        R.numpy(), p.numpy(), J.numpy(), jacobian)

@@ -55,10 +55,11 @@ from .axis import tool_axis
 from .bounds import (  # noqa: F401 (re-exported)
     DEFAULT_BOUND, DEFAULT_CORRECTION_DEG, DEFAULT_PRISMATIC_MM, DEFAULT_STEP_DEG, per_joint_bound,
 )
-from .branch import branch_changed, det_sign_soa, jacobian_lipschitz, surely_same_branch
+from .branch import PATH_ABOVE, branch_changed, det_sign_soa, jacobian_lipschitz, surely_same_branch
 from .damped import damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
-from .result import AT_BOUND, BRANCH, CONVERGED, NOT_CONVERGED, OUT_OF_REACH, CompensationResult  # noqa: F401 (re-export)
+from .result import (AT_BOUND, BRANCH, CONVERGED, NOT_CONVERGED, OUT_OF_REACH,  # noqa: F401 (re-export)
+                     CompensationResult, range_and_coverage)
 
 
 # ---------------------------------------------------------------------------- core
@@ -302,6 +303,14 @@ resolution)."""
 """Batches smaller than this run on the torch ops, not the compiled kernel (see :func:`compensate`'s body)."""
 
 
+def _fused_warm() -> bool:
+    """The compiled kernel has run in this process already (without importing numba where it has not)."""
+    import sys
+
+    fused = sys.modules.get("torchcal.compensate.fused")
+    return fused is not None and fused.warm()
+
+
 @torch.no_grad()
 def compensate(
     model,
@@ -326,6 +335,7 @@ def compensate(
     branch: bool = True,
     free_tool_axis=None,
     tool_point=None,
+    target: torch.Tensor | None = None,
 ) -> CompensationResult:
     """Compensated joint commands for many poses, Paper II (46)-(52).
 
@@ -373,6 +383,10 @@ def compensate(
         compensation for axisymmetric tools, the rotation about that axis left free (:mod:`.axis`):
         the tool point reaches its nominal position and the tool axis its nominal direction, with the
         smallest correction the solver finds (pseudo-inverse / Tikhonov toward q_nom).
+    target: (B, 4, 4) flange poses to reach (robot's nominal base frame, SI) instead of the nominal flange
+        F_n(q_nom); q_nom is then the start, the reference of the bounds and of the branch, and the point
+        where the chord Jacobian is taken: a command near the target on the controller's branch (e.g. the
+        controller's nominal IK of a Cartesian target for its nominal tool, :mod:`.targets`).
     tool_point: with free_tool_axis, the point on the tool axis (flange frame, m; (3,) or (B, 3); default
         the flange origin) whose position is compensated.
     null_damping: Tikhonov damping toward q_nom on the damped path (m / rad,
@@ -403,10 +417,66 @@ def compensate(
         # float32 (a GPU's fast path) carries ~1e-7 of a metre: the float64 tolerances cannot be met, so every row
         # would be flagged; these are the float32 floor (measured: commands within ~1e-5 rad of float64's)
         tol, residual_tol = max(tol, FLOAT32_TOL), max(residual_tol, FLOAT32_RESIDUAL_TOL)
+    args = (tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length, residual_tol, sigma, broyden,
+            refresh, refresh_model, max_step, max_correction, null_damping, branch, free_tool_axis, tool_point)
     with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.core.threads)
-        return _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction,
-                      length, residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction,
-                      null_damping, branch, free_tool_axis, tool_point)
+        eligible = (target is None and branch and broyden and refresh_model and not sigma and free_tool_axis is None
+                    and tool_point is None
+                    and model.n == 6 and (q_nom.shape[0] >= FUSED_MIN_POSES or _fused_warm()))
+        if eligible:
+            _check_inputs(model, q_nom, direction)
+            fast = _compiled_pass(model, q_nom, direction, tol, max_iter, contraction, length, residual_tol, refresh,
+                                  max_correction, null_damping)
+            if fast is not None:
+                return _with_rest(model, q_nom, direction, fast, args)
+        return _solve(model, q_nom, direction, *args, target)
+
+
+def _compiled_pass(model, q_nom, direction, tol, max_iter, contraction, length, residual_tol, refresh, max_correction,
+                   null_damping) -> dict | None:
+    """:func:`.fused_targets.solve_commands` over every row (the same iteration as :func:`_solve`'s fast path, pose
+    by pose in one compiled pass), or None where it does not apply (not CPU float64 with numba, a live model)."""
+    from . import fused
+
+    if not fused.available(q_nom.device, q_nom.dtype):
+        return None
+    kernel = FlangeKernel(model)
+    if kernel.fused is None:
+        return None
+    from .fused_targets import solve_commands
+
+    bound = per_joint_bound(max_correction, model.n, torch.float64, "cpu", "max_correction",
+                            model.robot.joint_map.prismatic if hasattr(model, "robot") else None)
+    opts = dict(tol=tol, residual_tol=residual_tol, max_iter=max_iter, contraction=contraction, length=length,
+                max_correction=bound, path_above=PATH_ABOVE, sigma_floor=0.1 * null_damping, refresh=refresh,
+                refresh_floor=null_damping, lipschitz=jacobian_lipschitz(kernel, length))
+    B, size = q_nom.shape[0], 262144  # chunks: progress on long batches, bounded scratch
+    parts = [solve_commands(kernel.fused, q_nom[c0:c0 + size], None if direction is None else direction[c0:c0 + size],
+                            **opts) for c0 in _chunks(B, size, "compensation, compiled pass (chunks)")]
+    return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+
+def _with_rest(model, q_nom, direction, fast, args) -> CompensationResult:
+    """The compiled pass's rows, with the rows it handed on (near a singularity, beyond its bounds, a possible
+    branch change) solved by :func:`_solve`, in input order."""
+    from .fused_targets import DONE
+
+    done = fast["status"] == DONE
+    B = q_nom.shape[0]
+    q, de, step, iterations = fast["q"].clone(), fast["pose_error"].clone(), fast["step"].clone(), fast["iterations"].clone()
+    length = args[6]
+    residual = torch.cat([de[:, :3], length * de[:, 3:]], 1).norm(dim=-1)
+    converged, damped = done.clone(), torch.zeros(B, dtype=torch.bool)
+    status = torch.where(done, CONVERGED, NOT_CONVERGED).to(torch.int8)
+    rest = (~done).nonzero()[:, 0]
+    if rest.numel():
+        r = _solve(model, q_nom[rest], None if direction is None else direction[rest], *args, None)
+        q[rest], de[rest], step[rest], iterations[rest], residual[rest] = r.q, r.pose_error, r.step, r.iterations, r.residual
+        converged[rest], damped[rest], status[rest] = r.converged, r.damped, r.status
+    within, outside = range_and_coverage(model, q, direction)
+    correction = (q - q_nom).abs().amax(-1)
+    return CompensationResult(q, converged, iterations, de, residual, step, damped, within, None, correction, outside,
+                              status)
 
 
 def _chunks(count: int, chunk_size: int, name: str):
@@ -420,10 +490,15 @@ def _chunks(count: int, chunk_size: int, name: str):
 @torch.no_grad()
 def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length,
            residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction, null_damping, branch,
-           free_tool_axis, tool_point):
+           free_tool_axis, tool_point, target=None):
     """:func:`compensate`'s work, on the calling thread count."""
     _check_inputs(model, q_nom, direction)
+    if target is not None and (target.shape != (q_nom.shape[0], 4, 4) or target.device != q_nom.device):
+        raise ValueError(f"compensate: target must be ({q_nom.shape[0]}, 4, 4) poses on {q_nom.device}, "
+                         f"got {tuple(target.shape)} on {target.device}")
     dtype, device = model.dtype, model.device
+    if target is not None:
+        target = target.to(dtype)
     q_nom = q_nom.to(dtype)
     B, n = q_nom.shape
     prismatic = model.robot.joint_map.prismatic if hasattr(model, "robot") else None
@@ -434,7 +509,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
         direction = direction.to(dtype)
     # the compiled kernel's first call in a process costs ~0.5-0.8 s (numba loads its cached machine code and
     # sets up LLVM), more than the torch ops take for a few thousand poses (the fit's compensation check)
-    kernel = FlangeKernel(model, fused=None if B >= FUSED_MIN_POSES else False)
+    kernel = FlangeKernel(model, fused=None if B >= FUSED_MIN_POSES or _fused_warm() else False)
     if chunk_size is None:
         # a GPU is bound by kernel launches (~25 000 per call, whatever the batch): one chunk of every pose
         # (measured on an H200: 1.4e6 poses/s in chunks of 262 144, 2.5e6 in one chunk of 10^6)
@@ -463,6 +538,8 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
         qT = q_nom[sl].T.contiguous()
         sT = None if direction is None else direction[sl].T.contiguous()
         Rn, pn, J = kernel.nominal_flange_jacobian(qT)
+        if target is not None:
+            Rn, pn = target[sl, :3, :3].permute(1, 2, 0).contiguous(), target[sl, :3, 3].T.contiguous()
         targets_R[..., sl], targets_p[:, sl] = Rn, pn
         if sigma:
             Js = J.permute(2, 0, 1).clone()

@@ -25,8 +25,21 @@ import torch
 from .bounds import DEFAULT_BOUND, per_joint_bound
 
 CONVERGED, AT_BOUND, BRANCH, OUT_OF_REACH, NOT_CONVERGED = 0, 1, 2, 3, 4
+JOINT_LIMIT = "joint limit: the compensated command leaves the controller's range"
+"""The reason of a row whose command leaves the controller's range (:meth:`CompensationResult.reasons`)."""
 SINGULAR_FLOOR = 5.73e-4
 """m/rad (orientation rows times 1 m): 0.01 mm/deg, below it a nominal command counts as singular."""
+
+
+def range_and_coverage(model, q: torch.Tensor, direction: torch.Tensor | None):
+    """(B,) bool within the controller's command limits, and (B,) bool outside the identification data's
+    direction coverage (None without coverage or directions) of commands q (B, n)."""
+    lim = model.command_limits.to(device=q.device, dtype=q.dtype)
+    within = ((q >= lim[:, 0]) & (q <= lim[:, 1])).all(-1)
+    coverage = getattr(model, "coverage", None)
+    if coverage is None or direction is None:
+        return within, None
+    return within, coverage.outside(q, direction).to(device=q.device, dtype=torch.bool)
 
 
 @dataclass
@@ -105,7 +118,7 @@ class CompensationResult:
             if conv[i] and within[i]:
                 out.append("")
             elif not within[i]:
-                out.append("joint limit: the compensated command leaves the controller's range")
+                out.append(JOINT_LIMIT)
             elif st[i] == BRANCH:
                 out.append("branch change: the solution within the bound lies on another configuration (across "
                            "a singular surface of the controller's kinematics)")

@@ -4,10 +4,11 @@ Robot programs are written as Cartesian targets (a tool pose in the robot's
 base frame) that the controller's *nominal* inverse kinematics turns into
 joint commands. :func:`compensate_targets` gives, for a batch of targets:
 
-- the joint commands that put the tool there on the calibrated model (the
-  target's flange pose for the model's identified tool vector, reached by the
-  nominal IK from the controller's seed, then Paper II's compensation
-  (46)-(52) from that command, :func:`.newton.compensate`);
+- the joint commands that put the tool there on the calibrated model: the
+  controller's nominal IK from its seed (nominal tool), then Paper II's
+  compensation (46)-(52) from that command to the flange pose that puts the
+  model's identified tool on the target (:func:`.newton.compensate` with
+  ``target=``);
 - the corrected target to send to a controller that keeps its nominal IK
   and nominal tool data: the nominal pose of those commands, so that the
   controller's own IK of it gives them back (on the seed's branch).
@@ -17,6 +18,12 @@ command the controller's IK chooses for the target, or any command near it on
 the same branch: configuration flags become a seed by the controller's own
 program). Rows whose nominal IK cannot reach the target, or whose
 compensation is flagged, say why in ``reason``.
+
+On the CPU (float64, 6 joints, numba) the rows go through one compiled pass
+first (:mod:`.fused_targets`; on Paper II's FANUC, 2 cores: ~1e5 targets/s
+against 4 000-20 000 for the batched solves alone); the rows it hands on (near
+a singularity, beyond a bound, a seed far from the target) are solved by the
+batched path.
 """
 
 from __future__ import annotations
@@ -27,8 +34,15 @@ import torch
 
 from ..core.contract import require
 from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
+from .bounds import DEFAULT_BOUND, per_joint_bound
+from .branch import PATH_ABOVE, jacobian_lipschitz
 from .damped import damped_least_squares
+from .kernel import FlangeKernel
 from .newton import CompensationResult, compensate
+from .result import CONVERGED, JOINT_LIMIT, NOT_CONVERGED, range_and_coverage
+
+FAST_MIN_TARGETS = 64
+"""Batches smaller than this skip the compiled pass (its first call in a process loads numba's cached code)."""
 
 
 @dataclass
@@ -70,13 +84,13 @@ def pose_rpy(T: torch.Tensor) -> torch.Tensor:
     return torch.cat([T[:, :3, 3], matrix_to_rpy(T[:, :3, :3])], 1)
 
 
-def _tool_pose(F: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+def tool_pose(F: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Flange poses (B, 4, 4) and tool points (B, 3) in the flange frame -> tool poses (B, 4, 4) (the flange's
     orientation at the tool point: the run's tools are points)."""
     return homogeneous(F[:, :3, :3], F[:, :3, 3] + (F[:, :3, :3] @ t[..., None])[..., 0])
 
 
-def _flange_for(T: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+def flange_for(T: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Tool poses (B, 4, 4) and tool points (B, 3) -> the flange poses that put the tool there."""
     return homogeneous(T[:, :3, :3], T[:, :3, 3] - (T[:, :3, :3] @ t[..., None])[..., 0])
 
@@ -122,33 +136,107 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
         raise ValueError(f"compensate_targets: tool indices must lie in 0..{model.tools.count - 1}")
     t_nominal = model.tools.nominal.to(dev, dt)[tool]
     t_actual = model.tools().to(dev, dt)[tool]
-    nominal = _nominal_model(model)
-    # the controller's view: nominal IK for the nominal tool (reported; the calibrated solve needs the real tool)
-    ik_c = damped_least_squares(nominal, seed, _flange_for(target, t_nominal), None, tol=ik_tol, max_iter=ik_max_iter)
-    # the flange pose that puts the model's identified tool on the target, reached on the nominal chain first
-    goal = _flange_for(target, t_actual)
-    ik = damped_least_squares(nominal, ik_c.q, goal, None, tol=ik_tol, max_iter=ik_max_iter)
     if free_tool_axis is not None and free_tool_axis is not False:
         options = dict(options, free_tool_axis=free_tool_axis, tool_point=t_actual)
-    comp = compensate(model, ik.q, direction, **options)
-    ok = ik_c.converged & ik.converged & comp.converged & comp.within_limits
-    command = _tool_pose(model.nominal_flange(comp.q), t_nominal)
-    stage2 = comp.reasons(options.get("max_correction"), model.robot.joint_map.prismatic)
-    reason = []
-    for i in range(B):
-        if not bool(ik_c.converged[i]):
-            reason.append("out of reach: the nominal IK does not reach the target from the seed")
-        elif not bool(ik.converged[i]):
-            reason.append("out of reach for the identified tool")
-        else:
-            reason.append(stage2[i])
+    fast = _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)
+    if fast is None:
+        return _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)
+    return _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)
+
+
+def _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> TargetResult:
+    """Every row by batched solves: the controller's nominal IK from the seed, then :func:`.newton.compensate`
+    from that command to the flange goal of the identified tool (robust near singularities and bounds; every
+    flagged row gets its reason)."""
+    nominal = nominal_model(model)
+    # the controller's view: nominal IK for the nominal tool (its command: the start, the bounds' and the branch's
+    # reference)
+    ik_c = damped_least_squares(nominal, seed, flange_for(target, t_nominal), None, tol=ik_tol, max_iter=ik_max_iter)
+    comp = compensate(model, ik_c.q, direction, target=flange_for(target, t_actual), **options)
+    ok = ik_c.converged & comp.converged & comp.within_limits
+    command = tool_pose(model.nominal_flange(comp.q), t_nominal)
+    reason = comp.reasons(options.get("max_correction"), model.robot.joint_map.prismatic)
+    for i in (~ik_c.converged).nonzero()[:, 0].tolist():
+        reason[i] = "out of reach: the nominal IK does not reach the target from the seed"
     return TargetResult(comp.q, ik_c.q, command, ok, reason, comp)
 
 
-def _nominal_model(model):
+# options the compiled pass reads (or that only concern rows it leaves to the general path)
+_FAST_OPTIONS = {"tol", "max_iter", "residual_tol", "contraction", "length", "max_correction", "max_step", "damping",
+                 "max_damped_iter", "null_damping", "refresh", "refresh_model", "chunk_size"}
+
+
+def _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> dict | None:
+    """:mod:`.fused_targets`' compiled pass over every row, or None where it does not apply (no numba, not CPU
+    float64, not 6 joints, a live model (compliance, fine tables), 5-DOF, an option it does not implement)."""
+    from . import fused
+
+    if (model.n != 6 or not fused.available(seed.device, seed.dtype) or not set(options) <= _FAST_OPTIONS
+            or target.shape[0] < FAST_MIN_TARGETS):
+        return None
+    kernel = FlangeKernel(model)
+    if kernel.fused is None:
+        return None
+    from .fused_targets import solve_targets
+
+    length = float(options.get("length", 1.0))
+    prismatic = model.robot.joint_map.prismatic
+    max_corr = per_joint_bound(options.get("max_correction", DEFAULT_BOUND), model.n, torch.float64, "cpu",
+                               "max_correction", prismatic)
+    return solve_targets(kernel.fused, target, t_nominal, t_actual, seed, direction,
+                         ik_tol=ik_tol, ik_max_iter=ik_max_iter, tol=options.get("tol", 1e-10),
+                         residual_tol=options.get("residual_tol", 1e-12), max_iter=options.get("max_iter", 30),
+                         contraction=options.get("contraction", 0.5), length=length, max_correction=max_corr,
+                         path_above=PATH_ABOVE, sigma_floor=0.1 * options.get("null_damping", 1e-3),
+                         refresh=options.get("refresh", 2) if options.get("refresh_model", True) else 0,
+                         refresh_floor=options.get("null_damping", 1e-3),
+                         lipschitz=jacobian_lipschitz(kernel, length))
+
+
+def _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> TargetResult:
+    """The compiled pass's rows, with the rows it left solved again by :func:`_general`, in input order."""
+    from .fused_targets import DONE
+
+    B = target.shape[0]
+    done = fast["status"] == DONE
+    q, q_nominal, de = fast["q"].clone(), fast["q_nominal"].clone(), fast["pose_error"].clone()
+    step, iterations = fast["step"].clone(), fast["iterations"].clone()
+    command = fast["command"]
+    length = float(options.get("length", 1.0))
+    residual = torch.cat([de[:, :3], length * de[:, 3:]], 1).norm(dim=-1)
+    correction = (q - q_nominal).abs().amax(-1)
+    converged, damped = done.clone(), torch.zeros(B, dtype=torch.bool)
+    status = torch.where(done, CONVERGED, NOT_CONVERGED).to(torch.int8)
+    rest = (~done).nonzero()[:, 0]
+    if rest.numel():
+        # where the compiled pass's IK converged, its command seeds the general one (it stops at once)
+        from .fused_targets import IK_FAILED
+
+        start = torch.where((fast["status"][rest] == IK_FAILED)[:, None], seed[rest], fast["q_nominal"][rest])
+        g = _general(model, target[rest], start, None if direction is None else direction[rest], t_nominal[rest],
+                     t_actual[rest], ik_tol, ik_max_iter, options)
+        c = g.compensation
+        q[rest], q_nominal[rest], command[rest] = g.q, g.q_nominal, g.command_target
+        de[rest], step[rest], iterations[rest], residual[rest] = c.pose_error, c.step, c.iterations, c.residual
+        correction[rest], converged[rest], damped[rest], status[rest] = c.correction, c.converged, c.damped, c.status
+    within, outside = range_and_coverage(model, q, direction)
+    comp = CompensationResult(q, converged, iterations, de, residual, step, damped, within, None, correction, outside,
+                              status)
+    ok = converged & within
+    reason = [""] * B
+    for i in (~within).nonzero()[:, 0].tolist():
+        reason[i] = JOINT_LIMIT
+    if rest.numel():
+        ok[rest] = g.converged  # also needs both IKs
+        for i, r in zip(rest.tolist(), g.reason):
+            reason[i] = r
+    return TargetResult(q, q_nominal, command, ok, reason, comp)
+
+
+def nominal_model(model):
     """The model's nominal chain as a model with every error term zero: the controller's kinematics (the
     model's own class: compensation and the models are sibling layers)."""
     return type(model)(model.robot, model.tools.nominal, orders=0, backlash=None).to(model.device)
 
 
-__all__ = ["TargetResult", "compensate_targets", "pose_rpy", "target_poses"]
+__all__ = ["TargetResult", "compensate_targets", "flange_for", "nominal_model", "pose_rpy", "target_poses", "tool_pose"]

@@ -193,9 +193,14 @@ class FleetProblem(BatchedProblem):
         Jacobian (E (m, R, d, Q), Phi (m, R, n, K), each pose's Phi_p (m, Pp, n, K) at its command) of the units w."""
         st = self.stack
         direction = st["direction"][w] if st["has_direction"] else None
-        lin = factored_linearization_fused if fleet_kernel.available(q.device) else factored_linearization
-        raw, Jv, E, Phi = lin(self.superset, self.structure, self._params(X), q, tool, direction, V, obs)
-        s = self.scale[w][:, :, None] / self.instrument.weight.sigma
+        s = self.scale[w] / self.instrument.weight.sigma
+        if fleet_kernel.available(q.device):  # whitened in the kernel: a pass over E the less
+            f, Jv, E, Phi = factored_linearization_fused(self.superset, self.structure, self._params(X), q, tool,
+                                                         direction, V, obs, scale=s)
+            return f, Jv, E, Phi, self.phi_p[w]
+        raw, Jv, E, Phi = factored_linearization(self.superset, self.structure, self._params(X), q, tool, direction, V,
+                                                 obs)
+        s = s[:, :, None]
         return raw * s, Jv * s[..., None], E * s[..., None], Phi, self.phi_p[w]
 
     def step(self, lin, V, dX, mu, which):

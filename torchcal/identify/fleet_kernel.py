@@ -13,10 +13,11 @@ joint errors, M = I - W^T W, the gradient, the per-pose Gram matrices
 E^T M E, the exact products A^T M A x) was likewise dozens of small
 (rows, 6, 6) / (rows, 3, 57) torch ops and batched 57 x 9 x 57 products
 (1.8 GFLOP/s). Here the same arithmetic runs row by row (pose by pose) in
-scalars and small scratch arrays, rows split over the threads; the Gram
-matrices are formed with the pose axis innermost (unit stride, so they
-vectorize over poses) and written in the layout the contraction's batched
-products read. Same formulas, term for term, as the torch form
+scalars and small scratch arrays, blocks of poses handed to the threads one
+at a time (:func:`dynamic`); each pose's Gram matrix is formed in scratch
+right after its rows' elimination (no per-row copies of E and M E through
+memory) and written pose-major, where the contraction's batched products read
+it. Same formulas, term for term, as the torch form
 (chain_frames, so3_exp with its Taylor branch, so3_right_jacobian,
 twist_jacobian, joint_axis_jacobian, the Chebyshev recurrence and its
 derivative); the tests hold both to rounding. CPU, float64, numba importable
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import math
 import os
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -49,7 +51,8 @@ else:  # pragma: no cover
     prange = range
 
 _CHUNK = 64  # rows per task
-_JOBS = 32  # poses per task (scratch is allocated per task: numba's allocations cost ~µs each)
+_GATHER = 8  # tasks per unit of gather_rows
+_POSES = 16  # poses per task of a unit (scratch is allocated per task: numba's allocations cost ~µs each)
 
 
 @njit(cache=True)
@@ -97,8 +100,10 @@ def _mm(out, x, y):
 
 @njit(parallel=True, cache=True)
 def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, coupling, offset, ecoup, eoff,
-                   lo, width, oR, op, axes, prismatic, tipR, tipp, Kc, Kb, A, p_out, Jv_out, E_out, Phi_out):
-    """Tool points p_out (B, 3), Jv_out (B, 3, n), factored E_out (B, 3, n A + 6 + 3 T), Phi_out (B, n, K) of rows
+                   lo, width, oR, op, axes, prismatic, tipR, tipp, Kc, Kb, A, obs, scale, p_out, Jv_out, E_out, Phi_out):
+    """Residuals p_out (B, 3) (tool point - obs (B, 3)), Jv_out (B, 3, n), factored E_out (B, 3, n A + 6 + 3 T),
+    each times the row's scale (B,) (the whitening, where a copy per output would cost more than the row), and
+    Phi_out (B, n, K) of rows
     qv (B, n) (commands plus joint errors), s (B, n), tool (B,), unit (B,): every unit's masked coef
     (M, n, 6, Kc), backlash (M, n, Kb), base T0 (M, 3, 3) / (M, 3), its twist Jacobian factors RJb, Rbb
     (M, 3, 3) and tool points pts (M, T, 3)."""
@@ -202,7 +207,8 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
             x0 = Rn[0, 0] * t0 + Rn[0, 1] * t1 + Rn[0, 2] * t2 + p0
             x1 = Rn[1, 0] * t0 + Rn[1, 1] * t1 + Rn[1, 2] * t2 + p1
             x2 = Rn[2, 0] * t0 + Rn[2, 1] * t1 + Rn[2, 2] * t2 + p2
-            p_out[r, 0], p_out[r, 1], p_out[r, 2] = x0, x1, x2
+            sc = scale[r]
+            p_out[r, 0], p_out[r, 1], p_out[r, 2] = (x0 - obs[r, 0]) * sc, (x1 - obs[r, 1]) * sc, (x2 - obs[r, 2]) * sc
             for q in range(E_out.shape[2]):
                 E_out[r, 0, q] = 0.0
                 E_out[r, 1, q] = 0.0
@@ -243,7 +249,7 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
                     x = 0.0
                     for i in range(n):
                         x += Jax[a, i] * coupling[i, j] + slope[a, i] * ecoup[i, j]
-                    Jv_out[r, a, j] = x
+                    Jv_out[r, a, j] = x * sc
             # base twist: twist_jacobian at the base frame; tools: the flange rotation on the row's tool
             d0, d1, d2 = x0 - T0p[mu, 0], x1 - T0p[mu, 1], x2 - T0p[mu, 2]
             for k in range(3):
@@ -254,6 +260,9 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
                 for a in range(3):
                     E_out[r, a, ne + 3 + k] = Rbb[mu, a, k]
                     E_out[r, a, ne + 6 + 3 * tl + k] = Rn[a, k]
+            for a in range(3):
+                for q in range(E_out.shape[2]):
+                    E_out[r, a, q] *= sc
             for i in range(n):
                 for k in range(K):
                     Phi_out[r, i, k] = bs[i, k]
@@ -265,9 +274,9 @@ def available(device) -> bool:
 
 
 @torch.no_grad()
-def factored_linearization_fused(model, st, params: dict, q, tool, direction, v, obs):
+def factored_linearization_fused(model, st, params: dict, q, tool, direction, v, obs, scale=None):
     """:func:`torchcal.identify.structured.factored_linearization` by :func:`linearize_rows` (same arguments,
-    same results to rounding)."""
+    same results to rounding). scale: (m, R) each row's whitening, applied to the residual, Jv and E (None: 1)."""
     from ..kinematics.transforms import so3_exp, twist_to_transform
     from ..models.jacobian import so3_right_jacobian
 
@@ -292,14 +301,16 @@ def factored_linearization_fused(model, st, params: dict, q, tool, direction, v,
     Jv = torch.empty(B, 3, n, **f64)
     E = torch.empty(B, 3, st.ne + st.Nd, **f64)
     Phi = torch.empty(B, n, st.K, **f64)
+    sc = torch.ones(B, **f64) if scale is None else scale.reshape(B).to(**f64)
     npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
-    linearize_rows(npy(qv), npy(s), use_s, npy(tool.reshape(B)), npy(unit), npy(coef), npy(bl), npy(T0R), npy(T0p),
-                   npy(RJb), npy(Rbb), npy(pts), npy(model.coupling), npy(model.offset), npy(model.error_coupling),
-                   npy(model.error_offset), npy(je.ranges[:, 0]), npy(je.ranges[:, 1] - je.ranges[:, 0]),
-                   npy(model.origins[:, :3, :3]), npy(model.origins[:, :3, 3]), npy(model.axes),
-                   npy(model.prismatic), npy(model.tip[:3, :3]), npy(model.tip[:3, 3]), st.Kc, Kb, st.A,
-                   p_out.numpy(), Jv.numpy(), E.numpy(), Phi.numpy())
-    return p_out.view(m, R, 3) - obs, Jv.view(m, R, 3, n), E.view(m, R, 3, -1), Phi.view(m, R, n, st.K)
+    with dynamic():
+        linearize_rows(npy(qv), npy(s), use_s, npy(tool.reshape(B)), npy(unit), npy(coef), npy(bl), npy(T0R), npy(T0p),
+                       npy(RJb), npy(Rbb), npy(pts), npy(model.coupling), npy(model.offset), npy(model.error_coupling),
+                       npy(model.error_offset), npy(je.ranges[:, 0]), npy(je.ranges[:, 1] - je.ranges[:, 0]),
+                       npy(model.origins[:, :3, :3]), npy(model.origins[:, :3, 3]), npy(model.axes),
+                       npy(model.prismatic), npy(model.tip[:3, :3]), npy(model.tip[:3, 3]), st.Kc, Kb, st.A,
+                       npy(obs.reshape(B, 3).to(**f64)), npy(sc), p_out.numpy(), Jv.numpy(), E.numpy(), Phi.numpy())
+    return p_out.view(m, R, 3), Jv.view(m, R, 3, n), E.view(m, R, 3, -1), Phi.view(m, R, n, st.K)
 
 
 @njit(parallel=True, cache=True, fastmath=True)
@@ -364,207 +375,284 @@ def gram_fused(ZT: torch.Tensor, YT: torch.Tensor, n: int, A: int):
     return Gs, Gsd, Gdd, pi, pj
 
 
-@njit(parallel=True, cache=True, fastmath=True)
-def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, Li_o, W_o, z_o, M_o, ZT, YT, gx, dg):
-    """The per-row half of a factored Gauss-Newton step, pose by pose (one task per unit and pose).
+def pose_blocks(Pp: int) -> int:
+    """Tasks per unit of :func:`schur_rows` and :func:`apply_rows`: its poses in blocks of :data:`_POSES`."""
+    return (Pp + _POSES - 1) // _POSES
 
-    Each row's joint errors eliminated (H_vv = C^T C + diag(w_v), damped by mu on its diagonal; L its
-    Cholesky factor): Li_o = L^-1 (m, R, n, n), W_o = Li C^T (m, R, n, d), z_o = Li g_v (m, R, n), M_o =
-    I - W^T W (m, R, d, d); E and M E of the pose's rows, pose axis last, into ZT, YT (m, T d, Q, Pp) (zero for
-    empty slots; what :func:`gram_last` reads);
-    per pose, the extended gradient gx (m, Pp, size) of the residual with the joint errors' response taken
-    out, y = f - W^T z, and the diagonal dg (m, Pp, size) of A^T A, each row with its own basis values."""
-    m, R, d, Q = E.shape
-    Pp, T = slots.shape[1], slots.shape[2]
-    K = Phi.shape[3]
+
+@contextmanager
+def dynamic():
+    """Hand a parallel kernel's tasks to the threads one at a time: with numba's static split, a thread that
+    shares its core with another process holds up the whole call (as torchcal.compensate.fused does)."""
+    if HAVE_NUMBA:
+        with numba.parallel_chunksize(1):
+            yield
+    else:  # pragma: no cover
+        yield
+
+
+@njit(parallel=True, cache=True)
+def gather_rows(src, index, out):
+    """out[u, t] = src[u, index[t]]: src (m, F), index (N,), out (m, N)."""
+    m, N = out.shape
+    for job in prange(m * _GATHER):
+        u, c = job // _GATHER, job % _GATHER
+        for t in range(c * N // _GATHER, (c + 1) * N // _GATHER):
+            out[u, t] = src[u, index[t]]
+
+
+@njit(cache=True, fastmath=True)
+def _eliminate_row(f, C, E, Phi, V, w_v, damp, A, H, L, gv, yy, h, hh, ph, ph2, Li, W, zz, Mr, Y, gxl, dgl):
+    """One row, from views of it (f (d,), C (d, n), E (d, Q), Phi (n, K), V, w_v (n,)): its joint errors
+    eliminated (H_vv = C^T C + diag(w_v), its diagonal times damp = 1 + mu; L L^T = H_vv) into the views
+    Li = L^-1 (n, n), W = Li C^T (n, d), zz = Li g_v (n,), Mr = I - W^T W (d, d); Y = Mr E (d, Q); the row's
+    terms of the extended gradient (its residual with the joint errors' response out, yy = f - W^T zz) and of
+    the diagonal of A^T A added into gxl, dgl (size,). d = 3 (point targets). H, L (n, n), gv (n,), yy (d,),
+    h, hh (Q,), ph, ph2 (K,): scratch."""
+    d, Q = E.shape
+    n, K = Phi.shape
     ne = n * A
-    Nd = Q - ne
     ns = ne * K
-    jobs = m * Pp
-    nchunks = (jobs + _JOBS - 1) // _JOBS
-    for ch in prange(nchunks):  # scratch allocated once per chunk of poses, not per pose
-      Y = np.empty((d, Q))
-      H = np.empty((n, n))
-      L = np.empty((n, n))
-      Li = np.empty((n, n))
-      W = np.empty((n, d))
-      zz = np.empty(n)
-      gv = np.empty(n)
-      yy = np.empty(d)
-      Mr = np.empty((d, d))
-      h = np.empty(Q)
-      e2 = np.empty(Q)
-      for job in range(ch * _JOBS, min(jobs, (ch + 1) * _JOBS)):
-        u = job // Pp
-        p = job % Pp
-        for q in range(gx.shape[2]):
-            gx[u, p, q] = 0.0
-            dg[u, p, q] = 0.0
-        for t in range(T):
-            r = slots[u, p, t]
-            if r >= R:
-                for c in range(d):
-                    for q in range(Q):
-                        ZT[u, t * d + c, q, p] = 0.0
-                        YT[u, t * d + c, q, p] = 0.0
-                continue
-            for i in range(n):
-                for j in range(n):
-                    x = 0.0
-                    for c in range(d):
-                        x += C[u, r, c, i] * C[u, r, c, j]
-                    H[i, j] = x
-                H[i, i] += w_v[u, r, i]
-                x = 0.0
-                for c in range(d):
-                    x += C[u, r, c, i] * f[u, r, c]
-                gv[i] = x + w_v[u, r, i] * V[u, r, i]
-            for i in range(n):
-                H[i, i] *= 1.0 + mu[u]
-            # Cholesky H = L L^T and L^-1
-            for i in range(n):
-                for j in range(i + 1):
-                    x = H[i, j]
-                    for k in range(j):
-                        x -= L[i, k] * L[j, k]
-                    if i == j:
-                        L[i, i] = math.sqrt(x)
-                    else:
-                        L[i, j] = x / L[j, j]
-                for j in range(i + 1, n):
-                    L[i, j] = 0.0
-            for j in range(n):
-                for i in range(n):
-                    if i < j:
-                        Li[i, j] = 0.0
-                        continue
-                    x = 1.0 if i == j else 0.0
-                    for k in range(j, i):
-                        x -= L[i, k] * Li[k, j]
-                    Li[i, j] = x / L[i, i]
-            for i in range(n):
-                for c in range(d):
-                    x = 0.0
-                    for k in range(i + 1):
-                        x += Li[i, k] * C[u, r, c, k]
-                    W[i, c] = x
-                x = 0.0
-                for k in range(i + 1):
-                    x += Li[i, k] * gv[k]
-                zz[i] = x
-            for a in range(d):
-                x = f[u, r, a]
-                for i in range(n):
-                    x -= W[i, a] * zz[i]
-                yy[a] = x
-                for b in range(d):
-                    x = 1.0 if a == b else 0.0
-                    for i in range(n):
-                        x -= W[i, a] * W[i, b]
-                    Mr[a, b] = x
-            for i in range(n):
-                z_o[u, r, i] = zz[i]
-                for j in range(n):
-                    Li_o[u, r, i, j] = Li[i, j]
-                for c in range(d):
-                    W_o[u, r, i, c] = W[i, c]
-            for a in range(d):
-                for b in range(d):
-                    M_o[u, r, a, b] = Mr[a, b]
-            for q in range(Q):
-                x = 0.0
-                s2 = 0.0
-                for a in range(d):
-                    ea = E[u, r, a, q]
-                    x += ea * yy[a]
-                    s2 += ea * ea
-                h[q] = x
-                e2[q] = s2
-                for a in range(d):
-                    Y[a, q] = Mr[a, 0] * E[u, r, 0, q] + Mr[a, 1] * E[u, r, 1, q] + Mr[a, 2] * E[u, r, 2, q]
+    for i in range(n):
+        for j in range(n):
+            x = 0.0
             for c in range(d):
-                for q in range(Q):
-                    ZT[u, t * d + c, q, p] = E[u, r, c, q]
-                    YT[u, t * d + c, q, p] = Y[c, q]
+                x += C[c, i] * C[c, j]
+            H[i, j] = x
+        H[i, i] += w_v[i]
+        x = 0.0
+        for c in range(d):
+            x += C[c, i] * f[c]
+        gv[i] = x + w_v[i] * V[i]
+    for i in range(n):
+        H[i, i] *= damp
+    for i in range(n):
+        for j in range(i + 1):
+            x = H[i, j]
+            for k in range(j):
+                x -= L[i, k] * L[j, k]
+            if i == j:
+                L[i, i] = math.sqrt(x)
+            else:
+                L[i, j] = x / L[j, j]
+        for j in range(i + 1, n):
+            L[i, j] = 0.0
+    for j in range(n):
+        for i in range(n):
+            if i < j:
+                Li[i, j] = 0.0
+                continue
+            x = 1.0 if i == j else 0.0
+            for k in range(j, i):
+                x -= L[i, k] * Li[k, j]
+            Li[i, j] = x / L[i, i]
+    for i in range(n):
+        for c in range(d):
+            x = 0.0
+            for k in range(i + 1):
+                x += Li[i, k] * C[c, k]
+            W[i, c] = x
+        x = 0.0
+        for k in range(i + 1):
+            x += Li[i, k] * gv[k]
+        zz[i] = x
+    for a in range(d):
+        x = f[a]
+        for i in range(n):
+            x -= W[i, a] * zz[i]
+        yy[a] = x
+        for b in range(d):
+            x = 1.0 if a == b else 0.0
             for i in range(n):
-                for a in range(A):
-                    col = i * A + a
-                    for k in range(K):
-                        ph = Phi[u, r, i, k]
-                        gx[u, p, col * K + k] += h[col] * ph
-                        dg[u, p, col * K + k] += e2[col] * ph * ph
-            for q in range(Nd):
-                gx[u, p, ns + q] += h[ne + q]
-                dg[u, p, ns + q] += e2[ne + q]
-
+                x -= W[i, a] * W[i, b]
+            Mr[a, b] = x
+    # Y = Mr E, E^T yy and the squared column norms, three coordinates (d = 3) per column: vectorized over Q
+    E0, E1, E2 = E[0], E[1], E[2]
+    Y0, Y1, Y2 = Y[0], Y[1], Y[2]
+    m00, m01, m02, m11, m12, m22 = Mr[0, 0], Mr[0, 1], Mr[0, 2], Mr[1, 1], Mr[1, 2], Mr[2, 2]  # Mr symmetric
+    y0, y1, y2 = yy[0], yy[1], yy[2]
+    for q in range(Q):
+        e0, e1, e2 = E0[q], E1[q], E2[q]
+        Y0[q] = m00 * e0 + m01 * e1 + m02 * e2
+        Y1[q] = m01 * e0 + m11 * e1 + m12 * e2
+        Y2[q] = m02 * e0 + m12 * e1 + m22 * e2
+        h[q] = e0 * y0 + e1 * y1 + e2 * y2
+        hh[q] = e0 * e0 + e1 * e1 + e2 * e2
+    for i in range(n):
+        for k in range(K):
+            ph[k] = Phi[i, k]
+            ph2[k] = Phi[i, k] * Phi[i, k]
+        for a in range(A):
+            col = i * A + a
+            hc, ec, o = h[col], hh[col], col * K
+            for k in range(K):
+                gxl[o + k] += hc * ph[k]
+                dgl[o + k] += ec * ph2[k]
+    for q in range(ne, Q):
+        gxl[ns + q - ne] += h[q]
+        dgl[ns + q - ne] += hh[q]
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def apply_rows(E, Phi, dbx, slots, n, A, final, M, Li, W, z, f, C, sx, dv, lin):
-    """A db of every row (E_r times the step's extended values weighted by the row's basis values);
-    final=False: the extended product A^T M A db, summed per pose into sx (m, Pp, size); final=True: the
-    joint-error steps dv = -Li^T (z + W A db) (m, R, n) and the linearized residual lin = f + A db + C dv."""
+def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, Li_o, W_o, z_o, M_o, Gs, Gsd, Gdd_b, gx_b, dg_b):
+    """The per-row half of a factored Gauss-Newton step and the per-pose Gram matrices, one task per block of
+    poses (:func:`pose_blocks`), every unit's.
+
+    Each row's joint errors eliminated (:func:`_eliminate_row`): Li_o (m, R, n, n), W_o (m, R, n, d), z_o
+    (m, R, n), M_o = I - W^T W (m, R, d, d). Each pose's G_p = sum over its rows of E_r^T M_r E_r, formed in
+    scratch and written pose-major, the units of a pose together: Gs (npair, Pp, m, A, A) the joint pairs
+    i <= j (pair (n, n) their index), Gsd (n, Pp, m, A, Nd), both flattened. A task walks its poses and, for
+    each, the units, so its writes advance through each pair's block in order (with the pose axis last, as
+    :func:`gram_last` writes it, or a task per unit, they jump by pages and miss the TLB and the prefetcher: 1.5
+    ms a unit, as much as the products); and the contraction reads a pair's block as one (Pp, m A A) matrix.
+    Per block, the dense x dense Gdd_b (m, NB, Nd, Nd) summed over its poses, the extended gradient gx_b and
+    diagonal dg_b (m, NB, size) summed over its rows (each row with its own basis values): no two threads add
+    into one place, and the result does not depend on the thread count."""
+    m, R, d, Q = E.shape
+    Pp, T = slots.shape[1], slots.shape[2]
+    K = Phi.shape[3]
+    ne = n * A
+    Nd = Q - ne
+    NB = gx_b.shape[1]
+    for b in prange(NB):
+        H = np.empty((n, n))
+        L = np.empty((n, n))
+        gv = np.empty(n)
+        yy = np.empty(d)
+        h = np.empty(Q)
+        hh = np.empty(Q)
+        ph = np.empty(K)
+        ph2 = np.empty(K)
+        Yp = np.empty((T * d, Q))  # the pose's rows' M E, stacked
+        rows = np.empty(T, dtype=np.int64)
+        Gf = np.empty(Q * Q)
+        G = Gf.reshape((Q, Q))
+        for u in range(m):
+            gx_b[u, b] = 0.0
+            dg_b[u, b] = 0.0
+            Gdd_b[u, b] = 0.0
+        for p in range(b * _POSES, min(Pp, (b + 1) * _POSES)):
+            for u in range(m):
+                gxl, dgl, Gl = gx_b[u, b], dg_b[u, b], Gdd_b[u, b]
+                nr = 0
+                for t in range(T):
+                    r = slots[u, p, t]
+                    if r >= R:
+                        continue
+                    _eliminate_row(f[u, r], C[u, r], E[u, r], Phi[u, r], V[u, r], w_v[u, r], 1.0 + mu[u], A, H, L,
+                                   gv, yy, h, hh, ph, ph2, Li_o[u, r], W_o[u, r], z_o[u, r], M_o[u, r],
+                                   Yp[nr * d:(nr + 1) * d], gxl, dgl)
+                    rows[nr] = r
+                    nr += 1
+                # upper blocks only: a structured row from its joint's first column on (pairs i <= j, the joint's
+                # own block whole, as the contraction reads it), a dense row from the diagonal. Row views from
+                # column q0, so that the inner loop runs from 0 (no negative-index wraparound: it vectorizes), and
+                # a row's three coordinates (d = 3) per pass: a third of the loads and stores of G
+                for q1 in range(Q):
+                    q0 = (q1 // A) * A if q1 < ne else q1
+                    Gr = G[q1, q0:]
+                    if nr == 0:
+                        Gr[:] = 0.0
+                    for t in range(nr):
+                        Er = E[u, rows[t]]
+                        z0, z1, z2 = Er[0, q1], Er[1, q1], Er[2, q1]
+                        Y0, Y1, Y2 = Yp[3 * t, q0:], Yp[3 * t + 1, q0:], Yp[3 * t + 2, q0:]
+                        if t == 0:
+                            for q2 in range(Gr.size):
+                                Gr[q2] = z0 * Y0[q2] + z1 * Y1[q2] + z2 * Y2[q2]
+                        else:
+                            for q2 in range(Gr.size):
+                                Gr[q2] += z0 * Y0[q2] + z1 * Y1[q2] + z2 * Y2[q2]
+                # flat offsets: a 5-d index per entry costs more than the entry's share of the product
+                for i in range(n):
+                    for j in range(i, n):
+                        o = ((pair[i, j] * Pp + p) * m + u) * A * A
+                        for a in range(A):
+                            g = (i * A + a) * Q + j * A
+                            for c in range(A):
+                                Gs[o + a * A + c] = Gf[g + c]
+                    o = ((i * Pp + p) * m + u) * A * Nd
+                    for a in range(A):
+                        g = (i * A + a) * Q + ne
+                        for c in range(Nd):
+                            Gsd[o + a * Nd + c] = Gf[g + c]
+                for c1 in range(Nd):
+                    for c2 in range(c1, Nd):
+                        Gl[c1, c2] += G[ne + c1, ne + c2]
+        for u in range(m):
+            Gl = Gdd_b[u, b]
+            for c1 in range(Nd):
+                for c2 in range(c1 + 1, Nd):
+                    Gl[c2, c1] = Gl[c1, c2]
+
+
+@njit(parallel=True, cache=True, fastmath=True)
+def apply_rows(E, Phi, dbx, slots, n, A, final, M, Li, W, z, f, C, sx_b, dv, lin):
+    """A db of every row (E_r times the step's extended values weighted by the row's basis values), one task per
+    block of a unit's poses (:func:`pose_blocks`); final=False: the extended product A^T M A db, each block's
+    rows summed into sx_b (m, NB, size); final=True: the joint-error steps dv = -Li^T (z + W A db) (m, R, n) and
+    the linearized residual lin = f + A db + C dv (m, R, d)."""
     m, R, d, Q = E.shape
     Pp, T = slots.shape[1], slots.shape[2]
     K = Phi.shape[3]
     ne = n * A
     Nd = Q - ne
     ns = ne * K
-    jobs = m * Pp
-    nchunks = (jobs + _JOBS - 1) // _JOBS
-    for ch in prange(nchunks):
-      wq = np.empty(Q)
-      Adb = np.empty(d)
-      MA = np.empty(d)
-      tmp = np.empty(n)
-      for job in range(ch * _JOBS, min(jobs, (ch + 1) * _JOBS)):
-        u = job // Pp
-        p = job % Pp
-        if not final:
-            for q in range(sx.shape[2]):
-                sx[u, p, q] = 0.0
-        for t in range(T):
-            r = slots[u, p, t]
-            if r >= R:
-                continue
-            for i in range(n):
-                for a in range(A):
-                    col = i * A + a
-                    x = 0.0
-                    for k in range(K):
-                        x += Phi[u, r, i, k] * dbx[u, col * K + k]
-                    wq[col] = x
-            for q in range(Nd):
-                wq[ne + q] = dbx[u, ns + q]
-            for a in range(d):
-                x = 0.0
-                for q in range(Q):
-                    x += E[u, r, a, q] * wq[q]
-                Adb[a] = x
-            if not final:
-                for a in range(d):
-                    MA[a] = M[u, r, a, 0] * Adb[0] + M[u, r, a, 1] * Adb[1] + M[u, r, a, 2] * Adb[2]
+    NB = (Pp + _POSES - 1) // _POSES
+    for job in prange(m * NB):
+        u = job // NB
+        b = job % NB
+        wq = np.empty(Q)
+        Adb = np.empty(d)
+        MA = np.empty(d)
+        tmp = np.empty(n)
+        sxl = np.zeros(sx_b.shape[2])
+        for p in range(b * _POSES, min(Pp, (b + 1) * _POSES)):
+            for t in range(T):
+                r = slots[u, p, t]
+                if r >= R:
+                    continue
                 for i in range(n):
                     for a in range(A):
                         col = i * A + a
-                        h = E[u, r, 0, col] * MA[0] + E[u, r, 1, col] * MA[1] + E[u, r, 2, col] * MA[2]
+                        x = 0.0
                         for k in range(K):
-                            sx[u, p, col * K + k] += h * Phi[u, r, i, k]
+                            x += Phi[u, r, i, k] * dbx[u, col * K + k]
+                        wq[col] = x
                 for q in range(Nd):
-                    sx[u, p, ns + q] += E[u, r, 0, ne + q] * MA[0] + E[u, r, 1, ne + q] * MA[1] + E[u, r, 2, ne + q] * MA[2]
-            else:
-                for i in range(n):
-                    x = z[u, r, i]
-                    for c in range(d):
-                        x += W[u, r, i, c] * Adb[c]
-                    tmp[i] = x
-                for j in range(n):
-                    x = 0.0
-                    for i in range(j, n):
-                        x += Li[u, r, i, j] * tmp[i]
-                    dv[u, r, j] = -x
+                    wq[ne + q] = dbx[u, ns + q]
                 for a in range(d):
-                    x = f[u, r, a] + Adb[a]
+                    x = 0.0
+                    for q in range(Q):
+                        x += E[u, r, a, q] * wq[q]
+                    Adb[a] = x
+                if not final:
+                    for a in range(d):
+                        MA[a] = M[u, r, a, 0] * Adb[0] + M[u, r, a, 1] * Adb[1] + M[u, r, a, 2] * Adb[2]
+                    for i in range(n):
+                        for a in range(A):
+                            col = i * A + a
+                            h = E[u, r, 0, col] * MA[0] + E[u, r, 1, col] * MA[1] + E[u, r, 2, col] * MA[2]
+                            for k in range(K):
+                                sxl[col * K + k] += h * Phi[u, r, i, k]
+                    for q in range(Nd):
+                        sxl[ns + q] += E[u, r, 0, ne + q] * MA[0] + E[u, r, 1, ne + q] * MA[1] + E[u, r, 2, ne + q] * MA[2]
+                else:
+                    for i in range(n):
+                        x = z[u, r, i]
+                        for c in range(d):
+                            x += W[u, r, i, c] * Adb[c]
+                        tmp[i] = x
                     for j in range(n):
-                        x += C[u, r, a, j] * dv[u, r, j]
-                    lin[u, r, a] = x
+                        x = 0.0
+                        for i in range(j, n):
+                            x += Li[u, r, i, j] * tmp[i]
+                        dv[u, r, j] = -x
+                    for a in range(d):
+                        x = f[u, r, a] + Adb[a]
+                        for j in range(n):
+                            x += C[u, r, a, j] * dv[u, r, j]
+                        lin[u, r, a] = x
+        if not final:
+            for q in range(sxl.size):
+                sx_b[u, b, q] = sxl[q]

@@ -156,6 +156,17 @@ def pose_error(R, p, b, GR, Gp, gb, de):
 
 
 @njit(**inline)
+def weighted_fro2(P, length):
+    """||P D^-1||_F² for an inverse Jacobian P (n, 6), D the orientation rows times ``length``: 1 / sqrt of it
+    bounds sigma_min of D J from below (as newton.nominal_jacobian_inverse's floor)."""
+    fro2 = 0.0
+    for j in range(P.shape[0]):
+        for k in range(6):
+            fro2 += P[j, k] * P[j, k] / (1.0 if k < 3 else length * length)
+    return fro2
+
+
+@njit(**inline)
 def weighted_norm(de, length):
     """sqrt(|de_p|² + length² |de_r|²) (m)."""
     return np.sqrt(de[0] * de[0] + de[1] * de[1] + de[2] * de[2]
@@ -260,10 +271,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
             for j in range(n):
                 qn_out[j, b] = q_out[j, b]
             # the chord's conditioning, as newton.nominal_jacobian_inverse's floor; 1/||D P||_F <= sigma_min(D J)
-            fro2 = 0.0
-            for j in range(n):
-                for k in range(6):
-                    fro2 += P[j, k] * P[j, k] / (1.0 if k < 3 else length * length)
+            fro2 = weighted_fro2(P, length)
             if fro2 * sigma_floor * sigma_floor >= 1.0:
                 status_out[b] = SINGULAR
                 continue
@@ -297,10 +305,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                         if invert_column(FJ, 0, A, P) == 0.0:
                             singular = True
                             break
-                        fro2 = 0.0
-                        for j in range(n):
-                            for k in range(6):
-                                fro2 += P[j, k] * P[j, k] / (1.0 if k < 3 else length * length)
+                        fro2 = weighted_fro2(P, length)
                         if fro2 * floor * floor >= 1.0:
                             singular = True
                             break

@@ -425,58 +425,85 @@ def compensate(
                     and model.n == 6 and (q_nom.shape[0] >= FUSED_MIN_POSES or _fused_warm()))
         if eligible:
             _check_inputs(model, q_nom, direction)
-            fast = _compiled_pass(model, q_nom, direction, tol, max_iter, contraction, length, residual_tol, refresh,
-                                  max_correction, null_damping)
-            if fast is not None:
-                return _with_rest(model, q_nom, direction, fast, args)
+            setup = compiled_pass_setup(model, q_nom, dict(tol=tol, max_iter=max_iter, contraction=contraction,
+                                                           length=length, residual_tol=residual_tol, refresh=refresh,
+                                                           max_correction=max_correction, null_damping=null_damping))
+            if setup is not None:
+                return _with_rest(model, q_nom, direction, _compiled_pass(setup, q_nom, direction), length, args)
         return _solve(model, q_nom, direction, *args, target)
 
 
-def _compiled_pass(model, q_nom, direction, tol, max_iter, contraction, length, residual_tol, refresh, max_correction,
-                   null_damping) -> dict | None:
-    """:func:`.fused_targets.solve_commands` over every row (the same iteration as :func:`_solve`'s fast path, pose
-    by pose in one compiled pass), or None where it does not apply (not CPU float64 with numba, a live model)."""
+def compiled_pass_setup(model, q: torch.Tensor, options: dict):
+    """(the model's compiled flange, the pass's settings) for :mod:`.fused_targets` from :func:`compensate`'s
+    keyword arguments (its defaults where ``options`` leaves one out), or None where the pass does not apply
+    (not CPU float64 with numba, a live model: compliance, fine tables)."""
     from . import fused
 
-    if not fused.available(q_nom.device, q_nom.dtype):
+    if not fused.available(q.device, q.dtype):
         return None
     kernel = FlangeKernel(model)
     if kernel.fused is None:
         return None
+    o = {**_compensate_defaults(), **options}
+    length = float(o["length"])
+    bound = per_joint_bound(o["max_correction"], model.n, torch.float64, "cpu", "max_correction",
+                            model.robot.joint_map.prismatic if hasattr(model, "robot") else None)
+    return kernel.fused, dict(tol=o["tol"], residual_tol=o["residual_tol"], max_iter=o["max_iter"],
+                              contraction=o["contraction"], length=length, max_correction=bound, path_above=PATH_ABOVE,
+                              sigma_floor=0.1 * o["null_damping"], refresh=o["refresh"] if o["refresh_model"] else 0,
+                              refresh_floor=o["null_damping"], lipschitz=jacobian_lipschitz(kernel, length))
+
+
+def _compensate_defaults() -> dict:
+    """compensate()'s keyword defaults (one source for the compiled pass's settings)."""
+    import inspect
+
+    return {k: p.default for k, p in inspect.signature(compensate).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+def _compiled_pass(setup, q_nom, direction) -> dict:
+    """:func:`.fused_targets.solve_commands` over every row (the same iteration as :func:`_solve`'s fast path, pose
+    by pose in one compiled pass), in chunks."""
     from .fused_targets import solve_commands
 
-    bound = per_joint_bound(max_correction, model.n, torch.float64, "cpu", "max_correction",
-                            model.robot.joint_map.prismatic if hasattr(model, "robot") else None)
-    opts = dict(tol=tol, residual_tol=residual_tol, max_iter=max_iter, contraction=contraction, length=length,
-                max_correction=bound, path_above=PATH_ABOVE, sigma_floor=0.1 * null_damping, refresh=refresh,
-                refresh_floor=null_damping, lipschitz=jacobian_lipschitz(kernel, length))
+    fused, opts = setup
     B, size = q_nom.shape[0], 262144  # chunks: progress on long batches, bounded scratch
-    parts = [solve_commands(kernel.fused, q_nom[c0:c0 + size], None if direction is None else direction[c0:c0 + size],
+    parts = [solve_commands(fused, q_nom[c0:c0 + size], None if direction is None else direction[c0:c0 + size],
                             **opts) for c0 in _chunks(B, size, "compensation, compiled pass (chunks)")]
     return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
 
-def _with_rest(model, q_nom, direction, fast, args) -> CompensationResult:
-    """The compiled pass's rows, with the rows it handed on (near a singularity, beyond its bounds, a possible
-    branch change) solved by :func:`_solve`, in input order."""
+def compiled_rows(fast: dict, length: float):
+    """The compiled pass's output as result columns, rows it handed on still to fill: -> dict of done (B,) bool,
+    q, pose_error, step, iterations, residual (weighted, m), converged, damped, status (:mod:`.result` codes)."""
     from .fused_targets import DONE
 
     done = fast["status"] == DONE
-    B = q_nom.shape[0]
-    q, de, step, iterations = fast["q"].clone(), fast["pose_error"].clone(), fast["step"].clone(), fast["iterations"].clone()
-    length = args[6]
-    residual = torch.cat([de[:, :3], length * de[:, 3:]], 1).norm(dim=-1)
-    converged, damped = done.clone(), torch.zeros(B, dtype=torch.bool)
-    status = torch.where(done, CONVERGED, NOT_CONVERGED).to(torch.int8)
-    rest = (~done).nonzero()[:, 0]
+    de = fast["pose_error"].clone()
+    return {"done": done, "q": fast["q"].clone(), "pose_error": de, "step": fast["step"].clone(),
+            "iterations": fast["iterations"].clone(),
+            "residual": torch.cat([de[:, :3], length * de[:, 3:]], 1).norm(dim=-1), "converged": done.clone(),
+            "damped": torch.zeros_like(done), "status": torch.where(done, CONVERGED, NOT_CONVERGED).to(torch.int8)}
+
+
+def fill_rows(cols: dict, rows: torch.Tensor, res: CompensationResult) -> None:
+    """Write a :class:`CompensationResult` of the handed-on ``rows`` into :func:`compiled_rows`' columns."""
+    for k in ("q", "pose_error", "step", "iterations", "residual", "converged", "damped", "status"):
+        cols[k][rows] = getattr(res, k)
+
+
+def _with_rest(model, q_nom, direction, fast, length, args) -> CompensationResult:
+    """The compiled pass's rows, with the rows it handed on (near a singularity, beyond its bounds, a possible
+    branch change) solved by :func:`_solve`, in input order."""
+    c = compiled_rows(fast, length)
+    rest = (~c["done"]).nonzero()[:, 0]
     if rest.numel():
-        r = _solve(model, q_nom[rest], None if direction is None else direction[rest], *args, None)
-        q[rest], de[rest], step[rest], iterations[rest], residual[rest] = r.q, r.pose_error, r.step, r.iterations, r.residual
-        converged[rest], damped[rest], status[rest] = r.converged, r.damped, r.status
+        fill_rows(c, rest, _solve(model, q_nom[rest], None if direction is None else direction[rest], *args, None))
+    q = c["q"]
     within, outside = range_and_coverage(model, q, direction)
-    correction = (q - q_nom).abs().amax(-1)
-    return CompensationResult(q, converged, iterations, de, residual, step, damped, within, None, correction, outside,
-                              status)
+    return CompensationResult(q, c["converged"], c["iterations"], c["pose_error"], c["residual"], c["step"],
+                              c["damped"], within, None, (q - q_nom).abs().amax(-1), outside, c["status"])
 
 
 def _chunks(count: int, chunk_size: int, name: str):

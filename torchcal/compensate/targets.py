@@ -34,12 +34,9 @@ import torch
 
 from ..core.contract import require
 from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
-from .bounds import DEFAULT_BOUND, per_joint_bound
-from .branch import PATH_ABOVE, jacobian_lipschitz
 from .damped import damped_least_squares
-from .kernel import FlangeKernel
-from .newton import CompensationResult, compensate
-from .result import CONVERGED, JOINT_LIMIT, NOT_CONVERGED, range_and_coverage
+from .newton import CompensationResult, compensate, compiled_pass_setup, compiled_rows, fill_rows
+from .result import JOINT_LIMIT, range_and_coverage
 
 FAST_MIN_TARGETS = 64
 """Batches smaller than this skip the compiled pass (its first call in a process loads numba's cached code)."""
@@ -169,45 +166,24 @@ _FAST_OPTIONS = {"tol", "max_iter", "residual_tol", "contraction", "length", "ma
 def _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> dict | None:
     """:mod:`.fused_targets`' compiled pass over every row, or None where it does not apply (no numba, not CPU
     float64, not 6 joints, a live model (compliance, fine tables), 5-DOF, an option it does not implement)."""
-    from . import fused
-
-    if (model.n != 6 or not fused.available(seed.device, seed.dtype) or not set(options) <= _FAST_OPTIONS
-            or target.shape[0] < FAST_MIN_TARGETS):
+    if model.n != 6 or not set(options) <= _FAST_OPTIONS or target.shape[0] < FAST_MIN_TARGETS:
         return None
-    kernel = FlangeKernel(model)
-    if kernel.fused is None:
+    setup = compiled_pass_setup(model, seed, options)
+    if setup is None:
         return None
     from .fused_targets import solve_targets
 
-    length = float(options.get("length", 1.0))
-    prismatic = model.robot.joint_map.prismatic
-    max_corr = per_joint_bound(options.get("max_correction", DEFAULT_BOUND), model.n, torch.float64, "cpu",
-                               "max_correction", prismatic)
-    return solve_targets(kernel.fused, target, t_nominal, t_actual, seed, direction,
-                         ik_tol=ik_tol, ik_max_iter=ik_max_iter, tol=options.get("tol", 1e-10),
-                         residual_tol=options.get("residual_tol", 1e-12), max_iter=options.get("max_iter", 30),
-                         contraction=options.get("contraction", 0.5), length=length, max_correction=max_corr,
-                         path_above=PATH_ABOVE, sigma_floor=0.1 * options.get("null_damping", 1e-3),
-                         refresh=options.get("refresh", 2) if options.get("refresh_model", True) else 0,
-                         refresh_floor=options.get("null_damping", 1e-3),
-                         lipschitz=jacobian_lipschitz(kernel, length))
+    fused, opts = setup
+    return solve_targets(fused, target, t_nominal, t_actual, seed, direction, ik_tol=ik_tol, ik_max_iter=ik_max_iter,
+                         **opts)
 
 
 def _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> TargetResult:
     """The compiled pass's rows, with the rows it left solved again by :func:`_general`, in input order."""
-    from .fused_targets import DONE
-
-    B = target.shape[0]
-    done = fast["status"] == DONE
-    q, q_nominal, de = fast["q"].clone(), fast["q_nominal"].clone(), fast["pose_error"].clone()
-    step, iterations = fast["step"].clone(), fast["iterations"].clone()
-    command = fast["command"]
-    length = float(options.get("length", 1.0))
-    residual = torch.cat([de[:, :3], length * de[:, 3:]], 1).norm(dim=-1)
-    correction = (q - q_nominal).abs().amax(-1)
-    converged, damped = done.clone(), torch.zeros(B, dtype=torch.bool)
-    status = torch.where(done, CONVERGED, NOT_CONVERGED).to(torch.int8)
-    rest = (~done).nonzero()[:, 0]
+    c = compiled_rows(fast, float(options.get("length", 1.0)))
+    q_nominal, command = fast["q_nominal"].clone(), fast["command"]
+    correction = (c["q"] - q_nominal).abs().amax(-1)
+    rest = (~c["done"]).nonzero()[:, 0]
     if rest.numel():
         # where the compiled pass's IK converged, its command seeds the general one (it stops at once)
         from .fused_targets import IK_FAILED
@@ -215,19 +191,18 @@ def _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, i
         start = torch.where((fast["status"][rest] == IK_FAILED)[:, None], seed[rest], fast["q_nominal"][rest])
         g = _general(model, target[rest], start, None if direction is None else direction[rest], t_nominal[rest],
                      t_actual[rest], ik_tol, ik_max_iter, options)
-        c = g.compensation
-        q[rest], q_nominal[rest], command[rest] = g.q, g.q_nominal, g.command_target
-        de[rest], step[rest], iterations[rest], residual[rest] = c.pose_error, c.step, c.iterations, c.residual
-        correction[rest], converged[rest], damped[rest], status[rest] = c.correction, c.converged, c.damped, c.status
+        fill_rows(c, rest, g.compensation)
+        q_nominal[rest], command[rest], correction[rest] = g.q_nominal, g.command_target, g.compensation.correction
+    q = c["q"]
     within, outside = range_and_coverage(model, q, direction)
-    comp = CompensationResult(q, converged, iterations, de, residual, step, damped, within, None, correction, outside,
-                              status)
-    ok = converged & within
-    reason = [""] * B
+    comp = CompensationResult(q, c["converged"], c["iterations"], c["pose_error"], c["residual"], c["step"],
+                              c["damped"], within, None, correction, outside, c["status"])
+    ok = c["converged"] & within
+    reason = [""] * target.shape[0]
     for i in (~within).nonzero()[:, 0].tolist():
         reason[i] = JOINT_LIMIT
     if rest.numel():
-        ok[rest] = g.converged  # also needs both IKs
+        ok[rest] = g.converged  # also needs the controller's IK
         for i, r in zip(rest.tolist(), g.reason):
             reason[i] = r
     return TargetResult(q, q_nominal, command, ok, reason, comp)

@@ -271,60 +271,44 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
 
 
 # ------------------------------------------------------------------ the fleet's distribution
-def _shrunk_covariance(Z: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """Covariance (k, k) of the rows of Z (M, k), shrunk towards its diagonal (Schaefer and Strimmer 2005,
-    target D: the optimal weight on the diagonal from the sampling variance of the correlations) -> (cov, weight).
-    With fewer units than parameters the sample covariance is singular; the shrunk one is not."""
-    M = Z.shape[0]
-    Zc = Z - Z.mean(0)
-    sd = Zc.pow(2).sum(0).div(M - 1).sqrt().clamp(min=1e-300)
-    Y = Zc / sd
-    W = Y[:, :, None] * Y[:, None, :]  # (M, k, k)
-    Wm = W.mean(0)
-    R = Wm * M / (M - 1)
-    var_r = (W - Wm).pow(2).sum(0) * M / (M - 1) ** 3
-    off = ~torch.eye(Z.shape[1], dtype=torch.bool, device=Z.device)
-    lam = float((var_r[off].sum() / R[off].pow(2).sum().clamp(min=1e-300)).clamp(0.0, 1.0))
-    Rs = (1.0 - lam) * R
-    Rs.diagonal().fill_(1.0)
-    return Rs * sd[:, None] * sd[None, :], lam
-
-
-def fleet_prior(fit: FleetFit, exclude: Sequence[int] = (), inflate: float = 1.0, floor: float = 1e-3):
+def fleet_prior(fit: FleetFit, exclude: Sequence[int] = (), inflate: float = 1.0, floor: float = 1e-3,
+                method: str = "shrunk", rank: int | None = None, pin_gauge: bool = False):
     """A Gaussian prior for a new unit of the type: the fleet's mean and covariance of every parameter.
 
-    The covariance is the units' sample covariance shrunk towards its
-    diagonal (:func:`_shrunk_covariance`): it carries how the parameters vary
-    *together* from unit to unit (a strain-wave error of random phase moves
-    a joint's Chebyshev coefficients along a few directions only), which is
-    what lets a unit measured with a few poses borrow the fleet's knowledge.
-    exclude: units left out (the flagged outliers); inflate: factor on the
-    standard deviations; floor: each variance is at least (floor x the
-    default :class:`Prior`'s sigma)^2, so no entry is pinned by a fleet
-    that happens to agree on it. Entries the fleet's gauge pinned are left
-    to the unit's own gauge. -> (:class:`~torchcal.identify.blocks.GaussianPrior`
-    to pass as ``blocks=[...]`` to :func:`torchcal.fit`, mean (P,) in the
-    full layout: a start for the unit's model).
+    The covariance is the units' sample covariance regularized by ``method``
+    (:func:`torchcal.identify.fleet_prior.fleet_covariance`: 'shrunk', the
+    default, shrinks the correlations towards zero (Schaefer-Strimmer);
+    'ledoit-wolf'; 'factor', low rank (``rank`` components) + diagonal;
+    'sample' where there are more units than parameters; 'block', one
+    Ledoit-Wolf block per joint, the base and each tool, none across): it carries how the
+    parameters vary *together* from unit to unit (a strain-wave error of
+    random phase moves a joint's Chebyshev coefficients along a few
+    directions only), which is what lets a unit measured with a few poses
+    borrow the fleet's knowledge. exclude: units left out (the flagged
+    outliers); inflate: factor on the standard deviations; floor: each
+    variance is at least (floor x the default :class:`Prior`'s sigma)^2, so
+    no entry is pinned by a fleet that happens to agree on it. Entries the
+    fleet's gauge pinned are left to the unit's own gauge, or, with
+    ``pin_gauge``, held at the fleet's value (zero) by a tight prior (1e-6 x
+    the default sigma), so that a unit fitted with ``gauge=False`` stays in
+    the fleet's gauge, the coordinates the covariance was estimated in.
+    -> (:class:`~torchcal.identify.blocks.GaussianPrior` to pass as
+    ``blocks=[...]`` to :func:`torchcal.fit`, mean (P,) in the full layout: a
+    start for the unit's model).
     """
     from .blocks import GaussianPrior
+    from .fleet_prior import prior_from_parameters
 
     X, keep, names = fit.batch.x, fit.batch.keep, fit.batch.names
     skip = set(int(e) for e in exclude)
     use = torch.tensor([m not in skip for m in range(X.shape[0])], device=X.device)
     if int(use.sum()) < 3:
         raise ValueError(f"fleet_prior: {int(use.sum())} units left; at least 3 are needed for a spread")
-    free = keep[use].all(0)
-    Z = X[use][:, free]
-    cov, _ = _shrunk_covariance(Z)
-    cov = cov * float(inflate) ** 2
-    base = Prior().sigma(fit.layout).to(X)[free] * float(floor)
-    d = cov.diagonal()
-    grow = (base.pow(2) - d).clamp(min=0.0)
-    cov = cov + torch.diag(grow)
+    base = Prior().sigma(fit.layout).to(X)
+    parts = prior_from_parameters(X[use], keep[use], names, base, method, rank, inflate, floor, pin_gauge)
     mean = torch.zeros(X.shape[1], dtype=X.dtype, device=X.device)
-    mean[free] = Z.mean(0)
-    kept = [nm for nm, f in zip(names, free.tolist()) if f]
-    return GaussianPrior(kept, Z.mean(0).cpu(), cov.cpu()), mean
+    mean[parts.free] = parts.mean
+    return GaussianPrior(parts.names, parts.mean.cpu(), parts.cov.cpu()), mean
 
 
 @dataclass

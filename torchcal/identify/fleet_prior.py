@@ -1,0 +1,198 @@
+"""A fleet's parameter distribution as a Gaussian prior: covariance estimators for few units and many parameters.
+
+A fitted fleet gives M units' parameter vectors Z (M, k), k ~ 270 for an
+order-6 FANUC model, M ~ 100: the sample covariance is singular (rank M - 1)
+and must be regularized before it can serve as a prior (issue #18). Every
+estimator here works on the standardized parameters (each column divided by
+its sample standard deviation: the entries mix radians and metres) and scales
+back, so each keeps the sample variances on its diagonal:
+
+- 'shrunk': the correlations shrunk towards zero with Schaefer and Strimmer's
+  (2005) optimal weight (target D, the diagonal);
+- 'ledoit-wolf': Ledoit and Wolf's (2004) weight on the scaled identity of the
+  standardized data (equivalent target, its own weight formula);
+- 'factor': low rank + diagonal, the r leading principal components of the
+  correlation matrix plus each entry's remaining variance (PCA of the fleet);
+- 'sample': the plain sample covariance (needs M > k, e.g. an oracle fleet);
+- 'block': block-diagonal, one block per group of entries (by default the
+  entries of one joint, the base, each tool: a unit's gearboxes are separate
+  parts, so their errors vary independently from unit to unit), each block
+  Ledoit-Wolf shrunk: k^2 / 2 covariances to estimate become sum_g k_g^2 / 2.
+
+:func:`prior_from_parameters` turns an estimate into a
+:class:`~torchcal.identify.blocks.GaussianPrior` on named entries; the
+fleet's gauge pins (entries the fleet held at zero) can be carried as tight
+entries so that a unit fitted without its own gauge fixing stays in the
+fleet's gauge (where the prior's coordinates mean what they meant in the
+fleet).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+METHODS = ("shrunk", "ledoit-wolf", "factor", "sample", "block")
+
+
+def _standardize(Z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Z (M, k) -> (Y (M, k) centred and divided by the columns' sample std, sd (k,))."""
+    M = Z.shape[0]
+    Zc = Z - Z.mean(0)
+    sd = Zc.pow(2).sum(0).div(M - 1).sqrt().clamp(min=1e-300)
+    return Zc / sd, sd
+
+
+def shrunk_correlation(Y: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """Schaefer-Strimmer shrinkage of the correlation matrix of the standardized rows Y (M, k) towards the
+    identity -> (R (k, k), weight on the target in [0, 1])."""
+    M, k = Y.shape
+    W = Y[:, :, None] * Y[:, None, :]  # (M, k, k)
+    Wm = W.mean(0)
+    R = Wm * M / (M - 1)
+    var_r = (W - Wm).pow(2).sum(0) * M / (M - 1) ** 3
+    off = ~torch.eye(k, dtype=torch.bool, device=Y.device)
+    lam = float((var_r[off].sum() / R[off].pow(2).sum().clamp(min=1e-300)).clamp(0.0, 1.0))
+    Rs = (1.0 - lam) * R
+    Rs.diagonal().fill_(1.0)
+    return Rs, lam
+
+
+def ledoit_wolf_correlation(Y: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """Ledoit-Wolf (2004) shrinkage of S = Y^T Y / M (Y (M, k) standardized rows) towards mu I, mu = tr(S) / k,
+    rescaled to unit diagonal -> (R (k, k), weight on the target in [0, 1])."""
+    M, k = Y.shape
+    S = Y.T @ Y / M
+    mu = S.diagonal().mean()
+    eye = torch.eye(k, dtype=Y.dtype, device=Y.device)
+    d2 = (S - mu * eye).pow(2).sum()
+    # (1/M^2) sum_m |y_m y_m^T - S|_F^2 = (1/M^2) sum_m (|y_m|^4 - 2 y_m^T S y_m + |S|^2), without the (M, k, k) stack
+    n2 = Y.pow(2).sum(1)
+    b2 = (n2.pow(2) - 2.0 * ((Y @ S) * Y).sum(1)).sum() / M ** 2 + S.pow(2).sum() / M
+    lam = float((torch.minimum(b2, d2) / d2.clamp(min=1e-300)).clamp(0.0, 1.0))
+    C = lam * mu * eye + (1.0 - lam) * S
+    d = C.diagonal().sqrt()
+    return C / d[:, None] / d[None, :], lam
+
+
+def factor_correlation(Y: torch.Tensor, rank: int | None = None, floor: float = 1e-3) -> tuple[torch.Tensor, int]:
+    """Low rank + diagonal correlation of the standardized rows Y (M, k): the ``rank`` leading principal components
+    of the sample correlation plus a diagonal that restores the unit variances (at least ``floor``).
+    rank None: the components that carry 99 % of the variance (at most M - 1). -> (R (k, k), rank)."""
+    M, k = Y.shape
+    R = Y.T @ Y / (M - 1)
+    ev, U = torch.linalg.eigh(R)
+    ev, U = ev.flip(0).clamp(min=0.0), U.flip(1)
+    if rank is None:
+        frac = ev.cumsum(0) / ev.sum().clamp(min=1e-300)
+        rank = int((frac < 0.99).sum()) + 1
+    rank = max(0, min(int(rank), M - 1, k))
+    L = U[:, :rank] * ev[:rank].sqrt()
+    low = L @ L.T
+    resid = (1.0 - low.diagonal()).clamp(min=float(floor))
+    out = low + torch.diag(resid)
+    d = out.diagonal().sqrt()
+    return out / d[:, None] / d[None, :], rank
+
+
+def entry_groups(names: Sequence[str]) -> list[torch.Tensor]:
+    """Indices of the entries that share a module prefix (the name up to its first '.': 'joint3', 'base',
+    'tool1'), in order of first appearance -> list of (k_g,) long tensors."""
+    where: dict[str, list[int]] = {}
+    for i, nm in enumerate(names):
+        where.setdefault(nm.split(".", 1)[0], []).append(i)
+    return [torch.tensor(v, dtype=torch.long) for v in where.values()]
+
+
+def fleet_covariance(Z: torch.Tensor, method: str = "shrunk", rank: int | None = None,
+                     groups: Sequence[torch.Tensor] | None = None) -> tuple[torch.Tensor, dict]:
+    """Covariance (k, k) of the rows of Z (M, k) (the units' parameters) by ``method`` (:data:`METHODS`, module
+    docstring); rank: components kept by 'factor'; groups: the blocks of 'block' (index tensors that partition
+    range(k); None: one block). -> (cov, info: {'method', 'weight' or 'rank' or 'weights'})."""
+    if method not in METHODS:
+        raise ValueError(f"fleet_covariance: method must be one of {METHODS}, got {method!r}")
+    M, k = Z.shape
+    if M < 3:
+        raise ValueError(f"fleet_covariance: {M} units; at least 3 are needed for a spread")
+    Y, sd = _standardize(Z)
+    info: dict = {"method": method}
+    if method == "shrunk":
+        R, info["weight"] = shrunk_correlation(Y)
+    elif method == "ledoit-wolf":
+        R, info["weight"] = ledoit_wolf_correlation(Y)
+    elif method == "factor":
+        R, info["rank"] = factor_correlation(Y, rank)
+    elif method == "block":
+        groups = [torch.arange(k)] if groups is None else [torch.as_tensor(g_, dtype=torch.long) for g_ in groups]
+        cover = torch.cat(groups).sort().values if groups else torch.empty(0, dtype=torch.long)
+        if not torch.equal(cover, torch.arange(k)):
+            raise ValueError("fleet_covariance: the groups must partition the k entries")
+        R = torch.zeros(k, k, dtype=Z.dtype, device=Z.device)
+        info["weights"] = []
+        for g_ in groups:
+            g_ = g_.to(Z.device)
+            Rg, w = ledoit_wolf_correlation(Y[:, g_])
+            R[g_[:, None], g_[None, :]] = Rg
+            info["weights"].append(w)
+    else:
+        if M <= k:
+            raise ValueError(f"fleet_covariance: the sample covariance of {M} units in {k} parameters is singular; "
+                             f"use 'shrunk', 'ledoit-wolf' or 'factor'")
+        R = Y.T @ Y / (M - 1)
+    return R * sd[:, None] * sd[None, :], info
+
+
+@dataclass
+class FleetPriorParts:
+    """A fleet prior's pieces: ``names`` (k,) of the prior's entries, ``mean`` (k,), ``cov`` (k, k) SI,
+    ``free`` (P,) bool: the entries of the full layout the prior covers, ``info`` (the estimator's)."""
+
+    names: list
+    mean: torch.Tensor
+    cov: torch.Tensor
+    free: torch.Tensor
+    info: dict
+
+
+def prior_from_parameters(X: torch.Tensor, keep: torch.Tensor, names: Sequence[str], base_sigma: torch.Tensor,
+                          method: str = "shrunk", rank: int | None = None, inflate: float = 1.0, floor: float = 1e-3,
+                          pin_gauge: bool = False, pin: float = 1e-6) -> FleetPriorParts:
+    """Mean and covariance of the units' parameters X (M, P) (full layout, SI) as a prior.
+
+    keep: (M, P) bool, the entries each unit had free (the fleet's gauge pins are False); names: (P,) entry names;
+    base_sigma: (P,) the default prior's sigmas (every variance is at least (floor x base_sigma)^2, so no entry is
+    pinned by a fleet that happens to agree on it); method, rank: :func:`fleet_covariance`; inflate: factor on the
+    standard deviations. pin_gauge: also cover the entries some unit had pinned, at their fleet mean (zero) with
+    sigma ``pin`` x base_sigma, uncorrelated: a unit fitted with ``gauge=False`` is then held in the fleet's gauge.
+    -> :class:`FleetPriorParts` (entries in layout order).
+    """
+    P = X.shape[1]
+    free = keep.all(0)
+    Z = X[:, free]
+    fnames = [nm for nm, f in zip(names, free.tolist()) if f]
+    cov, info = fleet_covariance(Z, method, rank, entry_groups(fnames) if method == "block" else None)
+    cov = cov * float(inflate) ** 2
+    base = base_sigma.to(X)
+    grow = ((base[free] * float(floor)).pow(2) - cov.diagonal()).clamp(min=0.0)
+    cov = cov + torch.diag(grow)
+    mean = Z.mean(0)
+    cover = free.clone()
+    if pin_gauge and bool((~free).any()):
+        k, kp = int(free.sum()), int((~free).sum())
+        full = torch.zeros(k + kp, k + kp, dtype=X.dtype, device=X.device)
+        full[:k, :k] = cov
+        full[k:, k:] = torch.diag((base[~free] * float(pin)).pow(2))
+        order = torch.cat([free.nonzero()[:, 0], (~free).nonzero()[:, 0]])
+        inv = torch.empty_like(order)
+        inv[order] = torch.arange(P, device=order.device)
+        mean = torch.cat([mean, X[:, ~free].mean(0)])[inv]
+        cov = full[inv][:, inv]
+        cover = torch.ones(P, dtype=torch.bool, device=X.device)
+    kept = [nm for nm, f in zip(names, cover.tolist()) if f]
+    return FleetPriorParts(kept, mean, cov, cover, info)
+
+
+__all__ = ["FleetPriorParts", "METHODS", "entry_groups", "factor_correlation", "fleet_covariance", "ledoit_wolf_correlation",
+           "prior_from_parameters", "shrunk_correlation"]

@@ -158,3 +158,50 @@ def test_ray_engine_matches_local(tmp_path, robot):
     for a, b in zip(local.rows, remote.rows):
         assert a["unit"] == b["unit"] and a["status"] == b["status"] == "fitted"
         assert a["identification_mean_mm"] == b["identification_mean_mm"]
+
+
+def test_fit_with_the_prior_of_a_fleet_run(tmp_path, robot):
+    """`torchcal fit ... prior.fleet=FLEET_RUN`: a new unit measured with a few poses, fitted with the fleet run's
+    parameter distribution as its prior, is modeled far better than the same config without it; the prior comes
+    from the fitted units only (the broken one is left out) and the run records it; a model of another structure
+    is refused naming the key."""
+    from torchcal.app.config import load_config
+    from torchcal.app.fit import run_fit
+    from torchcal.app.fleet import run_fleet
+    from torchcal.app.fleet_prior import prior_from_fleet_run
+    from torchcal.core.exceptions import ConfigError
+    from torchcal.identify.layout import ParameterLayout
+    from torchcal.io.csv import write_measurements
+    from torchcal.io.rundir import load_model
+
+    cfg = _write_fleet(tmp_path, robot, count=7, broken=3)
+    fleet_run = run_fleet(cfg, out=tmp_path / "fleet-run").run_dir
+    # the prior: the six readable units' mean, unit03 (its file is broken) left out
+    got = prior_from_fleet_run(fleet_run)
+    assert got.left_out == ["unit03"] and len(got.units) == 6
+    X = torch.stack([ParameterLayout(load_model(fleet_run / "units" / u)).get() for u in got.units])
+    torch.testing.assert_close(got.mean, X.mean(0))
+    # a new unit of the type (its own truth, as the fleet's units), measured with 12 poses
+    truth = fleet_truths(robot, TOOLS, 8, 0).truths[7]
+    noise = torchcal.NoiseModel.from_robot(robot)
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 12, 5)
+    write_measurements(tmp_path / "new.csv", torchcal.simulate(truth, q, [0, 1, 2], noise, 77), robot)
+    base = cfg.read_text().replace("identification: ident", "identification: new.csv")
+    (tmp_path / "new.yaml").write_text(base)
+    qv = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 60, 9)
+    tool = torch.zeros(60, dtype=torch.long)
+
+    def error(run):
+        with torch.no_grad():
+            return float((run.model.points(qv, tool) - truth.points(qv, tool)).norm(dim=1).mean())
+
+    common = ["plots=false", "report=false", f"out={tmp_path / 'runs'}"]
+    alone = run_fit(load_config(tmp_path / "new.yaml", common))
+    helped = run_fit(load_config(tmp_path / "new.yaml", common + [f"prior.fleet={fleet_run}"]))
+    assert error(helped) < 0.5 * error(alone)
+    import json
+
+    rec = json.loads((helped.run_dir / "fit.json").read_text())["fleet_prior"]
+    assert rec["units"] == 6 and rec["left_out"] == ["unit03"]
+    with pytest.raises(ConfigError, match="prior.fleet"):
+        run_fit(load_config(tmp_path / "new.yaml", common + [f"prior.fleet={fleet_run}", "model.order=1"]))

@@ -126,6 +126,13 @@ class PriorConfig:
     """Prior sigma of every backlash coefficient, deg; null keeps the declared ones (c0 wide, c1.. 0.0017 deg)."""
     compliance_deg: Optional[float] = None
     """Prior sigma of the compliance coefficients, deg per unit configuration function; null: the default."""
+    fleet: Optional[str] = None
+    """A fleet's run directory (``torchcal fleet``): the parameter distribution of its fitted units (failed and
+    flagged ones left out) as the prior of this unit, for a unit measured with few poses (issue #18). The model
+    must have the fleet's structure (its orders and backlash orders: not 'auto')."""
+    fleet_method: str = "shrunk"
+    """How the fleet's covariance is regularized: 'shrunk' (Schaefer-Strimmer), 'ledoit-wolf', 'factor' (low rank
+    + diagonal), 'block' (per joint, base and tool) or 'sample' (more units than parameters only)."""
 
 
 @dataclass(frozen=True)
@@ -799,6 +806,19 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
             fail("prior.compliance_deg", f"{cfg.prior.compliance_deg}: a prior sigma must be positive (or null)")
         if cfg.prior.backlash_deg is not None and not cfg.prior.backlash_deg > 0:
             fail("prior.backlash_deg", f"{cfg.prior.backlash_deg}: a prior sigma must be positive (or null for the declared ones)")
+    if cfg.prior.fleet is not None:
+        from ..identify.fleet_prior import METHODS as _FLEET_METHODS
+
+        where = Path(str(cfg.prior.fleet))
+        if not (where / "summary.csv").is_file() or not (where / "units").is_dir():
+            fail("prior.fleet", f"{str(where)!r} is not a fleet's run directory (no summary.csv and units/: the folder "
+                                "`torchcal fleet` wrote)")
+        if cfg.prior.fleet_method not in _FLEET_METHODS:
+            fail("prior.fleet_method", f"{cfg.prior.fleet_method!r}: choose from {list(_FLEET_METHODS)}")
+        if isinstance(cfg.model.order, str):
+            fail("model.order", f"{cfg.model.order!r} with prior.fleet: the unit takes the fleet's orders (give them)")
+        if cfg.constraint.c is not None:
+            fail("prior.fleet", "not combined with constraint.c (the slope-constrained fit takes no prior blocks yet)")
 
     if cfg.solver.method not in SOLVERS:
         fail("solver.method", f"'{cfg.solver.method}' is not a solver; choose from {sorted(SOLVERS)}")

@@ -427,16 +427,45 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: Progress, 
 def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: Progress, files: dict) -> FitResult:
     """Stage 5, fit: identify ``model`` in place and write model.pt and fit.json at once (a later failure loses nothing)."""
     opts = inp.opts
+    fleet = None
+    if cfg.prior.fleet is not None:
+        fleet = fleet_prior_for(cfg, model, progress)
+        # the fleet's prior fixes what few poses cannot (its gauge pins included): no gauge fixing of our own,
+        # which would pin those entries at the start instead
+        opts = {**opts, "blocks": [*opts.get("blocks", []), fleet.block], "gauge": False}
     with progress.step(f"identifying the model (orders {orders}, {opts['method']})") as p:
         result = fit(model, inp.ident, inp.noise, inp.prior, callback=lambda it, cost: p.update(
             f"iteration {it}, cost {cost:.6g}"), **opts)
     files["model"] = save_model(run_dir, model, orders=orders, config_file=cfg.config_file)
     files["fit"] = write_json(run_dir / "fit.json", {**result.summary(), "pinned_names": list(result.pinned),
-                                                      "orders": orders, "history": list(result.history)})
+                                                      "orders": orders, "history": list(result.history),
+                                                      "fleet_prior": None if fleet is None else
+                                                      fleet.summary(cfg.prior.fleet)})
     progress.info(f"fit: {result.message} after {result.nit} iterations, cost {result.fun:.6g}")
     if not result.success:
         progress.warn("the solver did not converge; see fit.json (raise solver.max_iter?)")
     return result
+
+
+def fleet_prior_for(cfg, model, progress: Progress):
+    """``prior.fleet``: the fleet run's prior (:func:`torchcal.app.fleet.prior_from_fleet_run`) for ``model``, whose
+    parameters are set to the fleet's mean (the fit's start). Raises ConfigError when the model's structure is
+    not the fleet's."""
+    from ..identify.layout import ParameterLayout
+    from .fleet_prior import prior_from_fleet_run
+
+    fleet = prior_from_fleet_run(cfg.prior.fleet, cfg.prior.fleet_method, model.device)
+    layout = ParameterLayout(model)
+    if layout.names() != fleet.names:
+        mine, theirs = set(layout.names()), set(fleet.names)
+        diff = sorted(mine ^ theirs)[:3]
+        raise ConfigError(f"{cfg.config_file or 'config'}: key 'prior.fleet': the fleet's units have another model "
+                          f"structure ({len(theirs)} entries, this model {len(mine)}; e.g. {diff}): give model.order "
+                          f"and model.backlash as in the fleet's config.yaml")
+    layout.set(fleet.mean.to(model.dtype))
+    progress.info(f"prior: the fleet {cfg.prior.fleet} ({len(fleet.units)} units, {fleet.method} covariance; left out: "
+                  f"{', '.join(fleet.left_out) or 'none'})")
+    return fleet
 
 
 def structural_pins(make, orders, inp: FitInputs, poses: int | None = None, seed: int = 0) -> list[str]:

@@ -639,6 +639,8 @@ def plan_poses_cmd(
     min_height_mm: Annotated[float, typer.Option(help="Lowest flange z (mm) in the robot base frame.")] = 0.0,
     min_distance_mm: Annotated[float, typer.Option(help="Radius (mm) of the keep-out sphere around the base origin.")] = 200.0,
     order: Annotated[str, typer.Option(help="Visiting order: decorrelate (backlash-friendly), shuffle, or sequence (Sobol order; confounds backlash).")] = "decorrelate",
+    fleet: Annotated[Optional[Path], typer.Option(help="A fleet's run directory (torchcal fleet): design the poses for a new unit fitted with that fleet's prior (prior.fleet), the COUNT of --candidates that lower its predicted model error most.")] = None,
+    candidates: Annotated[int, typer.Option(help="With --fleet: reachable candidate poses to design from.")] = 2000,
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """Quasi-random, reachable measurement poses in an order that decorrelates approach direction from position.
@@ -654,7 +656,7 @@ def plan_poses_cmd(
         _check_output(output, force, _robot_file(robot))
         with _progress(_console(stderr=True)):
             plan, rob = plan_poses_file(robot, count, output, seed, tracker_mm, min_distance_mm, min_height_mm,
-                                        max_incidence_deg, order)
+                                        max_incidence_deg, order, fleet, candidates)
     st = plan.stats
     table = Table(title=f"approach direction vs position, {len(plan)} poses, order={order}")
     for col in ("joint", "corr", "R²", "one-sided bins", "corr (Sobol order)", "R² (Sobol order)"):
@@ -668,6 +670,12 @@ def plan_poses_cmd(
     rej = st["rejected"]
     out.print(f"drew {st['drawn']} candidates; rejected {rej['below_plane']} below the floor plane, "
               f"{rej['near_base']} near the base, {rej['not_visible']} not visible from the tracker", markup=False)
+    design = st.get("design")
+    if design is not None:
+        out.print(f"designed for the prior of {design['fleet']}: predicted RMS model error {design['predicted_rms_mm']:.4f} mm "
+                  f"({design['candidates']} candidates; the first {len(plan)} of a plain plan: "
+                  f"{design['plain_predicted_rms_mm']:.4f} mm; the prior alone: {design['prior_rms_mm']:.4f} mm)",
+                  markup=False)
     typer.echo(f"wrote {len(plan)} poses -> {output}")
 
 

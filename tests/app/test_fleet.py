@@ -205,3 +205,46 @@ def test_fit_with_the_prior_of_a_fleet_run(tmp_path, robot):
     assert rec["units"] == 6 and rec["left_out"] == ["unit03"]
     with pytest.raises(ConfigError, match="prior.fleet"):
         run_fit(load_config(tmp_path / "new.yaml", common + [f"prior.fleet={fleet_run}", "model.order=1"]))
+
+
+def test_plan_poses_designed_for_a_fleet_prior(tmp_path, robot):
+    """`torchcal plan-poses ... --fleet RUN`: the poses picked for the fleet's prior predict a smaller model error
+    than the plain plan's first ones, the prediction falls with every pick, the plan is written in visiting
+    order; and a unit fitted with the prior on the designed poses is modeled better than on the plain ones."""
+    from typer.testing import CliRunner
+
+    from torchcal.app.commands import plan_poses_file
+    from torchcal.app.config import load_config
+    from torchcal.app.fit import run_fit
+    from torchcal.app.fleet import run_fleet
+    from torchcal.cli import app
+    from torchcal.io.csv import write_measurements
+
+    cfg = _write_fleet(tmp_path, robot, count=7)
+    fleet_run = run_fleet(cfg, out=tmp_path / "fleet-run").run_dir
+    plan, _ = plan_poses_file("fanuc_lrmate200i", 12, tmp_path / "designed.csv", seed=3, fleet=fleet_run,
+                              candidates=300)
+    d = plan.stats["design"]
+    assert len(plan) == 12 and (tmp_path / "designed.csv").is_file()
+    assert d["predicted_rms_mm"] < 0.8 * d["plain_predicted_rms_mm"] < 0.8 * d["prior_rms_mm"]
+    r = CliRunner().invoke(app, ["plan-poses", "fanuc_lrmate200i", "12", str(tmp_path / "cli.csv"), "--seed", "3",
+                                 "--fleet", str(fleet_run), "--candidates", "300"])
+    assert r.exit_code == 0, r.output
+    assert "designed for the prior" in r.output
+    # measured on a new unit of the type, fitted with the fleet's prior: designed against plain poses
+    truth = fleet_truths(robot, TOOLS, 8, 0).truths[7]
+    noise = torchcal.NoiseModel.from_robot(robot)
+    plain = plan_poses_file("fanuc_lrmate200i", 12, tmp_path / "plain.csv", seed=3)[0]
+    qv = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 100, 9)
+    tool = torch.zeros(100, dtype=torch.long)
+    errors = {}
+    for name, p in (("designed", plan), ("plain", plain)):
+        write_measurements(tmp_path / f"{name}_meas.csv", torchcal.simulate(truth, p.q, [0, 1, 2], noise, 77,
+                                                                              directions=p.directions), robot)
+        (tmp_path / f"{name}.yaml").write_text(cfg.read_text().replace("identification: ident",
+                                                                        f"identification: {name}_meas.csv"))
+        run = run_fit(load_config(tmp_path / f"{name}.yaml", ["plots=false", "report=false", f"out={tmp_path / 'r'}",
+                                                               f"prior.fleet={fleet_run}"]))
+        with torch.no_grad():
+            errors[name] = float((run.model.points(qv, tool) - truth.points(qv, tool)).norm(dim=1).mean())
+    assert errors["designed"] < errors["plain"]

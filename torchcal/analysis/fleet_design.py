@@ -153,5 +153,48 @@ def greedy_design(B: torch.Tensor, prior_cov: torch.Tensor, count: int, W: torch
     return torch.tensor(picked, dtype=torch.long, device=dev), torch.stack(obj)
 
 
-__all__ = ["error_weight", "greedy_design", "known_group_gain", "pose_jacobians", "posterior_covariance", "posterior_mean",
+def design_poses(model, prior_mean: torch.Tensor, prior_cov: torch.Tensor, free: torch.Tensor, candidates: torch.Tensor,
+                 count: int, noise, validation: torch.Tensor, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which ``count`` of the candidate commands to measure on a unit fitted with a prior (a fleet's).
+
+    model: the unit's model (structure and tools; its parameters are left as they are); prior_mean (P,),
+    free (P,) bool: the prior's entries in the model's full layout; prior_cov (k, k) over the free ones;
+    candidates (N, n): reachable commands; noise: the instrument's :class:`NoiseModel`; validation (V, n):
+    commands where the model will be used (the predicted error is averaged there). Each candidate is measured
+    with every tool; its approach directions are not known before the visiting order is (drawn at random,
+    seeded, as the order decorrelates them from position). Linearized at the prior mean.
+    -> (picked (count,) long, predicted RMS model error in m before the first pick and after each (count + 1,)).
+    """
+    from ..core.measurements import Measurements
+    from ..identify.layout import ParameterLayout
+    from ..identify.problem import CalibrationProblem, Prior
+
+    layout = ParameterLayout(model)
+    saved = layout.get().detach().clone()
+    T = int(model.tools.count)
+    N = candidates.shape[0]
+    dt, dev = prior_cov.dtype, candidates.device
+    g = torch.Generator().manual_seed(int(seed))
+    dirs = torch.where(torch.rand(candidates.shape, generator=g, dtype=dt) > 0.5, 1.0, -1.0).to(dev)
+
+    def jacobians(q, s):
+        R = q.shape[0]
+        data = Measurements.from_tensors(q.repeat(T, 1), torch.arange(T, device=dev).repeat_interleave(R),
+                                         torch.zeros(T * R, 3, dtype=dt, device=dev), direction=s.repeat(T, 1))
+        prob = CalibrationProblem(model, data, noise, Prior())
+        _, A, C = prob.linearize(prior_mean.to(dt), prob.v_zero())
+        return A[..., free], C, prob.w_v
+
+    try:
+        A, C, w_v = jacobians(candidates, dirs)
+        B = pose_jacobians(A, C, w_v, torch.arange(T * N, device=dev).reshape(T, N).T)
+        A, _, _ = jacobians(validation, torch.ones_like(validation))
+        W = error_weight(A.reshape(-1, A.shape[-1]) * float(noise.sigma_m))  # whitened -> metres
+    finally:
+        layout.set(saved)
+    picked, obj = greedy_design(B, prior_cov.to(B), count, W, "A")
+    return picked, obj.clamp(min=0.0).sqrt()
+
+
+__all__ = ["design_poses", "error_weight", "greedy_design", "known_group_gain", "pose_jacobians", "posterior_covariance", "posterior_mean",
            "predicted_mse"]

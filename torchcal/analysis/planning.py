@@ -296,6 +296,17 @@ def plan_poses(
         raise PlanningError(f"plan_poses: only {q.shape[0]} of {drawn} candidate poses are reachable and visible, "
                          f"{count} wanted (rejected: {rejected}); relax min_height / min_tool_distance / "
                          f"max_incidence_deg or move the tracker")
+    return ordered_plan(q, flange, box, order, seed, start, bins, {"drawn": drawn, "rejected": rejected})
+
+
+def ordered_plan(q: torch.Tensor, flange: torch.Tensor, box: torch.Tensor, order: str = "decorrelate", seed: int = 0,
+                 start=None, bins: int = 8, stats: dict | None = None) -> PosePlan:
+    """Chosen commands q (N, n) (flange positions (N, 3), sampled box (n, 2)) put in visiting ``order``
+    (:func:`plan_poses`' orders), with their approach directions and direction statistics (``stats``: more
+    entries for the plan's stats, e.g. what was drawn and rejected). -> :class:`PosePlan`."""
+    if order not in ORDERS:
+        raise PlanningError(f"plan_poses: order must be one of {ORDERS}, got {order!r}")
+    count = q.shape[0]
     start_t = None if start is None else torch.as_tensor(start, dtype=torch.float64).reshape(-1)
     if order == "decorrelate":
         perm = decorrelating_order(q, box, seed, start_t, bins)
@@ -306,10 +317,10 @@ def plan_poses(
     seq = direction_stats(q, approach_directions(q, start_t), box, bins)
     q, flange = q[perm], flange[perm]
     s = approach_directions(q, start_t)
-    stats = direction_stats(q, s, box, bins)
-    stats.update({"drawn": drawn, "rejected": rejected, "order": order, "seed": int(seed),
-                  "sequence": {k: seq[k] for k in ("corr", "r2", "one_sided_bins", "max_abs_corr", "max_r2")}})
-    return PosePlan(q, s, box, flange, order, int(seed), start_t, stats)
+    out = direction_stats(q, s, box, bins)
+    out.update({**(stats or {}), "order": order, "seed": int(seed),
+                "sequence": {k: seq[k] for k in ("corr", "r2", "one_sided_bins", "max_abs_corr", "max_r2")}})
+    return PosePlan(q, s, box, flange, order, int(seed), start_t, out)
 
 
 def direction_stats(q: torch.Tensor, directions: torch.Tensor, limits: torch.Tensor, bins: int = 8) -> dict:

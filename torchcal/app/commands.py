@@ -39,24 +39,66 @@ def import_tmac_file(source, output, robot: str, convention: str, exclude=()) ->
 
 
 def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=None, min_distance_mm: float = 200.0,
-                    min_height_mm: float = 0.0, max_incidence_deg: float = 60.0, order: str = "decorrelate"):
+                    min_height_mm: float = 0.0, max_incidence_deg: float = 60.0, order: str = "decorrelate",
+                    fleet=None, candidates: int = 2000):
     """``torchcal plan-poses``: ``count`` measurement poses -> ``output`` (pose, q1..qN in deg / mm).
 
     tracker_mm: the tracker's position [x, y, z] in the robot base frame (mm) or None. The count is checked
-    before the robot loads (a huge count used to die in numpy's allocator). -> (plan, robot): the
+    before the robot loads (a huge count used to die in numpy's allocator). fleet: a ``torchcal fleet`` run
+    directory: the poses are designed for a unit that will be fitted with that fleet's prior (``prior.fleet``):
+    ``count`` of ``candidates`` reachable poses, picked to lower the predicted model error most
+    (:func:`torchcal.analysis.fleet_design.design_poses`); the plan's stats then carry 'design': the predicted
+    RMS model error (mm) of the designed poses and of the first ``count`` plain ones. -> (plan, robot): the
     :class:`torchcal.analysis.planning.PosePlan` (its ``stats``) and the loaded robot (joint names).
     """
-    from ..analysis.planning import MAX_POSES, PlanningError, plan_poses
+    from ..analysis.planning import MAX_POSES, PlanningError, ordered_plan, plan_poses
     from ..kinematics import load_robot
 
     if not 1 <= count <= MAX_POSES:
         raise PlanningError(f"COUNT {count}: plan between 1 and {MAX_POSES} poses")
+    if fleet is not None and not count < candidates <= MAX_POSES:
+        raise PlanningError(f"--candidates {candidates}: give more candidates than poses ({count}) to design from")
     rob = load_robot(robot)
     tracker = None if tracker_mm is None else [units.mm_to_m(float(v)) for v in tracker_mm]
-    plan = plan_poses(rob, count, seed=seed, tracker=tracker, min_tool_distance=units.mm_to_m(min_distance_mm),
-                      min_height=units.mm_to_m(min_height_mm), max_incidence_deg=max_incidence_deg, order=order)
+    kw = dict(seed=seed, tracker=tracker, min_tool_distance=units.mm_to_m(min_distance_mm),
+              min_height=units.mm_to_m(min_height_mm), max_incidence_deg=max_incidence_deg)
+    if fleet is None:
+        plan = plan_poses(rob, count, order=order, **kw)
+    else:
+        pool = plan_poses(rob, candidates, order="sequence", **kw)  # reachable, visible; a Sobol prefix
+        picked, rms = _design_for_fleet(fleet, rob, pool.q, count, seed)
+        plain = _design_for_fleet(fleet, rob, pool.q[:count], count, seed)[1]  # the plan without the design
+        plan = ordered_plan(pool.q[picked], pool.flange[picked], pool.limits, order, seed, None, 8,
+                            {"drawn": pool.stats["drawn"], "rejected": pool.stats["rejected"],
+                             "design": {"fleet": str(fleet), "candidates": candidates,
+                                        "predicted_rms_mm": units.m_to_mm(float(rms[-1])),
+                                        "plain_predicted_rms_mm": units.m_to_mm(float(plain[-1])),
+                                        "prior_rms_mm": units.m_to_mm(float(rms[0]))}})
     plan.to_csv(output, rob)
     return plan, rob
+
+
+def _design_for_fleet(fleet, rob, q, count: int, seed: int):
+    """(picked (count,), predicted RMS model error (m) before and after each pick) for a unit of the fleet run
+    ``fleet``, from candidate commands q (given exactly ``count`` candidates: the predicted error of those)."""
+    import torch
+
+    from ..analysis.fleet_design import design_poses
+    from ..core.exceptions import ConfigError
+    from ..identify.problem import NoiseModel
+    from ..io.rundir import load_model
+    from .fleet_prior import prior_from_fleet_run
+
+    fp = prior_from_fleet_run(fleet)
+    model = load_model(Path(fleet) / "units" / fp.units[0])
+    if model.n != rob.joint_map.n:
+        raise ConfigError(f"--fleet {fleet}: its units have {model.n} joints, the robot {rob.joint_map.n}")
+    free = fp.free
+    cov = fp.block.cov.to(q)[free][:, free]
+    lim = rob.joint_map.limits.to(q)
+    u = torch.quasirandom.SobolEngine(lim.shape[0], scramble=True, seed=int(seed) + 1).draw(200, dtype=q.dtype)
+    val = lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
+    return design_poses(model, fp.mean, cov, free, q, count, NoiseModel.from_robot(model.robot), val, seed)
 
 
 def table_output_names(fmt: str) -> list[str] | None:

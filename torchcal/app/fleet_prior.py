@@ -19,7 +19,8 @@ class FleetRunPrior:
     """A fleet run's parameter distribution as a prior (:func:`prior_from_fleet_run`): ``block`` (a
     :class:`~torchcal.identify.blocks.GaussianPrior` for :func:`torchcal.fit`'s ``blocks``), ``mean`` (P,) in the
     full parameter layout (the unit's start), ``names`` (P,) that layout's entries, the ``units`` used and the ones
-    ``left_out`` (failed or flagged), the covariance ``method``."""
+    ``left_out`` (failed or flagged), the covariance ``method``, ``free`` (P,) bool: the entries the fleet fitted
+    (the others its gauge pinned)."""
 
     block: object
     mean: torch.Tensor
@@ -27,6 +28,7 @@ class FleetRunPrior:
     units: list
     left_out: list
     method: str
+    free: torch.Tensor
 
     def summary(self, run_dir) -> dict:
         """JSON-ready: where the prior came from."""
@@ -72,7 +74,7 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None) -> FleetR
     mean = torch.zeros(X.shape[1], dtype=X.dtype, device=X.device)
     mean[parts.free] = parts.mean
     return FleetRunPrior(GaussianPrior(parts.names, parts.mean.cpu(), parts.cov.cpu()), mean, entry_names, names,
-                         left_out, method)
+                         left_out, method, keep[0].clone())
 
 
 __all__ = ["FleetRunPrior", "prior_from_fleet_run"]

@@ -49,6 +49,23 @@ def mark_warm() -> None:
     _RAN[0] = True
 
 
+def soa(x: torch.Tensor) -> np.ndarray:
+    """(B, k) rows -> (k, B) float64 numpy, contiguous: the compiled kernels' pose-last layout."""
+    return x.T.to(torch.float64).contiguous().numpy()
+
+
+def poses_soa(T: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """(B, 4, 4) poses -> rotations (3, 3, B), positions (3, B), float64 numpy, pose-last."""
+    return T[:, :3, :3].to(torch.float64).permute(1, 2, 0).contiguous().numpy(), soa(T[:, :3, 3])
+
+
+def kernel_threads() -> None:
+    """Before a compiled kernel runs: numba's pool follows torch's thread setting (torchcal.core.threads.limit_threads
+    sets both, so a caller's limit holds), and the process counts as warm (:func:`warm`)."""
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    mark_warm()
+
+
 # Module-level functions, not closures: numba keys a closure's cache entry on its pickled free
 # variables (other dispatchers, whose pickles differ from process to process), so closures were
 # recompiled in every process (10-26 s per CLI run); globals resolve at compile time and stay cached.
@@ -189,6 +206,15 @@ def mul_arr_right(m, K):
             m[6] * K[0, 2] + m[7] * K[1, 2] + m[8] * K[2, 2])
 
 @njit(**inline)
+def flange_scratch(n):
+    """:func:`flange_pose`'s scratch for n joints, allocated once per block of poses: th, ue (n,) the joint
+    variables and the error series' variables (command, Paper II (24), or joint variable); zs, os_, ws, ds
+    (n, 3): each joint's axis after E_i, the origin of the frame it moves in, and the velocities of E_i's
+    rotation and translation per unit joint motion (world frame)."""
+    return np.empty(n), np.empty(n), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+
+
+@njit(**inline)
 def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
                 th, ue, zs, os_, ws, ds, ob):
@@ -279,12 +305,7 @@ def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, 
     n, B = qT.shape
     nchunks = (B + _CHUNK - 1) // _CHUNK
     for c in numba.prange(nchunks):
-        th = np.empty(n)
-        ue = np.empty(n)  # the error series' variables: command (Paper II (24)) or joint variable
-        zs = np.empty((n, 3))  # joint axis after E_i, world
-        os_ = np.empty((n, 3))  # origin of the frame joint i moves in, world
-        ws = np.empty((n, 3))  # velocity of E_i's rotation per unit joint motion, world
-        ds = np.empty((n, 3))  # velocity of E_i's translation per unit joint motion, world
+        th, ue, zs, os_, ws, ds = flange_scratch(n)
         for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
             flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                         oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
@@ -323,12 +344,9 @@ class FusedFlange:
         J = torch.empty(6, self.n, B if jacobian else 0, dtype=torch.float64)
         q = qT.detach().to(torch.float64).contiguous().numpy()
         s = q if sT is None else sT.detach().to(torch.float64).contiguous().numpy()
-        # numba keeps its own thread pool: follow torch's setting so that a caller's limit holds
-        # (torchcal.core.threads.limit_threads sets both)
-        numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
         # dynamic scheduling, one block of _CHUNK poses at a time: with a static split a thread that shares its
         # core with another process holds up the whole call (a busy neighbour would cost 2x, not 1.33x)
-        mark_warm()
+        kernel_threads()
         with numba.parallel_chunksize(1):
             _kernels()(q, s, sT is not None, errors, *self.model, *self.chain, *(self.base if errors else self.no_base),
                        R.numpy(), p.numpy(), J.numpy(), jacobian)

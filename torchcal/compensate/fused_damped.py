@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .fused import HAVE_NUMBA, flange_pose, inline, mark_warm, njit
+from .fused import HAVE_NUMBA, flange_pose, flange_scratch, inline, kernel_threads, njit, poses_soa, soa
+from .fused_targets import pivot
 
 if HAVE_NUMBA:
     import numba
@@ -64,6 +65,22 @@ def residual_rows(FR, Fp, TR, Tp, b, FJ, length, r, Jr, de):
 
 
 @njit(**inline)
+def cost_of(r, q, ref, b, lam2):
+    """½ |r|² + ½ lam2 |q - ref[:, b]|² (the damped solve's cost), inf where not finite."""
+    c = 0.0
+    for k in range(6):
+        c += r[k] * r[k]
+    c *= 0.5
+    if lam2 != 0.0:
+        pr = 0.0
+        for j in range(q.shape[0]):
+            d = q[j] - ref[j, b]
+            pr += d * d
+        c += 0.5 * lam2 * pr
+    return c if np.isfinite(c) else np.inf
+
+
+@njit(**inline)
 def solve_lu(A, x, W):
     """x (n,) <- A (n, n)^-1 x by Gaussian elimination with partial pivoting (W: (n, n + 1) scratch).
     -> False where a pivot is zero (A singular: torch.linalg.solve_ex's info != 0)."""
@@ -73,17 +90,8 @@ def solve_lu(A, x, W):
             W[i, j] = A[i, j]
         W[i, n] = x[i]
     for k in range(n):
-        p = k
-        big = abs(W[k, k])
-        for i in range(k + 1, n):
-            if abs(W[i, k]) > big:
-                big = abs(W[i, k])
-                p = i
-        if big == 0.0:
+        if pivot(W, k, n, k, n + 1) == 0.0:  # (a non-finite column too: its step would be discarded anyway)
             return False
-        if p != k:
-            for j in range(k, n + 1):
-                W[k, j], W[p, j] = W[p, j], W[k, j]
         for i in range(k + 1, n):
             f = W[i, k] / W[k, k]
             if f != 0.0:
@@ -110,12 +118,7 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
     n, M = q0.shape
     nchunks = (M + _DCHUNK - 1) // _DCHUNK
     for c in numba.prange(nchunks):
-        th = np.empty(n)
-        ue = np.empty(n)
-        zs = np.empty((n, 3))
-        os_ = np.empty((n, 3))
-        ws = np.empty((n, 3))
-        ds = np.empty((n, 3))
+        th, ue, zs, os_, ws, ds = flange_scratch(n)
         FR = np.empty((3, 3, 1))
         Fp = np.empty((3, 1))
         FJ = np.empty((6, n, 1))
@@ -147,18 +150,7 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
                         th, ue, zs, os_, ws, ds, 0)
             tr = residual_rows(FR, Fp, TR, Tp, b, FJ, length, r, Jr, de)
             near = tr > 1.0
-            cost = 0.0
-            for k in range(6):
-                cost += r[k] * r[k]
-            cost *= 0.5
-            if lam2 != 0.0:
-                pr = 0.0
-                for j in range(n):
-                    d = q[j] - ref[j, b]
-                    pr += d * d
-                cost += 0.5 * lam2 * pr
-            if not np.isfinite(cost):
-                cost = np.inf
+            cost = cost_of(r, q, ref, b, lam2)
             amax = -np.inf
             for j in range(n):
                 a = 0.0
@@ -233,18 +225,7 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
                             oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, FR, Fp, FJ, True,
                             th, ue, zs, os_, ws, ds, 0)
                 tr_t = residual_rows(FR, Fp, TR, Tp, b, FJ, length, rt, Jr_t, de_t)
-                cost_t = 0.0
-                for k in range(6):
-                    cost_t += rt[k] * rt[k]
-                cost_t *= 0.5
-                if lam2 != 0.0:
-                    pr = 0.0
-                    for j in range(n):
-                        d = qt[j] - ref[j, b]
-                        pr += d * d
-                    cost_t += 0.5 * lam2 * pr
-                if not np.isfinite(cost_t):
-                    cost_t = np.inf
+                cost_t = cost_of(rt, qt, ref, b, lam2)
                 # Nielsen: the decrease the linear model predicts for the step taken
                 pred = 0.0
                 for i in range(n):
@@ -309,14 +290,9 @@ def solve_damped(fused, q0: torch.Tensor, target: torch.Tensor, direction: torch
     stationary (M,) bool, iterations (M,) long, step (M,), pose_error (M, 6); float64 CPU tensors."""
     M, n = q0.shape
     f64 = torch.float64
-
-    def soa(x):  # (M, k) -> (k, M) numpy, contiguous
-        return x.T.to(f64).contiguous().numpy()
-
     qT = soa(q0)
     s = qT if direction is None else soa(direction)
-    TR = target[:, :3, :3].to(f64).permute(1, 2, 0).contiguous().numpy()
-    Tp = soa(target[:, :3, 3])
+    TR, Tp = poses_soa(target)
     none = np.ones(n)
     step_b = none if max_step is None else max_step.to(f64).cpu().numpy()
     corr_b = none if max_correction is None else max_correction.to(f64).cpu().numpy()
@@ -325,8 +301,7 @@ def solve_damped(fused, q0: torch.Tensor, target: torch.Tensor, direction: torch
     it = np.zeros(M, dtype=np.int64)
     step = np.empty(M)
     conv, blk, sta = np.zeros(M, dtype=np.bool_), np.zeros(M, dtype=np.bool_), np.zeros(M, dtype=np.bool_)
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-    mark_warm()
+    kernel_threads()
     with numba.parallel_chunksize(1):  # dynamic: rows take very different iteration counts
         damped_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, TR, Tp, soa(ref),
                    step_b, max_step is not None, corr_b, max_correction is not None, bool(stop_at_bound),
@@ -337,4 +312,4 @@ def solve_damped(fused, q0: torch.Tensor, target: torch.Tensor, direction: torch
             "step": t(step), "pose_error": t(de).T}
 
 
-__all__ = ["damped_soa", "residual_rows", "solve_damped", "solve_lu"]
+__all__ = ["cost_of", "damped_soa", "residual_rows", "solve_damped", "solve_lu"]

@@ -37,7 +37,7 @@ import math
 import numpy as np
 import torch
 
-from .fused import HAVE_NUMBA, flange_pose, inline, mark_warm, njit
+from .fused import HAVE_NUMBA, flange_pose, flange_scratch, inline, kernel_threads, njit, poses_soa, soa
 
 if HAVE_NUMBA:
     import numba
@@ -206,12 +206,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
     n, B = seed.shape
     nchunks = (B + _TCHUNK - 1) // _TCHUNK
     for c in numba.prange(nchunks):
-        th = np.empty(n)
-        ue = np.empty(n)
-        zs = np.empty((n, 3))
-        os_ = np.empty((n, 3))
-        ws = np.empty((n, 3))
-        ds = np.empty((n, 3))
+        th, ue, zs, os_, ws, ds = flange_scratch(n)
         A = np.empty((6, 12))
         P = np.empty((6, 6))
         de = np.empty(6)
@@ -427,21 +422,15 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
 
     B, n = seed.shape
     f64 = torch.float64
-
-    def soa(x):  # (B, k) -> (k, B) numpy, contiguous
-        return x.T.to(f64).contiguous().numpy()
-
     qT = soa(seed)
     s = qT if direction is None else soa(direction)
-    TR = target[:, :3, :3].to(f64).permute(1, 2, 0).contiguous().numpy()
-    Tp = soa(target[:, :3, 3])
+    TR, Tp = poses_soa(target)
     corr = np.full(n, np.inf) if max_correction is None else max_correction.to(f64).cpu().numpy()
     q, qn = np.empty((n, B)), np.full((n, B), np.nan)
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     CR, Cp, G1p, G2p = np.empty((3, 3, B)), np.empty((3, B)), np.empty((3, B)), np.empty((3, B))
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-    mark_warm()
+    kernel_threads()
     with numba.parallel_chunksize(1):  # dynamic: a thread beside a busy neighbour does not hold up the call
         targets_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
                     TR, Tp, soa(t_nominal), soa(t_actual), G1p, G2p, False, True, float(ik_tol), int(ik_max_iter), IK_TRUST,
@@ -462,16 +451,15 @@ def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *
     arguments as :func:`solve_targets`."""
     B, n = q_nom.shape
     f64 = torch.float64
-    qT = q_nom.T.to(f64).contiguous().numpy()
-    s = qT if direction is None else direction.T.to(f64).contiguous().numpy()
+    qT = soa(q_nom)
+    s = qT if direction is None else soa(direction)
     corr = np.full(n, np.inf) if max_correction is None else max_correction.to(f64).cpu().numpy()
     q, qn = np.empty((n, B)), np.empty((n, B))
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     TR, G2p = np.empty((3, 3, B)), np.empty((3, B))
     none = np.empty((3, 0))
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
-    mark_warm()
+    kernel_threads()
     with numba.parallel_chunksize(1):
         targets_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
                     TR, none, none, none, none, G2p, True, False, 0.0, 0, 0.0,

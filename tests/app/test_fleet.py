@@ -203,6 +203,10 @@ def test_fit_with_the_prior_of_a_fleet_run(tmp_path, robot):
 
     rec = json.loads((helped.run_dir / "fit.json").read_text())["fleet_prior"]
     assert rec["units"] == 6 and rec["left_out"] == ["unit03"]
+    from torchcal.report import render_report
+
+    page = render_report(helped.run_dir)  # the calibration report names the fleet the prior came from
+    assert "Prior from a fleet" in page and "left out: unit03" in page
     with pytest.raises(ConfigError, match="prior.fleet"):
         run_fit(load_config(tmp_path / "new.yaml", common + [f"prior.fleet={fleet_run}", "model.order=1"]))
 

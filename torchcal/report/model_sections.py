@@ -140,12 +140,23 @@ def solver(run: RunFiles) -> str:
              ("Time (s)", None if f.get("time_s") is None else f"{f['time_s']:.2f}"),
              ("Parameters / pinned by the gauge", f"{f.get('parameters')} / {f.get('pinned')}" if f else None),
              ("Joint errors eliminated per row", f.get("joint_errors")),
-             ("Order selection", get(run.metrics, "order_selection") or "fixed orders (config)")]
+             ("Order selection", get(run.metrics, "order_selection") or "fixed orders (config)"),
+             ("Prior from a fleet", _fleet_prior(f.get("fleet_prior")))]
     out = kv([(k, v) for k, v in pairs if v is not None])
     if isinstance(run.orders, dict):
         out += (f"<details><summary>Order selection record (orders.json)</summary><pre>"
                 f"{esc(_short_json(run.orders))}</pre></details>")
     return out
+
+
+def _fleet_prior(rec) -> str | None:
+    """fit.json's ``fleet_prior`` (``prior.fleet``) as one line: a unit fitted with few poses owes part of its
+    model to the fleet, and the report says which fleet."""
+    if not isinstance(rec, dict):
+        return None
+    left = rec.get("left_out") or []
+    return (f"{rec.get('fleet')}: {rec.get('units')} units ({rec.get('method')} covariance, {rec.get('entries')} "
+            f"entries); left out: {', '.join(map(str, left)) if left else 'none'}")
 
 
 def _g(value):

@@ -235,6 +235,10 @@ def test_plan_poses_designed_for_a_fleet_prior(tmp_path, robot):
                                  "--fleet", str(fleet_run), "--candidates", "300"])
     assert r.exit_code == 0, r.output
     assert "designed for the prior" in r.output
+    # a fleet of another type: refused, naming both (six joints each, the same layout: nothing else would tell)
+    r = CliRunner().invoke(app, ["plan-poses", "abb_irb120", "12", str(tmp_path / "abb.csv"), "--fleet", str(fleet_run),
+                                 "--candidates", "300"])
+    assert r.exit_code != 0 and "fanuc_lrmate200i" in r.output and "abb_irb120" in r.output
     # measured on a new unit of the type, fitted with the fleet's prior: designed against plain poses
     truth = fleet_truths(robot, TOOLS, 8, 0).truths[7]
     noise = torchcal.NoiseModel.from_robot(robot)

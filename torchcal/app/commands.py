@@ -84,15 +84,12 @@ def _design_for_fleet(fleet, rob, q, count: int, seed: int):
     import torch
 
     from ..analysis.fleet_design import design_poses
-    from ..core.exceptions import ConfigError
     from ..identify.problem import NoiseModel
     from ..io.rundir import load_model
     from .fleet_prior import prior_from_fleet_run
 
-    fp = prior_from_fleet_run(fleet)
+    fp = prior_from_fleet_run(fleet, robot=rob)
     model = load_model(Path(fleet) / "units" / fp.units[0])
-    if model.n != rob.joint_map.n:
-        raise ConfigError(f"--fleet {fleet}: its units have {model.n} joints, the robot {rob.joint_map.n}")
     free = fp.free
     cov = fp.block.cov.to(q)[free][:, free]
     lim = rob.joint_map.limits.to(q)

@@ -454,7 +454,7 @@ def fleet_prior_for(cfg, model, progress: Progress):
     from ..identify.layout import ParameterLayout
     from .fleet_prior import prior_from_fleet_run
 
-    fleet = prior_from_fleet_run(cfg.prior.fleet, cfg.prior.fleet_method, model.device)
+    fleet = prior_from_fleet_run(cfg.prior.fleet, cfg.prior.fleet_method, model.device, model.robot)
     layout = ParameterLayout(model)
     if layout.names() != fleet.names:
         mine, theirs = set(layout.names()), set(fleet.names)

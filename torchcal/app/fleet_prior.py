@@ -36,14 +36,15 @@ class FleetRunPrior:
                 "method": self.method, "entries": len(self.block.names)}
 
 
-def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None) -> FleetRunPrior:
+def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=None) -> FleetRunPrior:
     """The fitted units of a ``torchcal fleet`` run directory as a Gaussian prior for one more unit of the type.
 
     Units whose fit failed or that the fleet flagged (a damaged gearbox, a bad measurement) are left out; at
     least 3 must remain. Entries that are zero in every unit are the ones the fleet's gauge fixing pinned: they
     are held at zero by a tight prior (``pin_gauge``), so a unit fitted without its own gauge fixing stays in
     the coordinates the fleet's covariance was estimated in. method: as
-    :func:`torchcal.identify.fleet_prior.fleet_covariance`. -> :class:`FleetRunPrior`.
+    :func:`torchcal.identify.fleet_prior.fleet_covariance`; robot: the unit's robot, refused (ConfigError) when
+    the fleet's units are another type (name or joint limits). -> :class:`FleetRunPrior`.
     """
     import pandas as pd
 
@@ -63,6 +64,13 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None) -> FleetR
         raise ConfigError(f"prior.fleet: {run_dir} has {len(names)} fitted, unflagged units; at least 3 are needed "
                           f"for a spread")
     models = [load_model(run_dir / "units" / nm, device) for nm in names]
+    if robot is not None:
+        theirs = models[0].robot
+        mine_lim, their_lim = robot.joint_map.limits.cpu(), theirs.joint_map.limits.cpu()
+        if theirs.name != robot.name or mine_lim.shape != their_lim.shape or not bool(
+                torch.allclose(mine_lim.to(their_lim), their_lim)):
+            raise ConfigError(f"prior.fleet: the units of {run_dir} are a {theirs.name}, this unit a {robot.name} "
+                              f"(a fleet's prior serves units of its own type)")
     layouts = [ParameterLayout(m) for m in models]
     entry_names = layouts[0].names()
     for nm, lay in zip(names[1:], layouts[1:]):

@@ -1,6 +1,8 @@
-"""Device probe: where the GPU fleet's time goes (structured vs dense path, then a torch.profiler table).
+"""Device probe: where the GPU fleet's time goes (structured vs dense path, then a torch.profiler table), or,
+with --sync-sites, where it waits for the device: every host sync (torch.cuda.set_sync_debug_mode("warn"))
+counted by its innermost torchcal source lines.
 
-    python bench/gpu_fleet_profile.py [--units 100]
+    python bench/gpu_fleet_profile.py [--units 100] [--sync-sites]
 """
 
 from __future__ import annotations
@@ -8,7 +10,10 @@ from __future__ import annotations
 import torchcal  # noqa: F401  first: OMP_WAIT_POLICY=PASSIVE before torch loads
 
 import argparse
+import collections
 import time
+import traceback
+import warnings
 
 import torch
 
@@ -24,6 +29,7 @@ TOOLS = U.mm_to_m(torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22],
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--units", type=int, default=100)
+    ap.add_argument("--sync-sites", action="store_true")
     args = ap.parse_args()
     gpu = torch.device("cuda")
     robot = torchcal.load_robot("fanuc_lrmate200i")
@@ -37,6 +43,8 @@ def main():
     def make():
         return torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True).to(gpu)
 
+    if args.sync_sites:
+        return sync_sites(make, units, noise)
     best = {}
     for structured in (True, False):
         times = []
@@ -61,6 +69,25 @@ def main():
     n_launch = sum(e.count for e in ka if e.key in ("cudaLaunchKernel", "cudaLaunchKernelExC"))
     n_sync = sum(e.count for e in ka if "Synchronize" in e.key or e.key in ("aten::item", "aten::nonzero"))
     print(f"kernel launches {n_launch}, host syncs (item/nonzero/synchronize) {n_sync}")
+
+
+def sync_sites(make, units, noise) -> None:
+    """Count the host syncs of one fleet solve by their two innermost torchcal frames."""
+    fit_fleet(make, units[:3], noise)  # warm-up
+    sites = collections.Counter()
+
+    def hook(message, category, filename, lineno, file=None, line=None):
+        frames = [f for f in traceback.extract_stack()[:-1] if "torchcal" in f.filename and "bench" not in f.filename]
+        sites[" <- ".join(f"{f.filename.split('torchcal/')[-1]}:{f.lineno}" for f in frames[-2:][::-1]) or "?"] += 1
+
+    warnings.showwarning = hook
+    warnings.simplefilter("always")
+    torch.cuda.set_sync_debug_mode("warn")
+    fit_fleet(make, units, noise)
+    torch.cuda.set_sync_debug_mode("default")
+    print(f"host syncs in one fleet solve of {len(units)} units: {sum(sites.values())}")
+    for k, v in sites.most_common(30):
+        print(f"{v:6d}  {k}")
 
 
 if __name__ == "__main__":

@@ -66,8 +66,9 @@ def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=No
         plan = plan_poses(rob, count, order=order, **kw)
     else:
         pool = plan_poses(rob, candidates, order="sequence", **kw)  # reachable, visible; a Sobol prefix
-        picked, rms = _design_for_fleet(fleet, rob, pool.q, count, seed)
-        plain = _design_for_fleet(fleet, rob, pool.q[:count], count, seed)[1]  # the plan without the design
+        design = _fleet_design(fleet, rob, seed)
+        picked, rms = design(pool.q, count)
+        plain = design(pool.q[:count], count)[1]  # the plan without the design
         plan = ordered_plan(pool.q[picked], pool.flange[picked], pool.limits, order, seed, None, 8,
                             {"drawn": pool.stats["drawn"], "rejected": pool.stats["rejected"],
                              "design": {"fleet": str(fleet), "candidates": candidates,
@@ -78,24 +79,24 @@ def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=No
     return plan, rob
 
 
-def _design_for_fleet(fleet, rob, q, count: int, seed: int):
-    """(picked (count,), predicted RMS model error (m) before and after each pick) for a unit of the fleet run
-    ``fleet``, from candidate commands q (given exactly ``count`` candidates: the predicted error of those)."""
+def _fleet_design(fleet, rob, seed: int):
+    """The fleet run ``fleet``'s prior, read once, as a design function: (q (N, n) candidate commands, count) ->
+    (picked (count,), predicted RMS model error (m) before and after each pick); given exactly ``count``
+    candidates, the predicted error of those."""
     import torch
 
     from ..analysis.fleet_design import design_poses
     from ..identify.problem import NoiseModel
-    from ..io.rundir import load_model
     from .fleet_prior import prior_from_fleet_run
 
     fp = prior_from_fleet_run(fleet, robot=rob)
-    model = load_model(Path(fleet) / "units" / fp.units[0])
-    free = fp.free
-    cov = fp.block.cov.to(q)[free][:, free]
-    lim = rob.joint_map.limits.to(q)
-    u = torch.quasirandom.SobolEngine(lim.shape[0], scramble=True, seed=int(seed) + 1).draw(200, dtype=q.dtype)
+    model, free = fp.unit_model, fp.free
+    cov = fp.block.cov.to(fp.mean)[free][:, free]
+    lim = rob.joint_map.limits.to(fp.mean)
+    u = torch.quasirandom.SobolEngine(lim.shape[0], scramble=True, seed=int(seed) + 1).draw(200, dtype=fp.mean.dtype)
     val = lim[:, 0] + u * (lim[:, 1] - lim[:, 0])
-    return design_poses(model, fp.mean, cov, free, q, count, NoiseModel.from_robot(model.robot), val, seed)
+    noise = NoiseModel.from_robot(model.robot)
+    return lambda q, count: design_poses(model, fp.mean, cov, free, q.to(fp.mean), count, noise, val, seed)
 
 
 def table_output_names(fmt: str) -> list[str] | None:

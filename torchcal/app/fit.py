@@ -448,7 +448,7 @@ def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: 
 
 
 def fleet_prior_for(cfg, model, progress: Progress):
-    """``prior.fleet``: the fleet run's prior (:func:`torchcal.app.fleet.prior_from_fleet_run`) for ``model``, whose
+    """``prior.fleet``: the fleet run's prior (:func:`torchcal.app.fleet_prior.prior_from_fleet_run`) for ``model``, whose
     parameters are set to the fleet's mean (the fit's start). Raises ConfigError when the model's structure is
     not the fleet's."""
     from ..identify.layout import ParameterLayout

@@ -20,7 +20,8 @@ class FleetRunPrior:
     :class:`~torchcal.identify.blocks.GaussianPrior` for :func:`torchcal.fit`'s ``blocks``), ``mean`` (P,) in the
     full parameter layout (the unit's start), ``names`` (P,) that layout's entries, the ``units`` used and the ones
     ``left_out`` (failed or flagged), the covariance ``method``, ``free`` (P,) bool: the entries the fleet fitted
-    (the others its gauge pinned)."""
+    (the others its gauge pinned), ``unit_model``: the first used unit's fitted model (the type's structure and
+    tools)."""
 
     block: object
     mean: torch.Tensor
@@ -29,6 +30,7 @@ class FleetRunPrior:
     left_out: list
     method: str
     free: torch.Tensor
+    unit_model: object
 
     def summary(self, run_dir) -> dict:
         """JSON-ready: where the prior came from."""
@@ -82,7 +84,7 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=Non
     mean = torch.zeros(X.shape[1], dtype=X.dtype, device=X.device)
     mean[parts.free] = parts.mean
     return FleetRunPrior(GaussianPrior(parts.names, parts.mean.cpu(), parts.cov.cpu()), mean, entry_names, names,
-                         left_out, method, keep[0].clone())
+                         left_out, method, keep[0].clone(), models[0])
 
 
 __all__ = ["FleetRunPrior", "prior_from_fleet_run"]

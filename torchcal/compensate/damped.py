@@ -159,6 +159,9 @@ def damped_least_squares(
     M, n = q0.shape
     dtype, device = q0.dtype, q0.device
     ev = _Eval(kernel if kernel is not None else FlangeKernel(model))
+    if M and ev.k.fused is not None and axis is None:
+        return _compiled(ev.k.fused, q0, target, direction, q_ref, tol, max_iter, damping, length, residual_tol,
+                         stall_rtol, window, window_rtol, lam, max_step, max_correction, stop_at_bound)
     q_out = q0.clone()
     conv_out = torch.zeros(M, dtype=torch.bool, device=device)
     it_out = torch.zeros(M, dtype=torch.long, device=device)
@@ -169,9 +172,6 @@ def damped_least_squares(
     if M == 0:
         return DampedResult(q_out, conv_out, it_out, de_out, torch.zeros(0, dtype=dtype, device=device), step_out, blk_out,
                             sta_out)
-    if ev.k.fused is not None and axis is None:
-        return _compiled(ev.k.fused, q0, target, direction, q_ref, tol, max_iter, damping, length, residual_tol,
-                         stall_rtol, window, window_rtol, lam, max_step, max_correction, stop_at_bound)
     eye = torch.eye(n, dtype=dtype, device=device)
     lam2 = float(lam) ** 2
     ref = q0.clone() if q_ref is None else q_ref.to(dtype)
@@ -298,17 +298,15 @@ def _compiled(fused, q0, target, direction, q_ref, tol, max_iter, damping, lengt
               window_rtol, lam, max_step, max_correction, stop_at_bound) -> DampedResult:
     """:func:`damped_least_squares` on the CPU in float64 (6-DOF): :mod:`.fused_damped`'s compiled pass, the same
     iteration row by row (the torch form above pays ~2 ms of dispatch an iteration, whatever the row count)."""
+    from .bounds import per_joint_bound
     from .fused_damped import solve_damped
 
     n = q0.shape[1]
-
-    def per_joint(b):
-        return None if b is None else torch.as_tensor(b, dtype=torch.float64).expand(n).contiguous()
-
     ref = q0 if q_ref is None else q_ref
     o = solve_damped(fused, q0, target, direction, ref, tol=tol, max_iter=max_iter, damping=damping, length=length,
                      residual_tol=residual_tol, stall_rtol=stall_rtol, window=window, window_rtol=window_rtol, lam=lam,
-                     max_step=per_joint(max_step), max_correction=per_joint(max_correction),
+                     max_step=per_joint_bound(max_step, n, torch.float64, "cpu", "max_step"),
+                     max_correction=per_joint_bound(max_correction, n, torch.float64, "cpu", "max_correction"),
                      stop_at_bound=stop_at_bound)
     res = weighted(o["pose_error"], length).norm(dim=-1)
     return DampedResult(o["q"], o["converged"], o["iterations"], o["pose_error"], res, o["step"], o["blocked"],

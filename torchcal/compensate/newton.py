@@ -58,15 +58,16 @@ from .bounds import (  # noqa: F401 (re-exported)
 from .branch import PATH_ABOVE, branch_changed, det_sign_soa, jacobian_lipschitz, surely_same_branch
 from .damped import damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
-from .result import (AT_BOUND, BRANCH, CONVERGED, NOT_CONVERGED, OUT_OF_REACH,  # noqa: F401 (re-export)
-                     CompensationResult, range_and_coverage)
+from .result import (AT_BOUND, BRANCH, CONVERGED, NOT_CONVERGED, OUT_OF_REACH, SINGULAR,  # noqa: F401 (re-export)
+                     SINGULAR_FLOOR, CompensationResult, range_and_coverage)
 
 
 # ---------------------------------------------------------------------------- core
 def nominal_jacobian_inverse(J: torch.Tensor, sigma_floor: float = 0.0, length: float = 1.0):
     """Inverse (n == 6) or pseudo-inverse of nominal body Jacobians.
 
-    J: (m, n, B) -> P: (n, m, B) with P J = I (m = 6; 5 for a free tool axis), and ok: (B,) bool
+    J: (m, n, B) -> P: (n, m, B), J's inverse (m = n) or Moore-Penrose pseudo-inverse (m = 6; 5 for a free
+    tool axis), and ok: (B,) bool
     (finite, non-singular).
     sigma_floor: rows whose smallest singular value (orientation rows times
     ``length``, m / rad) is below this are not ok either; the bound used is
@@ -78,12 +79,15 @@ def nominal_jacobian_inverse(J: torch.Tensor, sigma_floor: float = 0.0, length: 
     always exact), it does not move its fixed point.
     """
     Jb = J.permute(2, 0, 1)  # (B, 6, n)
-    if Jb.shape[-1] == Jb.shape[-2]:
+    m, n = Jb.shape[-2:]
+    if n == m:
         P, info = torch.linalg.inv_ex(Jb)
-        ok = info == 0
-    else:
-        P = torch.linalg.pinv(Jb)
-        ok = torch.ones(Jb.shape[0], dtype=torch.bool, device=J.device)
+    else:  # the pseudo-inverse of a full-rank J by its normal matrix (an SVD per pose costs ~10x more: a 7-axis
+        # arm's compensation spent half its time in pinv); a rank-deficient row fails inv_ex or the floor below
+        Jt = Jb.transpose(-1, -2)
+        G, info = torch.linalg.inv_ex(Jb @ Jt if n > m else Jt @ Jb)
+        P = Jt @ G if n > m else G @ Jt
+    ok = info == 0
     ok = ok & torch.isfinite(P).all(-1).all(-1)
     if sigma_floor > 0.0:
         fro2 = (P[..., :3] ** 2).sum((-1, -2)) + (P[..., 3:] ** 2).sum((-1, -2)) / length**2
@@ -671,6 +675,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
             again = branch_changed(kernel, q_nom, q_out, ok & damped & clear & ~sure, sign_from=sign0)
             ok &= ~again
             status[again] = BRANCH
+    _mark_singular_ends(kernel, q_out, direction, status, length)
 
     lim = model.command_limits.to(dtype)
     within = ((q_out >= lim[:, 0]) & (q_out <= lim[:, 1])).all(-1)
@@ -683,6 +688,20 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
         # the approach pattern of the command actually sent (the bins may differ from q_nom's)
         outside = coverage.outside(q_out, direction).to(device=device, dtype=torch.bool)
     return CompensationResult(q_out, ok, iters, de_out, residual, step, damped, within, sig, correction, outside, status)
+
+
+def _mark_singular_ends(kernel, q, direction, status, length: float) -> None:
+    """Rows that ran out of iterations (NOT_CONVERGED) where the modeled Jacobian at their best command has lost
+    rank -> SINGULAR, in place: they ended on a singular surface of the model, which the flag then names.
+    q: (B, n); direction: (B, n) or None; status: (B,) int8."""
+    k = (status == NOT_CONVERGED).nonzero()[:, 0]
+    if k.numel() == 0:
+        return
+    s = None if direction is None else direction[k].T.contiguous()
+    _, _, J = kernel.flange_jacobian(q[k].T.contiguous(), s)
+    J = J.permute(2, 0, 1).clone()
+    J[:, 3:] *= length
+    status[k[torch.linalg.svdvals(J)[:, -1] < SINGULAR_FLOOR]] = SINGULAR
 
 
 def _damped_status(res) -> torch.Tensor:

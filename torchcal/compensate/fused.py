@@ -34,7 +34,7 @@ except ImportError:  # pragma: no cover - exercised only where numba cannot be i
     numba = None
     HAVE_NUMBA = False
 
-_CHUNK = 512  # poses per task: scratch is allocated once per chunk, not per pose
+_CHUNK = 512  # poses per task (the unit of the dynamic schedule)
 _RAN = [False]  # a compiled kernel has run in this process (numba and its thread pool are loaded)
 
 
@@ -59,29 +59,58 @@ def poses_soa(T: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     return T[:, :3, :3].to(torch.float64).permute(1, 2, 0).contiguous().numpy(), soa(T[:, :3, 3])
 
 
-def kernel_threads() -> None:
+def kernel_threads() -> int:
     """Before a compiled kernel runs: numba's pool follows torch's thread setting (torchcal.core.threads.limit_threads
-    sets both, so a caller's limit holds), and the process counts as warm (:func:`warm`)."""
+    sets both, so a caller's limit holds), and the process counts as warm (:func:`warm`). -> the thread count (the
+    rows of the kernel's work arrays: :func:`flange_work`)."""
     numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
     mark_warm()
+    return numba.get_num_threads()
 
 
 # Module-level functions, not closures: numba keys a closure's cache entry on its pickled free
 # variables (other dispatchers, whose pickles differ from process to process), so closures were
 # recompiled in every process (10-26 s per CLI run); globals resolve at compile time and stay cached.
 if HAVE_NUMBA:
+    from numba.core import cgutils
+    from numba.extending import intrinsic
+
     njit = numba.njit
+
+    def _without_meminfo(context, builder, ty, value):
+        if isinstance(ty, numba.types.Array):
+            a = context.make_array(ty)(context, builder, value=value)
+            a.meminfo = cgutils.get_null_value(a.meminfo.type)
+            return a._getvalue()
+        if isinstance(ty, numba.types.BaseTuple):
+            for i, t in enumerate(ty):
+                value = builder.insert_value(value, _without_meminfo(context, builder, t,
+                                                                     builder.extract_value(value, i)), i)
+        return value
+
+    @intrinsic
+    def borrowed(typingctx, a):
+        """The array a (or each array of a tuple) without its reference count (a null meminfo): numba increfs and
+        decrefs every array argument of a call it does not inline, an atomic op each (flange_pose: ~50 a call, on
+        cache lines the threads share; ~12 % of the targets pass). Only for arrays that outlive the view: a
+        kernel's arguments, work arrays it allocated before its parallel loop."""
+        return a(a), lambda context, builder, sig, args: _without_meminfo(context, builder, sig.args[0], args[0])
 else:  # the decorators become no-ops; available() keeps the torch kernel in use
     def njit(*args, **kwargs):
         return lambda f: f
 
+    def borrowed(a):
+        return a
 
-# plain njit: LLVM inlines these anyway (numba's IR-level inline="always" let a callee's
-# locals clobber same-named locals of the caller here)
+
 inline = dict(cache=True)
+# the helpers of the inner loops: LLVM did not inline them (their calls and tuple returns were ~20 % of the targets
+# pass); numba's IR-level inlining prefixes the callee's locals with its name. It costs compile time (the targets
+# pass: ~48 -> ~76 s, once: cached).
+inlined = dict(inline="always", cache=True)
 
 
-@njit(**inline)
+@njit(**inlined)
 def series(table, i, lam, Km, has_bl, slope):
     """Chebyshev sums of joint i's six error terms and backlash amplitude at lam, (23);
     slope=True: their derivatives d/dlam instead (differentiated recurrence, as chebyshev_with_derivative)."""
@@ -108,7 +137,7 @@ def series(table, i, lam, Km, has_bl, slope):
             bl += table[i, 6, k] * c
     return w0, w1, w2, d0, d1, d2, bl
 
-@njit(**inline)
+@njit(**inlined)
 def exp_so3(w0, w1, w2):
     """exp(S(w)) as a row-major 9-tuple, same series as FlangeKernel.error_rotations."""
     t2 = w0 * w0 + w1 * w1 + w2 * w2
@@ -124,7 +153,7 @@ def exp_so3(w0, w1, w2):
             b * w1 * w0 + a * w2, b * w1 * w1 + dg, b * w1 * w2 - a * w0,
             b * w2 * w0 - a * w1, b * w2 * w1 + a * w0, b * w2 * w2 + dg)
 
-@njit(**inline)
+@njit(**inlined)
 def right_jacobian_apply(w0, w1, w2, v0, v1, v2):
     """J_r(w) v, same series as FlangeKernel.right_jacobian_apply."""
     t2 = w0 * w0 + w1 * w1 + w2 * w2
@@ -138,14 +167,9 @@ def right_jacobian_apply(w0, w1, w2, v0, v1, v2):
     return v0 - a * c0 + b * cc0, v1 - a * c1 + b * cc1, v2 - a * c2 + b * cc2
 
 @njit(**inline)
-def mul_arr(o, e):
-    """o (3, 3) array @ e (9-tuple) -> 9-tuple."""
-    return (o[0, 0] * e[0] + o[0, 1] * e[3] + o[0, 2] * e[6], o[0, 0] * e[1] + o[0, 1] * e[4] + o[0, 2] * e[7],
-            o[0, 0] * e[2] + o[0, 1] * e[5] + o[0, 2] * e[8],
-            o[1, 0] * e[0] + o[1, 1] * e[3] + o[1, 2] * e[6], o[1, 0] * e[1] + o[1, 1] * e[4] + o[1, 2] * e[7],
-            o[1, 0] * e[2] + o[1, 1] * e[5] + o[1, 2] * e[8],
-            o[2, 0] * e[0] + o[2, 1] * e[3] + o[2, 2] * e[6], o[2, 0] * e[1] + o[2, 1] * e[4] + o[2, 2] * e[7],
-            o[2, 0] * e[2] + o[2, 1] * e[5] + o[2, 2] * e[8])
+def row9(a, i):
+    """a[i] of a (m, 3, 3) array as a row-major 9-tuple, read by index (a view a[i] costs a refcount pair)."""
+    return (a[i, 0, 0], a[i, 0, 1], a[i, 0, 2], a[i, 1, 0], a[i, 1, 1], a[i, 1, 2], a[i, 2, 0], a[i, 2, 1], a[i, 2, 2])
 
 @njit(**inline)
 def mul(r, a):
@@ -160,36 +184,29 @@ def vec(r, v):
     x, y, z = v
     return r[0] * x + r[1] * y + r[2] * z, r[3] * x + r[4] * y + r[5] * z, r[6] * x + r[7] * y + r[8] * z
 
-@njit(**inline)
-def vec_arr(o, v):
-    """(3, 3) array @ 3-tuple."""
-    x, y, z = v
-    return (o[0, 0] * x + o[0, 1] * y + o[0, 2] * z, o[1, 0] * x + o[1, 1] * y + o[1, 2] * z,
-            o[2, 0] * x + o[2, 1] * y + o[2, 2] * z)
-
-@njit(**inline)
-def add_column(outJ, b, n, R, v, w, c_row):
-    """Add one joint's world velocity (v, w) per unit motion, taken into the flange frame (R^T), to the
-    body-Jacobian columns of the controller commands through the chain rule row c_row (n,)."""
+@njit(**inlined)
+def add_column(outJ, b, n, R, v, w, C, i):
+    """Add joint i's world velocity (v, w) per unit motion, taken into the flange frame (R^T), to the
+    body-Jacobian columns of the controller commands through the chain rule row C[i] (C (n, n))."""
     vx, vy, vz = v
     wx, wy, wz = w
     col = (R[0] * vx + R[3] * vy + R[6] * vz, R[1] * vx + R[4] * vy + R[7] * vz, R[2] * vx + R[5] * vy + R[8] * vz,
            R[0] * wx + R[3] * wy + R[6] * wz, R[1] * wx + R[4] * wy + R[7] * wz, R[2] * wx + R[5] * wy + R[8] * wz)
     for j in range(n):
-        cij = c_row[j]
+        cij = C[i, j]
         if cij != 0.0:
             for r in range(6):
                 outJ[r, j, b] += col[r] * cij
 
-@njit(**inline)
-def rotate(m, th, z_axes, K, K2):
-    """M @ joint rotation(θ): column rotation for +z axes, Rodrigues otherwise."""
-    cs, sn = np.cos(th), np.sin(th)
+@njit(**inlined)
+def rotate(m, cs, sn, z_axes, Ka, Ka2, i):
+    """M @ joint rotation(θ) (cs, sn: cos θ, sin θ): column rotation for +z axes, Rodrigues otherwise (K = Ka[i],
+    K2 = Ka2[i])."""
     if z_axes:
         return (m[0] * cs + m[1] * sn, m[1] * cs - m[0] * sn, m[2],
                 m[3] * cs + m[4] * sn, m[4] * cs - m[3] * sn, m[5],
                 m[6] * cs + m[7] * sn, m[7] * cs - m[6] * sn, m[8])
-    mk, mk2 = mul_arr_right(m, K), mul_arr_right(m, K2)
+    mk, mk2 = mul(m, row9(Ka, i)), mul(m, row9(Ka2, i))
     vc = 1.0 - cs
     return (m[0] + sn * mk[0] + vc * mk2[0], m[1] + sn * mk[1] + vc * mk2[1], m[2] + sn * mk[2] + vc * mk2[2],
             m[3] + sn * mk[3] + vc * mk2[3], m[4] + sn * mk[4] + vc * mk2[4], m[5] + sn * mk[5] + vc * mk2[5],
@@ -206,24 +223,47 @@ def mul_arr_right(m, K):
             m[6] * K[0, 2] + m[7] * K[1, 2] + m[8] * K[2, 2])
 
 @njit(**inline)
-def flange_scratch(n):
-    """:func:`flange_pose`'s scratch for n joints, allocated once per block of poses: th, ue (n,) the joint
-    variables and the error series' variables (command, Paper II (24), or joint variable); zs, os_, ws, ds
-    (n, 3): each joint's axis after E_i, the origin of the frame it moves in, and the velocities of E_i's
-    rotation and translation per unit joint motion (world frame)."""
-    return np.empty(n), np.empty(n), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+def gap(k):
+    """Rows of k float64 that fill a cache line: the padding after each thread's rows in a work array (work[t, :m]),
+    so that two threads write no common line."""
+    return (k + 7) // k
+
+
+@njit(**inline)
+def flange_work(threads, n):
+    """:func:`flange_pose`'s scratch for n joints, rows for each thread of a parallel kernel (allocated before its
+    loop, so that they outlive it: :func:`flange_scratch`; per thread, not per block of poses: a block's first
+    touch of fresh rows cost the 2-thread pass ~4 %): th, ue, cs, sn (n,) the joint variables, the
+    error series' variables (command, Paper II (24), or joint variable) and cos, sin of the joint variables (kept
+    for a second chain at the same command: ``same_q``); zs, os_, ws, ds (n, 3): each joint's axis after E_i,
+    the origin of the frame it moves in, and the velocities of E_i's rotation and translation per unit joint
+    motion (world frame)."""
+    m1, m3 = n + gap(1), n + gap(3)
+    T = threads
+    return (np.empty((T, m1)), np.empty((T, m1)), np.empty((T, m1)), np.empty((T, m1)),
+            np.empty((T, m3, 3)), np.empty((T, m3, 3)), np.empty((T, m3, 3)), np.empty((T, m3, 3)))
+
+
+@njit(**inline)
+def flange_scratch(work, n):
+    """The calling thread's scratch in :func:`flange_work` (numba.get_thread_id() < get_num_threads()), borrowed."""
+    t = numba.get_thread_id()
+    th, ue, cs, sn, zs, os_, ws, ds = work
+    return borrowed((th[t, :n], ue[t, :n], cs[t, :n], sn[t, :n], zs[t, :n], os_[t, :n], ws[t, :n], ds[t, :n]))
 
 
 @njit(**inline)
 def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
-                th, ue, zs, os_, ws, ds, ob):
+                th, ue, cs, sn, zs, os_, ws, ds, ob, same_q):
     """Pose b of :func:`flange_soa`: F_a(q, s) or F_n(q) of column b of qT (n, B) into column ob of
-    outR (3, 3, .), outp (3, .) [and outJ (6, n, .)]; th, ue (n,) and zs, os_, ws, ds (n, 3): scratch.
+    outR (3, 3, .), outp (3, .) [and outJ (6, n, .)]; th, ue, cs, sn (n,) and zs, os_, ws, ds (n, 3): scratch
+    (:func:`flange_work`); same_q: th, ue, cs, sn already hold this command's (the last call's command was this one:
+    the other chain, nominal or modeled, at the same command).
     One definition shared by the flange kernel and the targets solver (:mod:`.fused_targets`)."""
     n = qT.shape[0]
     Km = table.shape[2]
-    for i in range(n):
+    for i in range(0 if same_q else n):
         x = offset[i]
         for j in range(n):
             x += coupling[i, j] * qT[j, b]
@@ -232,6 +272,7 @@ def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, 
         for j in range(n):
             y += ecoupling[i, j] * qT[j, b]
         ue[i] = y
+        cs[i], sn[i] = np.cos(x), np.sin(x)
     # running pose of the chain in scalars (registers)
     R = (baseR[0, 0], baseR[0, 1], baseR[0, 2], baseR[1, 0], baseR[1, 1], baseR[1, 2],
          baseR[2, 0], baseR[2, 1], baseR[2, 2])
@@ -242,12 +283,12 @@ def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, 
             w0, w1, w2, d0, d1, d2, bl = series(table, i, lam, Km, has_bl, False)
             if has_bl and use_s:
                 w2 += bl * sT[i, b]
-            M = mul_arr(oR[i], exp_so3(w0, w1, w2))
-            tx, ty, tz = vec_arr(oR[i], (d0, d1, d2))
+            o = row9(oR, i)
+            M = mul(o, exp_so3(w0, w1, w2))
+            tx, ty, tz = vec(o, (d0, d1, d2))
             tx, ty, tz = tx + op[i, 0], ty + op[i, 1], tz + op[i, 2]
         else:
-            o = oR[i]
-            M = (o[0, 0], o[0, 1], o[0, 2], o[1, 0], o[1, 1], o[1, 2], o[2, 0], o[2, 1], o[2, 2])
+            M = row9(oR, i)
             tx, ty, tz = op[i, 0], op[i, 1], op[i, 2]
         gx, gy, gz = vec(R, (tx, ty, tz))
         p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
@@ -262,14 +303,14 @@ def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, 
                     v2 += vb * sT[i, b]
                 jw = right_jacobian_apply(w0, w1, w2, v0 * scale, v1 * scale, v2 * scale)
                 ws[i, 0], ws[i, 1], ws[i, 2] = vec(R, vec(M, jw))
-                ds[i, 0], ds[i, 1], ds[i, 2] = vec(R, vec_arr(oR[i], (u0 * scale, u1 * scale, u2 * scale)))
+                ds[i, 0], ds[i, 1], ds[i, 2] = vec(R, vec(o, (u0 * scale, u1 * scale, u2 * scale)))
         if prismatic[i]:
             # travel along the axis after E_i; no rotation
             ux, uy, uz = vec(R, vec(M, (axes[i, 0] * th[i], axes[i, 1] * th[i], axes[i, 2] * th[i])))
             p0, p1, p2 = p0 + ux, p1 + uy, p2 + uz
             A = M
         else:
-            A = rotate(M, th[i], z_axes, Ka[i], Ka2[i])
+            A = rotate(M, cs[i], sn[i], z_axes, Ka, Ka2, i)
         R = mul(R, A)
     gx, gy, gz = vec(R, (tipp[0], tipp[1], tipp[2]))
     p0, p1, p2 = p0 + gx, p1 + gy, p2 + gz
@@ -289,27 +330,32 @@ def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, 
             if prismatic[i]:
                 vx, vy, vz = vx + zs[i, 0], vy + zs[i, 1], vz + zs[i, 2]
             # through the joint variable: θ = A q + offset
-            add_column(outJ, ob, n, R, (vx, vy, vz), (wx, wy, wz), coupling[i])
+            add_column(outJ, ob, n, R, (vx, vy, vz), (wx, wy, wz), coupling, i)
             if errors:
                 # the error series' slopes move with u = A_u q + b_u, not with the joint variable
                 sx, sy, sz = ws[i, 0], ws[i, 1], ws[i, 2]
                 tx, ty, tz = sy * rz - sz * ry + ds[i, 0], sz * rx - sx * rz + ds[i, 1], sx * ry - sy * rx + ds[i, 2]
-                add_column(outJ, ob, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling[i])
+                add_column(outJ, ob, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling, i)
 
 
 @njit(parallel=True, cache=True)
 def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-               oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian):
+               oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian, threads):
     """F_a(q, s) (errors=True) or F_n(q) into outR (3, 3, B), outp (3, B); with jacobian=True also
-    the body Jacobian w.r.t. the controller commands into outJ (6, n, B), as FlangeKernel."""
+    the body Jacobian w.r.t. the controller commands into outJ (6, n, B), as FlangeKernel; threads: numba's
+    (:func:`kernel_threads`)."""
     n, B = qT.shape
     nchunks = (B + _CHUNK - 1) // _CHUNK
+    work = flange_work(threads, n)
+    (qT, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp, baseR,
+     basep, outR, outp, outJ) = borrowed((qT, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes,
+                                          Ka, Ka2, prismatic, tipR, tipp, baseR, basep, outR, outp, outJ))
     for c in numba.prange(nchunks):
-        th, ue, zs, os_, ws, ds = flange_scratch(n)
+        th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(work, n)
         for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
             flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                         oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
-                        th, ue, zs, os_, ws, ds, b)
+                        th, ue, cs, sn, zs, os_, ws, ds, b, False)
 
 
 def _kernels():
@@ -346,10 +392,10 @@ class FusedFlange:
         s = q if sT is None else sT.detach().to(torch.float64).contiguous().numpy()
         # dynamic scheduling, one block of _CHUNK poses at a time: with a static split a thread that shares its
         # core with another process holds up the whole call (a busy neighbour would cost 2x, not 1.33x)
-        kernel_threads()
+        threads = kernel_threads()
         with numba.parallel_chunksize(1):
             _kernels()(q, s, sT is not None, errors, *self.model, *self.chain, *(self.base if errors else self.no_base),
-                       R.numpy(), p.numpy(), J.numpy(), jacobian)
+                       R.numpy(), p.numpy(), J.numpy(), jacobian, threads)
         return (R, p, J) if jacobian else (R, p)
 
     def flange(self, qT: torch.Tensor, sT: torch.Tensor | None):

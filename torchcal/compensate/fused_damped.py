@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .fused import HAVE_NUMBA, flange_pose, flange_scratch, inline, kernel_threads, njit, poses_soa, soa
+from .fused import HAVE_NUMBA, flange_pose, flange_scratch, flange_work, inline, kernel_threads, njit, poses_soa, soa
 from .fused_targets import pivot
 
 if HAVE_NUMBA:
@@ -110,15 +110,17 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
                oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep,
                TR, Tp, ref, max_step, has_step, max_corr, has_corr, stop_at_bound,
                tol, max_iter, damping, length, residual_tol, stall_rtol, window, window_rtol, lam2,
-               q_out, conv_out, it_out, step_out, de_out, blk_out, sta_out):
+               q_out, conv_out, it_out, step_out, de_out, blk_out, sta_out, threads):
     """Per row b: Levenberg-Marquardt from q0[:, b] (n, M) to the target (TR[..., b], Tp[:, b]) on the modeled
     flange (directions sT (n, M) where use_s), exactly the iteration of :func:`.damped.damped_least_squares`
     (its arguments; max_step / max_corr (n,) per joint, used where has_step / has_corr). Writes q_out (n, M),
-    conv_out, blk_out, sta_out (M,) bool, it_out (M,) int64, step_out (M,), de_out (6, M)."""
+    conv_out, blk_out, sta_out (M,) bool, it_out (M,) int64, step_out (M,), de_out (6, M); threads: numba's
+    (.fused.kernel_threads)."""
     n, M = q0.shape
     nchunks = (M + _DCHUNK - 1) // _DCHUNK
+    work = flange_work(threads, n)
     for c in numba.prange(nchunks):
-        th, ue, zs, os_, ws, ds = flange_scratch(n)
+        th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(work, n)
         FR = np.empty((3, 3, 1))
         Fp = np.empty((3, 1))
         FJ = np.empty((6, n, 1))
@@ -147,7 +149,7 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
                 ss[j, 0] = sT[j, b]
             flange_pose(qs, 0, ss, use_s, True, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                         oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, FR, Fp, FJ, True,
-                        th, ue, zs, os_, ws, ds, 0)
+                        th, ue, cs, sn, zs, os_, ws, ds, 0, False)
             tr = residual_rows(FR, Fp, TR, Tp, b, FJ, length, r, Jr, de)
             near = tr > 1.0
             cost = cost_of(r, q, ref, b, lam2)
@@ -223,7 +225,7 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
                         dq[j] = qt[j] - q[j]
                 flange_pose(qs, 0, ss, use_s, True, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                             oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, FR, Fp, FJ, True,
-                            th, ue, zs, os_, ws, ds, 0)
+                            th, ue, cs, sn, zs, os_, ws, ds, 0, False)
                 tr_t = residual_rows(FR, Fp, TR, Tp, b, FJ, length, rt, Jr_t, de_t)
                 cost_t = cost_of(rt, qt, ref, b, lam2)
                 # Nielsen: the decrease the linear model predicts for the step taken
@@ -301,12 +303,12 @@ def solve_damped(fused, q0: torch.Tensor, target: torch.Tensor, direction: torch
     it = np.zeros(M, dtype=np.int64)
     step = np.empty(M)
     conv, blk, sta = np.zeros(M, dtype=np.bool_), np.zeros(M, dtype=np.bool_), np.zeros(M, dtype=np.bool_)
-    kernel_threads()
+    threads = kernel_threads()
     with numba.parallel_chunksize(1):  # dynamic: rows take very different iteration counts
         damped_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, TR, Tp, soa(ref),
                    step_b, max_step is not None, corr_b, max_correction is not None, bool(stop_at_bound),
                    float(tol), int(max_iter), float(damping), float(length), float(residual_tol), float(stall_rtol),
-                   int(window), float(window_rtol), float(lam) ** 2, q, conv, it, step, de, blk, sta)
+                   int(window), float(window_rtol), float(lam) ** 2, q, conv, it, step, de, blk, sta, threads)
     t = torch.from_numpy
     return {"q": t(q).T, "converged": t(conv), "blocked": t(blk), "stationary": t(sta), "iterations": t(it),
             "step": t(step), "pose_error": t(de).T}

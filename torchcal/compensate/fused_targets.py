@@ -37,7 +37,8 @@ import math
 import numpy as np
 import torch
 
-from .fused import HAVE_NUMBA, flange_pose, flange_scratch, inline, kernel_threads, njit, poses_soa, soa
+from .fused import (HAVE_NUMBA, borrowed, flange_pose, flange_scratch, flange_work, gap, inline, inlined, kernel_threads,
+                    njit, poses_soa, soa)
 
 if HAVE_NUMBA:
     import numba
@@ -133,7 +134,7 @@ def det_sign_column(J, b, A):
     return sign
 
 
-@njit(**inline)
+@njit(**inlined)
 def pose_error(R, p, b, GR, Gp, gb, de):
     """de (6,) of (47)-(48) between the flange (R, p column b) and the goal (GR, Gp column gb), in the flange
     frame, as :func:`.kernel.pose_error_soa`: R^T (p_goal - p) and ½ R^T Σ_j a_j × g_j (columns of R, GR).
@@ -155,7 +156,7 @@ def pose_error(R, p, b, GR, Gp, gb, de):
     return tr
 
 
-@njit(**inline)
+@njit(**inlined)
 def weighted_fro2(P, length):
     """||P D^-1||_F² for an inverse Jacobian P (n, 6), D the orientation rows times ``length``: 1 / sqrt of it
     bounds sigma_min of D J from below (as newton.nominal_jacobian_inverse's floor)."""
@@ -166,14 +167,14 @@ def weighted_fro2(P, length):
     return fro2
 
 
-@njit(**inline)
+@njit(**inlined)
 def weighted_norm(de, length):
     """sqrt(|de_p|² + length² |de_r|²) (m)."""
     return np.sqrt(de[0] * de[0] + de[1] * de[1] + de[2] * de[2]
                    + length * length * (de[3] * de[3] + de[4] * de[4] + de[5] * de[5]))
 
 
-@njit(**inline)
+@njit(**inlined)
 def apply(P, de, dq):
     """dq = P de; -> |dq| and max |dq_j|."""
     n = dq.shape[0]
@@ -189,12 +190,34 @@ def apply(P, de, dq):
     return np.sqrt(ss), big
 
 
+@njit(**inline)
+def pose_work(threads, n):
+    """:func:`targets_soa`'s arrays that its calls take, for each thread (as .fused.flange_work): A (6, 12),
+    P (6, 6) (inverse Jacobian), de (6,), dq (n,); FR (3, 3, 1), Fp (3, 1), FJ (6, n, 1) the flange (and Jacobian) of
+    the pose being solved; qpath (n, 1), PR (3, 3, 1), Pp (3, 1) a point of the straight path q_nom -> q and its
+    flange (branch test)."""
+    k = threads
+    return (np.empty((k, 6 + gap(12), 12)), np.empty((k, 6 + gap(6), 6)), np.empty((k, 6 + gap(1))),
+            np.empty((k, n + gap(1))), np.empty((k, 3 + gap(3), 3, 1)), np.empty((k, 3 + gap(1), 1)),
+            np.empty((k, 6 + gap(n), n, 1)), np.empty((k, n + gap(1), 1)), np.empty((k, 3 + gap(3), 3, 1)),
+            np.empty((k, 3 + gap(1), 1)))
+
+
+@njit(**inline)
+def pose_scratch(work, n):
+    """The calling thread's arrays in :func:`pose_work`, borrowed (as .fused.flange_scratch)."""
+    t = numba.get_thread_id()
+    A, P, de, dq, FR, Fp, FJ, qpath, PR, Pp = work
+    return borrowed((A[t, :6], P[t, :6], de[t, :6], dq[t, :n], FR[t, :3], Fp[t, :3], FJ[t, :6], qpath[t, :n],
+                     PR[t, :3], Pp[t, :3]))
+
+
 @njit(parallel=True, cache=True)
 def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, eyeR, zero_p,
                 TR, Tp, t_nom, t_act, G1p, G2p, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol, max_iter, contraction, length,
                 max_corr, path_above, sigma_floor, refresh, refresh_floor, lipschitz,
-                q_out, qn_out, de_out, step_out, it_out, status_out, CR, Cp):
+                q_out, qn_out, de_out, step_out, it_out, status_out, CR, Cp, threads):
     """Per pose b: the nominal IK from seed[:, b] to the flange that puts the nominal tool point t_nom[:, b] on
     the target (TR[..., b], Tp[:, b]), then (47)-(51) for the modeled flange (errors, base, directions sT) to the
     flange for the identified tool point t_act from there, then det J's sign and the nominal tool pose at the
@@ -202,24 +225,21 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
     it_out (B,), status_out (B,) int8 (module constants); G1p, G2p (3, B) the flange goals' positions.
     from_seed: no IK, the goal is the seed's nominal flange (compensation of commands; TR, G2p are written);
     want_command: False skips the nominal flange at the solution where the branch test does not need it
-    (CR, Cp may then be (., 0))."""
+    (CR, Cp may then be (., 0)); threads: numba's (.fused.kernel_threads)."""
     n, B = seed.shape
     nchunks = (B + _TCHUNK - 1) // _TCHUNK
+    flange_w, pose_w = flange_work(threads, n), pose_work(threads, n)
+    # the arrays the calls below take, borrowed (.fused.borrowed): the caller's outlive the loop
+    (q_out, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp,
+     baseR, basep, eyeR, zero_p, TR, G1p, G2p) = borrowed((q_out, sT, coupling, offset, ecoupling, eoffset, lo, width,
+                                                          table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp, baseR,
+                                                          basep, eyeR, zero_p, TR, G1p, G2p))
     for c in numba.prange(nchunks):
-        th, ue, zs, os_, ws, ds = flange_scratch(n)
-        A = np.empty((6, 12))
-        P = np.empty((6, 6))
-        de = np.empty(6)
-        dq = np.empty(n)
+        th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(flange_w, n)
+        A, P, de, dq, FR, Fp, FJ, qpath, PR, Pp = pose_scratch(pose_w, n)
         last = np.empty(n)
         sP = np.empty(6)
         qbest = np.empty(n)
-        FR = np.empty((3, 3, 1))  # the flange (and Jacobian) of the pose being solved
-        Fp = np.empty((3, 1))
-        FJ = np.empty((6, n, 1))
-        qpath = np.empty((n, 1))  # a point of the straight path q_nom -> q (branch test)
-        PR = np.empty((3, 3, 1))
-        Pp = np.empty((3, 1))
         for b in range(c * _TCHUNK, min(B, (c + 1) * _TCHUNK)):
             for j in range(n):
                 q_out[j, b] = seed[j, b]
@@ -228,7 +248,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
             if from_seed:  # compensation of commands, Paper II (46): the goal is the seed's nominal flange
                 flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                             oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, FR, Fp, FJ, True,
-                            th, ue, zs, os_, ws, ds, 0)
+                            th, ue, cs, sn, zs, os_, ws, ds, 0, False)
                 for k in range(3):
                     G2p[k, b] = Fp[k, 0]
                     for j in range(3):
@@ -244,7 +264,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
             for it in range(0 if from_seed else ik_iter + 1):
                 flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                             oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, FR, Fp, FJ, True,
-                            th, ue, zs, os_, ws, ds, 0)
+                            th, ue, cs, sn, zs, os_, ws, ds, 0, False)
                 tr = pose_error(FR, Fp, 0, TR, G1p, b, de)
                 res = weighted_norm(de, length)
                 sign0 = invert_column(FJ, 0, A, P)
@@ -291,9 +311,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                     # the first step (~1e-2 rad) is most of the correction: the modeled Jacobian after it is within
                     # ~1e-4 of the solution's (4 evaluations instead of 6 on Paper II's FANUC)
                     relinearize = r == (1 if attempt == 0 else 0)
+                    at_start = r == 0 and attempt == 0  # the nominal IK's command: its joint variables are in the scratch
                     flange_pose(q_out, b, sT, use_s, True, coupling, offset, ecoupling, eoffset, lo, width, table,
                                 has_bl, oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, FR, Fp, FJ,
-                                relinearize, th, ue, zs, os_, ws, ds, 0)
+                                relinearize, th, ue, cs, sn, zs, os_, ws, ds, 0, at_start)
                     if relinearize:
                         have_last = False
                         floor = sigma_floor if attempt == 0 else refresh_floor
@@ -372,9 +393,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
             if sure and not want_command:
                 status_out[b] = DONE
                 continue
+            # at the command the compensation's last evaluation confirmed (its joint variables are in the scratch)
             flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                         oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, FR, Fp, FJ, not sure,
-                        th, ue, zs, os_, ws, ds, 0)
+                        th, ue, cs, sn, zs, os_, ws, ds, 0, True)
             if not sure and det_sign_column(FJ, 0, A) != sign0:
                 status_out[b] = BRANCH_SIGN
                 continue
@@ -386,7 +408,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                         qpath[j, 0] = qn_out[j, b] + t * (q_out[j, b] - qn_out[j, b])
                     flange_pose(qpath, 0, qpath, False, False, coupling, offset, ecoupling, eoffset, lo, width, table,
                                 has_bl, oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, PR, Pp, FJ,
-                                True, th, ue, zs, os_, ws, ds, 0)
+                                True, th, ue, cs, sn, zs, os_, ws, ds, 0, False)
                     if det_sign_column(FJ, 0, A) != sign0:
                         crossed = True
                         break
@@ -430,13 +452,13 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     CR, Cp, G1p, G2p = np.empty((3, 3, B)), np.empty((3, B)), np.empty((3, B)), np.empty((3, B))
-    kernel_threads()
+    threads = kernel_threads()
     with numba.parallel_chunksize(1):  # dynamic: a thread beside a busy neighbour does not hold up the call
         targets_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
                     TR, Tp, soa(t_nominal), soa(t_actual), G1p, G2p, False, True, float(ik_tol), int(ik_max_iter), IK_TRUST,
                     float(tol), float(residual_tol), int(max_iter), float(contraction), float(length), corr,
                     float(path_above), float(sigma_floor), int(refresh), float(refresh_floor),
-                    -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status, CR, Cp)
+                    -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status, CR, Cp, threads)
     t = torch.from_numpy
     return {"q": t(q).T, "q_nominal": t(qn).T, "pose_error": t(de).T, "step": t(step), "iterations": t(it),
             "status": t(status), "command": from_soa(t(CR), t(Cp))}
@@ -459,14 +481,14 @@ def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     TR, G2p = np.empty((3, 3, B)), np.empty((3, B))
     none = np.empty((3, 0))
-    kernel_threads()
+    threads = kernel_threads()
     with numba.parallel_chunksize(1):
         targets_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
                     TR, none, none, none, none, G2p, True, False, 0.0, 0, 0.0,
                     float(tol), float(residual_tol), int(max_iter), float(contraction), float(length), corr,
                     float(path_above), float(sigma_floor), int(refresh), float(refresh_floor),
                     -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status,
-                    np.empty((3, 3, 0)), np.empty((3, 0)))
+                    np.empty((3, 3, 0)), np.empty((3, 0)), threads)
     t = torch.from_numpy
     return {"q": t(q).T, "pose_error": t(de).T, "step": t(step), "iterations": t(it), "status": t(status)}
 

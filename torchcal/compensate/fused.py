@@ -347,9 +347,9 @@ def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, 
     n, B = qT.shape
     nchunks = (B + _CHUNK - 1) // _CHUNK
     work = flange_work(threads, n)
-    (qT, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp, baseR,
-     basep, outR, outp, outJ) = borrowed((qT, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes,
-                                          Ka, Ka2, prismatic, tipR, tipp, baseR, basep, outR, outp, outJ))
+    (qT, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp,
+     baseR, basep, outR, outp, outJ) = borrowed((qT, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op,
+                                                 axes, Ka, Ka2, prismatic, tipR, tipp, baseR, basep, outR, outp, outJ))
     for c in numba.prange(nchunks):
         th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(work, n)
         for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):

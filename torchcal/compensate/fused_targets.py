@@ -37,8 +37,8 @@ import math
 import numpy as np
 import torch
 
-from .fused import (HAVE_NUMBA, borrowed, flange_pose, flange_scratch, flange_work, gap, inline, inlined, kernel_threads,
-                    njit, poses_soa, soa)
+from .fused import (HAVE_NUMBA, borrowed, flange_pose, flange_scratch, flange_work, gap, inline, inlined,
+                    kernel_threads, njit, poses_soa, soa)
 
 if HAVE_NUMBA:
     import numba

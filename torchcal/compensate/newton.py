@@ -285,6 +285,11 @@ def nominal_sigma_min(model, q: torch.Tensor, length: float = 1.0) -> torch.Tens
     """
     kernel = FlangeKernel(model)
     _, _, J = kernel.nominal_flange_jacobian(q.T.to(model.dtype).contiguous())
+    return sigma_min_soa(J, length)
+
+
+def sigma_min_soa(J: torch.Tensor, length: float) -> torch.Tensor:
+    """Smallest singular value of body Jacobians J (6, n, B), orientation rows times ``length`` -> (B,) m/rad."""
     J = J.permute(2, 0, 1).clone()
     J[:, 3:] *= length
     return torch.linalg.svdvals(J)[:, -1]
@@ -573,9 +578,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
             Rn, pn = target[sl, :3, :3].permute(1, 2, 0).contiguous(), target[sl, :3, 3].T.contiguous()
         targets_R[..., sl], targets_p[:, sl] = Rn, pn
         if sigma:
-            Js = J.permute(2, 0, 1).clone()
-            Js[:, 3:] *= length
-            sig[sl] = torch.linalg.svdvals(Js)[:, -1]
+            sig[sl] = sigma_min_soa(J, length)
         if branch:
             sign0[sl] = det_sign_soa(J)
         cT = None if ax is None else ax.pointT(torch.arange(sl.start, sl.stop, device=device))
@@ -699,9 +702,7 @@ def _mark_singular_ends(kernel, q, direction, status, length: float) -> None:
         return
     s = None if direction is None else direction[k].T.contiguous()
     _, _, J = kernel.flange_jacobian(q[k].T.contiguous(), s)
-    J = J.permute(2, 0, 1).clone()
-    J[:, 3:] *= length
-    status[k[torch.linalg.svdvals(J)[:, -1] < SINGULAR_FLOOR]] = SINGULAR
+    status[k[sigma_min_soa(J, length) < SINGULAR_FLOOR]] = SINGULAR
 
 
 def _damped_status(res) -> torch.Tensor:

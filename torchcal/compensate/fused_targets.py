@@ -37,7 +37,7 @@ import math
 import numpy as np
 import torch
 
-from .fused import (HAVE_NUMBA, borrowed, flange_pose, flange_scratch, flange_work, gap, inline, inlined,
+from .fused import (FAST, HAVE_NUMBA, borrowed, flange_pose, flange_scratch, flange_work, gap, inline, inlined,
                     kernel_threads, njit, poses_soa, soa)
 
 if HAVE_NUMBA:
@@ -212,7 +212,7 @@ def pose_scratch(work, n):
                      PR[t, :3], Pp[t, :3]))
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, fastmath=FAST)
 def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, eyeR, zero_p,
                 TR, Tp, t_nom, t_act, G1p, G2p, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol, max_iter, contraction, length,

@@ -136,7 +136,7 @@ def test_pose_error_matches_the_torch_kernel():
     ref = pose_error_soa(Ra, pa, Rn, pn)
     de = np.empty(6)
     for b in range(B):
-        pose_error_nb(Ra.numpy(), pa.numpy(), b, Rn.numpy(), pn.numpy(), b, de)
+        pose_error_nb(Ra.numpy(), pa.numpy(), b, R[1].contiguous().numpy(), pn.numpy(), b, de)  # the goal pose-first
         assert np.allclose(de, ref[:, b].numpy(), atol=1e-14)
 
 

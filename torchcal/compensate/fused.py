@@ -54,6 +54,11 @@ def soa(x: torch.Tensor) -> np.ndarray:
     return x.T.to(torch.float64).contiguous().numpy()
 
 
+def rows(x: torch.Tensor) -> np.ndarray:
+    """A CPU tensor as C-contiguous float64 numpy, pose-first as given (no copy when it already is)."""
+    return x.to(torch.float64).contiguous().numpy()
+
+
 def poses_soa(T: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     """(B, 4, 4) poses -> rotations (3, 3, B), positions (3, B), float64 numpy, pose-last."""
     return T[:, :3, :3].to(torch.float64).permute(1, 2, 0).contiguous().numpy(), soa(T[:, :3, 3])

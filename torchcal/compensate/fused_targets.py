@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from .fused import (FAST, HAVE_NUMBA, borrowed, flange_pose, flange_scratch, flange_work, gap, inline, inlined,
-                    kernel_threads, njit, poses_soa, soa)
+                    kernel_threads, njit, rows, soa)
 
 if HAVE_NUMBA:
     import numba
@@ -136,7 +136,8 @@ def det_sign_column(J, b, A):
 
 @njit(**inlined)
 def pose_error(R, p, b, GR, Gp, gb, de):
-    """de (6,) of (47)-(48) between the flange (R, p column b) and the goal (GR, Gp column gb), in the flange
+    """de (6,) of (47)-(48) between the flange (R, p column b) and the goal (rotation GR[gb, :3, :3] of a (B, 3+, 3+)
+    array of poses, position Gp column gb), in the flange
     frame, as :func:`.kernel.pose_error_soa`: R^T (p_goal - p) and ½ R^T Σ_j a_j × g_j (columns of R, GR).
     -> tr(R^T R_goal) = 1 + 2 cos(angle): the rotation part is sin(angle) axis, which vanishes at a half
     turn too, so a solution also needs the trace above 1 (angle below 90 deg)."""
@@ -144,7 +145,7 @@ def pose_error(R, p, b, GR, Gp, gb, de):
     tr = 0.0
     for j in range(3):
         ax, ay, az = R[0, j, b], R[1, j, b], R[2, j, b]
-        gx, gy, gz = GR[0, j, gb], GR[1, j, gb], GR[2, j, gb]
+        gx, gy, gz = GR[gb, 0, j], GR[gb, 1, j], GR[gb, 2, j]
         wx += ay * gz - az * gy
         wy += az * gx - ax * gz
         wz += ax * gy - ay * gx
@@ -215,25 +216,26 @@ def pose_scratch(work, n):
 @njit(parallel=True, cache=True, fastmath=FAST)
 def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, eyeR, zero_p,
-                TR, Tp, t_nom, t_act, G1p, G2p, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol, max_iter, contraction, length,
+                T, t_nom, t_act, G1p, G2p, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol, max_iter, contraction, length,
                 max_corr, path_above, sigma_floor, refresh, refresh_floor, lipschitz,
-                q_out, qn_out, de_out, step_out, it_out, status_out, CR, Cp, threads):
-    """Per pose b: the nominal IK from seed[:, b] to the flange that puts the nominal tool point t_nom[:, b] on
-    the target (TR[..., b], Tp[:, b]), then (47)-(51) for the modeled flange (errors, base, directions sT) to the
+                q_out, qn_out, de_out, step_out, it_out, status_out, C, threads):
+    """Per pose b: the nominal IK from seed[b] to the flange that puts the nominal tool point t_nom[b] on
+    the target T[b] (B, 4, 4), then (47)-(51) for the modeled flange (errors, base, directions sT) to the
     flange for the identified tool point t_act from there, then det J's sign and the nominal tool pose at the
     solution (the corrected target, into CR, Cp). Writes q_out, qn_out (n, B), de_out (6, B), step_out,
     it_out (B,), status_out (B,) int8 (module constants); G1p, G2p (3, B) the flange goals' positions.
-    from_seed: no IK, the goal is the seed's nominal flange (compensation of commands; TR, G2p are written);
+    (the inputs pose-first as the caller's tensors hold them: no transposed copies);
+    from_seed: no IK, the goal is the seed's nominal flange (compensation of commands; T (B, 3, 3), G2p are written);
     want_command: False skips the nominal flange at the solution where the branch test does not need it
-    (CR, Cp may then be (., 0)); threads: numba's (.fused.kernel_threads)."""
-    n, B = seed.shape
+    (C may then be (0, 4, 4)); threads: numba's (.fused.kernel_threads)."""
+    B, n = seed.shape
     nchunks = (B + _TCHUNK - 1) // _TCHUNK
     flange_w, pose_w = flange_work(threads, n), pose_work(threads, n)
     # the arrays the calls below take, borrowed (.fused.borrowed): the caller's outlive the loop
     (q_out, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp,
-     baseR, basep, eyeR, zero_p, TR, G1p, G2p) = borrowed((q_out, sT, coupling, offset, ecoupling, eoffset, lo, width,
+     baseR, basep, eyeR, zero_p, T, G1p, G2p) = borrowed((q_out, sT, coupling, offset, ecoupling, eoffset, lo, width,
                                                           table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp, baseR,
-                                                          basep, eyeR, zero_p, TR, G1p, G2p))
+                                                          basep, eyeR, zero_p, T, G1p, G2p))
     for c in numba.prange(nchunks):
         th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(flange_w, n)
         A, P, de, dq, FR, Fp, FJ, qpath, PR, Pp = pose_scratch(pose_w, n)
@@ -242,7 +244,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
         qbest = np.empty(n)
         for b in range(c * _TCHUNK, min(B, (c + 1) * _TCHUNK)):
             for j in range(n):
-                q_out[j, b] = seed[j, b]
+                q_out[j, b] = seed[b, j]
             status = IK_FAILED
             sign0 = 0.0
             if from_seed:  # compensation of commands, Paper II (46): the goal is the seed's nominal flange
@@ -252,20 +254,20 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                 for k in range(3):
                     G2p[k, b] = Fp[k, 0]
                     for j in range(3):
-                        TR[k, j, b] = FR[k, j, 0]
+                        T[b, k, j] = FR[k, j, 0]
                 sign0 = invert_column(FJ, 0, A, P)
                 if sign0 != 0.0:
                     status = DONE
             else:
                 for k in range(3):  # the flange goals: the tool's orientation, its point taken back to the flange
-                    G1p[k, b] = Tp[k, b] - (TR[k, 0, b] * t_nom[0, b] + TR[k, 1, b] * t_nom[1, b] + TR[k, 2, b] * t_nom[2, b])
-                    G2p[k, b] = Tp[k, b] - (TR[k, 0, b] * t_act[0, b] + TR[k, 1, b] * t_act[1, b] + TR[k, 2, b] * t_act[2, b])
+                    G1p[k, b] = T[b, k, 3] - (T[b, k, 0] * t_nom[b, 0] + T[b, k, 1] * t_nom[b, 1] + T[b, k, 2] * t_nom[b, 2])
+                    G2p[k, b] = T[b, k, 3] - (T[b, k, 0] * t_act[b, 0] + T[b, k, 1] * t_act[b, 1] + T[b, k, 2] * t_act[b, 2])
             # 1. the controller's nominal IK: Newton with the nominal Jacobian, stopped as (51)
             for it in range(0 if from_seed else ik_iter + 1):
                 flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                             oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, FR, Fp, FJ, True,
                             th, ue, cs, sn, zs, os_, ws, ds, 0, False)
-                tr = pose_error(FR, Fp, 0, TR, G1p, b, de)
+                tr = pose_error(FR, Fp, 0, T, G1p, b, de)
                 res = weighted_norm(de, length)
                 sign0 = invert_column(FJ, 0, A, P)
                 if sign0 == 0.0:
@@ -325,7 +327,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                         if fro2 * floor * floor >= 1.0:
                             singular = True
                             break
-                    tr = pose_error(FR, Fp, 0, TR, G2p, b, de)
+                    tr = pose_error(FR, Fp, 0, T, G2p, b, de)
                     res = weighted_norm(de, length)
                     if res < best:
                         best = res
@@ -418,8 +420,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
             if want_command:  # the nominal tool pose there: the corrected target
                 for k in range(3):
                     for j in range(3):
-                        CR[k, j, b] = FR[k, j, 0]
-                    Cp[k, b] = Fp[k, 0] + FR[k, 0, 0] * t_nom[0, b] + FR[k, 1, 0] * t_nom[1, b] + FR[k, 2, 0] * t_nom[2, b]
+                        C[b, k, j] = FR[k, j, 0]
+                    C[b, k, 3] = Fp[k, 0] + FR[k, 0, 0] * t_nom[b, 0] + FR[k, 1, 0] * t_nom[b, 1] + FR[k, 2, 0] * t_nom[b, 2]
+                    C[b, 3, k] = 0.0
+                C[b, 3, 3] = 1.0
             status_out[b] = DONE
 
 
@@ -440,28 +444,24 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     command (B, 4, 4) (the nominal tool pose at q: the corrected target); float64 CPU tensors; rows with
     status != DONE hold no result.
     """
-    from .kernel import from_soa
-
     B, n = seed.shape
     f64 = torch.float64
-    qT = soa(seed)
-    s = qT if direction is None else soa(direction)
-    TR, Tp = poses_soa(target)
+    s = soa(seed) if direction is None else soa(direction)  # (unread without directions)
     corr = np.full(n, np.inf) if max_correction is None else max_correction.to(f64).cpu().numpy()
     q, qn = np.empty((n, B)), np.full((n, B), np.nan)
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
-    CR, Cp, G1p, G2p = np.empty((3, 3, B)), np.empty((3, B)), np.empty((3, B)), np.empty((3, B))
+    C, G1p, G2p = np.empty((B, 4, 4)), np.empty((3, B)), np.empty((3, B))
     threads = kernel_threads()
     with numba.parallel_chunksize(1):  # dynamic: a thread beside a busy neighbour does not hold up the call
-        targets_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
-                    TR, Tp, soa(t_nominal), soa(t_actual), G1p, G2p, False, True, float(ik_tol), int(ik_max_iter), IK_TRUST,
+        targets_soa(rows(seed), s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
+                    rows(target), rows(t_nominal), rows(t_actual), G1p, G2p, False, True, float(ik_tol), int(ik_max_iter), IK_TRUST,
                     float(tol), float(residual_tol), int(max_iter), float(contraction), float(length), corr,
                     float(path_above), float(sigma_floor), int(refresh), float(refresh_floor),
-                    -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status, CR, Cp, threads)
+                    -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status, C, threads)
     t = torch.from_numpy
     return {"q": t(q).T, "q_nominal": t(qn).T, "pose_error": t(de).T, "step": t(step), "iterations": t(it),
-            "status": t(status), "command": from_soa(t(CR), t(Cp))}
+            "status": t(status), "command": t(C)}
 
 
 def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *, tol: float, residual_tol: float,
@@ -473,22 +473,21 @@ def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *
     arguments as :func:`solve_targets`."""
     B, n = q_nom.shape
     f64 = torch.float64
-    qT = soa(q_nom)
-    s = qT if direction is None else soa(direction)
+    s = soa(q_nom) if direction is None else soa(direction)  # (unread without directions)
     corr = np.full(n, np.inf) if max_correction is None else max_correction.to(f64).cpu().numpy()
     q, qn = np.empty((n, B)), np.empty((n, B))
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
-    TR, G2p = np.empty((3, 3, B)), np.empty((3, B))
-    none = np.empty((3, 0))
+    goal, G2p = np.empty((B, 3, 3)), np.empty((3, B))
+    none = np.empty((0, 3))
     threads = kernel_threads()
     with numba.parallel_chunksize(1):
-        targets_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
-                    TR, none, none, none, none, G2p, True, False, 0.0, 0, 0.0,
+        targets_soa(rows(q_nom), s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
+                    goal, none, none, none, G2p, True, False, 0.0, 0, 0.0,
                     float(tol), float(residual_tol), int(max_iter), float(contraction), float(length), corr,
                     float(path_above), float(sigma_floor), int(refresh), float(refresh_floor),
                     -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status,
-                    np.empty((3, 3, 0)), np.empty((3, 0)), threads)
+                    np.empty((0, 4, 4)), threads)
     t = torch.from_numpy
     return {"q": t(q).T, "pose_error": t(de).T, "step": t(step), "iterations": t(it), "status": t(status)}
 

@@ -141,21 +141,27 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     return _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)
 
 
-def _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> TargetResult:
+def _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options,
+             solved_ik: bool = False) -> TargetResult:
     """Every row by batched solves: the controller's nominal IK from the seed, then :func:`.newton.compensate`
     from that command to the flange goal of the identified tool (robust near singularities and bounds; every
-    flagged row gets its reason)."""
-    nominal = nominal_model(model)
+    flagged row gets its reason). solved_ik: the seeds are the compiled pass's converged nominal IK commands (rows
+    it handed on): not solved again (from there the IK would stop at once, for ~0.01 s a call)."""
     # the controller's view: nominal IK for the nominal tool (its command: the start, the bounds' and the branch's
     # reference)
-    ik_c = damped_least_squares(nominal, seed, flange_for(target, t_nominal), None, tol=ik_tol, max_iter=ik_max_iter)
-    comp = compensate(model, ik_c.q, direction, target=flange_for(target, t_actual), **options)
-    ok = ik_c.converged & comp.converged & comp.within_limits
+    if solved_ik:
+        q_ik, reached = seed, torch.ones(seed.shape[0], dtype=torch.bool, device=seed.device)
+    else:
+        ik_c = damped_least_squares(nominal_model(model), seed, flange_for(target, t_nominal), None, tol=ik_tol,
+                                    max_iter=ik_max_iter)
+        q_ik, reached = ik_c.q, ik_c.converged
+    comp = compensate(model, q_ik, direction, target=flange_for(target, t_actual), **options)
+    ok = reached & comp.converged & comp.within_limits
     command = tool_pose(model.nominal_flange(comp.q), t_nominal)
     reason = comp.reasons(options.get("max_correction"), model.robot.joint_map.prismatic)
-    for i in (~ik_c.converged).nonzero()[:, 0].tolist():
+    for i in (~reached).nonzero()[:, 0].tolist():
         reason[i] = "out of reach: the nominal IK does not reach the target from the seed"
-    return TargetResult(comp.q, ik_c.q, command, ok, reason, comp)
+    return TargetResult(comp.q, q_ik, command, ok, reason, comp)
 
 
 # options the compiled pass reads (or that only concern rows it leaves to the general path)
@@ -179,20 +185,24 @@ def _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_m
 
 
 def _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> TargetResult:
-    """The compiled pass's rows, with the rows it left solved again by :func:`_general`, in input order."""
+    """The compiled pass's rows, with the rows it left solved again by :func:`_general`, in input order: from the
+    seed where the pass's nominal IK failed, else from the pass's IK command."""
+    from .fused_targets import IK_FAILED
+
     c = compiled_rows(fast, float(options.get("length", 1.0)))
     q_nominal, command = fast["q_nominal"].clone(), fast["command"]
     correction = (c["q"] - q_nominal).abs().amax(-1)
     rest = (~c["done"]).nonzero()[:, 0]
-    if rest.numel():
-        # where the compiled pass's IK converged, its command seeds the general one (it stops at once)
-        from .fused_targets import IK_FAILED
-
-        start = torch.where((fast["status"][rest] == IK_FAILED)[:, None], seed[rest], fast["q_nominal"][rest])
-        g = _general(model, target[rest], start, None if direction is None else direction[rest], t_nominal[rest],
-                     t_actual[rest], ik_tol, ik_max_iter, options)
-        fill_rows(c, rest, g.compensation)
-        q_nominal[rest], command[rest], correction[rest] = g.q_nominal, g.command_target, g.compensation.correction
+    failed = fast["status"][rest] == IK_FAILED
+    solved = []  # (rows, their TargetResult)
+    for rows, solved_ik in ((rest[failed], False), (rest[~failed], True)):
+        if rows.numel():
+            start = fast["q_nominal"][rows] if solved_ik else seed[rows]
+            g = _general(model, target[rows], start, None if direction is None else direction[rows], t_nominal[rows],
+                         t_actual[rows], ik_tol, ik_max_iter, options, solved_ik=solved_ik)
+            fill_rows(c, rows, g.compensation)
+            q_nominal[rows], command[rows], correction[rows] = g.q_nominal, g.command_target, g.compensation.correction
+            solved.append((rows, g))
     q = c["q"]
     within, outside = range_and_coverage(model, q, direction)
     comp = CompensationResult(q, c["converged"], c["iterations"], c["pose_error"], c["residual"], c["step"],
@@ -201,9 +211,9 @@ def _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, i
     reason = [""] * target.shape[0]
     for i in (~within).nonzero()[:, 0].tolist():
         reason[i] = JOINT_LIMIT
-    if rest.numel():
-        ok[rest] = g.converged  # also needs the controller's IK
-        for i, r in zip(rest.tolist(), g.reason):
+    for rows, g in solved:
+        ok[rows] = g.converged  # also needs the controller's IK
+        for i, r in zip(rows.tolist(), g.reason):
             reason[i] = r
     return TargetResult(q, q_nominal, command, ok, reason, comp)
 

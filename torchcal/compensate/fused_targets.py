@@ -216,7 +216,8 @@ def pose_scratch(work, n):
 @njit(parallel=True, cache=True, fastmath=FAST)
 def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, eyeR, zero_p,
-                T, t_nom, t_act, G1p, G2p, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol, max_iter, contraction, length,
+                T, t_nom, t_act, G1p, G2p, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol,
+                max_iter, contraction, length,
                 max_corr, path_above, sigma_floor, refresh, refresh_floor, lipschitz,
                 q_out, qn_out, de_out, step_out, it_out, status_out, C, threads):
     """Per pose b: the nominal IK from seed[b] to the flange that puts the nominal tool point t_nom[b] on
@@ -260,8 +261,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                     status = DONE
             else:
                 for k in range(3):  # the flange goals: the tool's orientation, its point taken back to the flange
-                    G1p[k, b] = T[b, k, 3] - (T[b, k, 0] * t_nom[b, 0] + T[b, k, 1] * t_nom[b, 1] + T[b, k, 2] * t_nom[b, 2])
-                    G2p[k, b] = T[b, k, 3] - (T[b, k, 0] * t_act[b, 0] + T[b, k, 1] * t_act[b, 1] + T[b, k, 2] * t_act[b, 2])
+                    G1p[k, b] = T[b, k, 3] - (T[b, k, 0] * t_nom[b, 0] + T[b, k, 1] * t_nom[b, 1]
+                                              + T[b, k, 2] * t_nom[b, 2])
+                    G2p[k, b] = T[b, k, 3] - (T[b, k, 0] * t_act[b, 0] + T[b, k, 1] * t_act[b, 1]
+                                              + T[b, k, 2] * t_act[b, 2])
             # 1. the controller's nominal IK: Newton with the nominal Jacobian, stopped as (51)
             for it in range(0 if from_seed else ik_iter + 1):
                 flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
@@ -421,7 +424,8 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                 for k in range(3):
                     for j in range(3):
                         C[b, k, j] = FR[k, j, 0]
-                    C[b, k, 3] = Fp[k, 0] + FR[k, 0, 0] * t_nom[b, 0] + FR[k, 1, 0] * t_nom[b, 1] + FR[k, 2, 0] * t_nom[b, 2]
+                    C[b, k, 3] = (Fp[k, 0] + FR[k, 0, 0] * t_nom[b, 0] + FR[k, 1, 0] * t_nom[b, 1]
+                                  + FR[k, 2, 0] * t_nom[b, 2])
                     C[b, 3, k] = 0.0
                 C[b, 3, 3] = 1.0
             status_out[b] = DONE
@@ -455,7 +459,8 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     threads = kernel_threads()
     with numba.parallel_chunksize(1):  # dynamic: a thread beside a busy neighbour does not hold up the call
         targets_soa(rows(seed), s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
-                    rows(target), rows(t_nominal), rows(t_actual), G1p, G2p, False, True, float(ik_tol), int(ik_max_iter), IK_TRUST,
+                    rows(target), rows(t_nominal), rows(t_actual), G1p, G2p, False, True, float(ik_tol),
+                    int(ik_max_iter), IK_TRUST,
                     float(tol), float(residual_tol), int(max_iter), float(contraction), float(length), corr,
                     float(path_above), float(sigma_floor), int(refresh), float(refresh_floor),
                     -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status, C, threads)

@@ -27,7 +27,7 @@ det J changed sign at the end or on the path): those rows are solved
 again by the batched path, which is robust there and says why a row fails.
 So this pass never flags a row; it only takes the easy ones off the batch.
 
-Why one module (the kernel is one function): its stages share the pose's registers and scratch.
+Why one module: the kernel is one function, and its stages share the pose's registers and scratch.
 """
 
 from __future__ import annotations

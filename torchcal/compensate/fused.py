@@ -116,7 +116,8 @@ commands within 3e-12 rad, the same rows converged, for 1.2x fewer cycles; see t
 inline = dict(cache=True, fastmath=FAST)
 # the helpers of the inner loops: LLVM did not inline them (their calls and tuple returns were ~20 % of the targets
 # pass); numba's IR-level inlining prefixes the callee's locals with its name. It costs compile time (the targets
-# pass: ~48 -> ~76 s, once: cached).
+# pass: ~48 -> ~76 s, once: cached; with the chain itself inlined at the pass's three hot call sites the first
+# compensate_targets call on a cold cache takes ~150 s instead of ~106 s on 2 cores).
 inlined = dict(inline="always", cache=True, fastmath=FAST)
 
 
@@ -262,15 +263,18 @@ def flange_scratch(work, n):
     return borrowed((th[t, :n], ue[t, :n], cs[t, :n], sn[t, :n], zs[t, :n], os_[t, :n], ws[t, :n], ds[t, :n]))
 
 
-@njit(**inline)
-def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
-                th, ue, cs, sn, zs, os_, ws, ds, ob, same_q):
+def _flange_pose(qT, b, sT, use_s, errors, model, chain, baseR, basep, outR, outp, outJ, jacobian, scratch, ob, same_q):
     """Pose b of :func:`flange_soa`: F_a(q, s) or F_n(q) of column b of qT (n, B) into column ob of
-    outR (3, 3, .), outp (3, .) [and outJ (6, n, .)]; th, ue, cs, sn (n,) and zs, os_, ws, ds (n, 3): scratch
-    (:func:`flange_work`); same_q: th, ue, cs, sn already hold this command's (the last call's command was this one:
-    the other chain, nominal or modeled, at the same command).
+    outR (3, 3, .), outp (3, .) [and outJ (6, n, .)]; model: (coupling, offset, ecoupling, eoffset, lo, width,
+    table, has_bl), chain: (oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp), as :class:`FusedFlange`;
+    scratch: (th, ue, cs, sn (n,), zs, os_, ws, ds (n, 3)) (:func:`flange_scratch`); same_q: th, ue, cs, sn
+    already hold this command's (the last call's command was this one: the other chain, nominal or modeled, at the
+    same command). Grouped in tuples: a call with over 30 arguments compiles to CALL_FUNCTION_EX, which numba
+    cannot inline.
     One definition shared by the flange kernel and the targets solver (:mod:`.fused_targets`)."""
+    coupling, offset, ecoupling, eoffset, lo, width, table, has_bl = model
+    oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp = chain
+    th, ue, cs, sn, zs, os_, ws, ds = scratch
     n = qT.shape[0]
     Km = table.shape[2]
     for i in range(0 if same_q else n):
@@ -348,6 +352,14 @@ def flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, 
                 add_column(outJ, ob, n, R, (tx, ty, tz), (sx, sy, sz), ecoupling, i)
 
 
+flange_pose = njit(**inline)(_flange_pose)
+# the same chain IR-inlined into its caller: the targets pass (.fused_targets) at its three hot call sites (the
+# nominal IK, (47)-(51), the corrected target): the flags (errors, jacobian) fold to constants there, and no array
+# passes a call boundary (numba increfs and decrefs every array argument of a call it does not inline, atomics
+# on lines both threads share): 1.3x quiet on 2 threads, no change on 1
+flange_pose_inlined = njit(**inlined)(_flange_pose)
+
+
 @njit(parallel=True, cache=True)
 def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian, threads):
@@ -363,9 +375,9 @@ def flange_soa(qT, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, 
     for c in numba.prange(nchunks):
         th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(work, n)
         for b in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
-            flange_pose(qT, b, sT, use_s, errors, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                        oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, outR, outp, outJ, jacobian,
-                        th, ue, cs, sn, zs, os_, ws, ds, b, False)
+            flange_pose(qT, b, sT, use_s, errors, (coupling, offset, ecoupling, eoffset, lo, width, table, has_bl),
+                        (oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp), baseR, basep, outR, outp, outJ,
+                        jacobian, (th, ue, cs, sn, zs, os_, ws, ds), b, False)
 
 
 def _kernels():

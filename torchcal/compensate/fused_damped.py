@@ -121,6 +121,9 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
     work = flange_work(threads, n)
     for c in numba.prange(nchunks):
         th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(work, n)
+        mdl = (coupling, offset, ecoupling, eoffset, lo, width, table, has_bl)
+        chn = (oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp)
+        scr = (th, ue, cs, sn, zs, os_, ws, ds)
         FR = np.empty((3, 3, 1))
         Fp = np.empty((3, 1))
         FJ = np.empty((6, n, 1))
@@ -147,9 +150,7 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
                 q[j] = x
                 qs[j, 0] = x
                 ss[j, 0] = sT[j, b]
-            flange_pose(qs, 0, ss, use_s, True, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                        oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, FR, Fp, FJ, True,
-                        th, ue, cs, sn, zs, os_, ws, ds, 0, False)
+            flange_pose(qs, 0, ss, use_s, True, mdl, chn, baseR, basep, FR, Fp, FJ, True, scr, 0, False)
             tr = residual_rows(FR, Fp, TR, Tp, b, FJ, length, r, Jr, de)
             near = tr > 1.0
             cost = cost_of(r, q, ref, b, lam2)
@@ -223,9 +224,7 @@ def damped_soa(q0, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, t
                         blocked = hits >= 2
                     for j in range(n):
                         dq[j] = qt[j] - q[j]
-                flange_pose(qs, 0, ss, use_s, True, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                            oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, FR, Fp, FJ, True,
-                            th, ue, cs, sn, zs, os_, ws, ds, 0, False)
+                flange_pose(qs, 0, ss, use_s, True, mdl, chn, baseR, basep, FR, Fp, FJ, True, scr, 0, False)
                 tr_t = residual_rows(FR, Fp, TR, Tp, b, FJ, length, rt, Jr_t, de_t)
                 cost_t = cost_of(rt, qt, ref, b, lam2)
                 # Nielsen: the decrease the linear model predicts for the step taken

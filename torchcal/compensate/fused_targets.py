@@ -37,8 +37,9 @@ import math
 import numpy as np
 import torch
 
-from .fused import (FAST, HAVE_NUMBA, borrowed, flange_pose, flange_scratch, flange_work, gap, inline, inlined,
+from .fused import (FAST, HAVE_NUMBA, borrowed, flange_scratch, flange_work, gap, inline, inlined,
                     kernel_threads, njit, rows, soa)
+from .fused import flange_pose, flange_pose_inlined
 
 if HAVE_NUMBA:
     import numba
@@ -239,6 +240,9 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                                                           basep, eyeR, zero_p, T, G1p, G2p))
     for c in numba.prange(nchunks):
         th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(flange_w, n)
+        mdl = (coupling, offset, ecoupling, eoffset, lo, width, table, has_bl)
+        chn = (oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp)
+        scr = (th, ue, cs, sn, zs, os_, ws, ds)
         A, P, de, dq, FR, Fp, FJ, qpath, PR, Pp = pose_scratch(pose_w, n)
         last = np.empty(n)
         sP = np.empty(6)
@@ -249,9 +253,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
             status = IK_FAILED
             sign0 = 0.0
             if from_seed:  # compensation of commands, Paper II (46): the goal is the seed's nominal flange
-                flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                            oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, FR, Fp, FJ, True,
-                            th, ue, cs, sn, zs, os_, ws, ds, 0, False)
+                flange_pose(q_out, b, sT, False, False, mdl, chn, eyeR, zero_p, FR, Fp, FJ, True, scr, 0, False)
                 for k in range(3):
                     G2p[k, b] = Fp[k, 0]
                     for j in range(3):
@@ -267,9 +269,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                                               + T[b, k, 2] * t_act[b, 2])
             # 1. the controller's nominal IK: Newton with the nominal Jacobian, stopped as (51)
             for it in range(0 if from_seed else ik_iter + 1):
-                flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                            oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, FR, Fp, FJ, True,
-                            th, ue, cs, sn, zs, os_, ws, ds, 0, False)
+                flange_pose_inlined(q_out, b, sT, False, False, mdl, chn, eyeR, zero_p, FR, Fp, FJ, True, scr, 0, False)
                 tr = pose_error(FR, Fp, 0, T, G1p, b, de)
                 res = weighted_norm(de, length)
                 sign0 = invert_column(FJ, 0, A, P)
@@ -317,9 +317,8 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                     # ~1e-4 of the solution's (4 evaluations instead of 6 on Paper II's FANUC)
                     relinearize = r == (1 if attempt == 0 else 0)
                     at_start = r == 0 and attempt == 0  # the nominal IK's command: its joint variables are in the scratch
-                    flange_pose(q_out, b, sT, use_s, True, coupling, offset, ecoupling, eoffset, lo, width, table,
-                                has_bl, oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, FR, Fp, FJ,
-                                relinearize, th, ue, cs, sn, zs, os_, ws, ds, 0, at_start)
+                    flange_pose_inlined(q_out, b, sT, use_s, True, mdl, chn, baseR, basep, FR, Fp, FJ, relinearize, scr,
+                                        0, at_start)
                     if relinearize:
                         have_last = False
                         floor = sigma_floor if attempt == 0 else refresh_floor
@@ -399,9 +398,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                 status_out[b] = DONE
                 continue
             # at the command the compensation's last evaluation confirmed (its joint variables are in the scratch)
-            flange_pose(q_out, b, sT, False, False, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
-                        oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, FR, Fp, FJ, not sure,
-                        th, ue, cs, sn, zs, os_, ws, ds, 0, True)
+            flange_pose_inlined(q_out, b, sT, False, False, mdl, chn, eyeR, zero_p, FR, Fp, FJ, not sure, scr, 0, True)
             if not sure and det_sign_column(FJ, 0, A) != sign0:
                 status_out[b] = BRANCH_SIGN
                 continue
@@ -411,9 +408,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                     t = k / PATH_SAMPLES
                     for j in range(n):
                         qpath[j, 0] = qn_out[j, b] + t * (q_out[j, b] - qn_out[j, b])
-                    flange_pose(qpath, 0, qpath, False, False, coupling, offset, ecoupling, eoffset, lo, width, table,
-                                has_bl, oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, eyeR, zero_p, PR, Pp, FJ,
-                                True, th, ue, cs, sn, zs, os_, ws, ds, 0, False)
+                    flange_pose(qpath, 0, qpath, False, False, mdl, chn, eyeR, zero_p, PR, Pp, FJ, True, scr, 0, False)
                     if det_sign_column(FJ, 0, A) != sign0:
                         crossed = True
                         break

@@ -354,9 +354,9 @@ def _flange_pose(qT, b, sT, use_s, errors, model, chain, baseR, basep, outR, out
 
 flange_pose = njit(**inline)(_flange_pose)
 # the same chain IR-inlined into its caller: the targets pass (.fused_targets) at its three hot call sites (the
-# nominal IK, (47)-(51), the corrected target): the flags (errors, jacobian) fold to constants there, and no array
-# passes a call boundary (numba increfs and decrefs every array argument of a call it does not inline, atomics
-# on lines both threads share): 1.3x quiet on 2 threads, no change on 1
+# nominal IK, (47)-(51), the corrected target), where the flags (errors, jacobian) fold to constants and no call
+# passes ~30 array structs: full calls 1.26-1.37x quiet on 2 threads, measured side by side (one thread's kernel:
+# 1.4x in one bench, 0.92-0.98x in another; which part of the call the gain comes from was not isolated)
 flange_pose_inlined = njit(**inlined)(_flange_pose)
 
 

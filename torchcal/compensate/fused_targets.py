@@ -224,7 +224,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
     """Per pose b: the nominal IK from seed[b] to the flange that puts the nominal tool point t_nom[b] on
     the target T[b] (B, 4, 4), then (47)-(51) for the modeled flange (errors, base, directions sT) to the
     flange for the identified tool point t_act from there, then det J's sign and the nominal tool pose at the
-    solution (the corrected target, into CR, Cp). Writes q_out, qn_out (n, B), de_out (6, B), step_out,
+    solution (the corrected target, into C (B, 4, 4)). Writes q_out, qn_out (n, B), de_out (6, B), step_out,
     it_out (B,), status_out (B,) int8 (module constants); G1p, G2p (3, B) the flange goals' positions.
     (the inputs pose-first as the caller's tensors hold them: no transposed copies);
     from_seed: no IK, the goal is the seed's nominal flange (compensation of commands; T (B, 3, 3), G2p are written);
@@ -445,7 +445,7 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     """
     B, n = seed.shape
     f64 = torch.float64
-    s = soa(seed) if direction is None else soa(direction)  # (unread without directions)
+    s = np.empty((n, 0)) if direction is None else soa(direction)  # unread without directions
     corr = np.full(n, np.inf) if max_correction is None else max_correction.to(f64).cpu().numpy()
     q, qn = np.empty((n, B)), np.full((n, B), np.nan)
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
@@ -473,7 +473,7 @@ def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *
     arguments as :func:`solve_targets`."""
     B, n = q_nom.shape
     f64 = torch.float64
-    s = soa(q_nom) if direction is None else soa(direction)  # (unread without directions)
+    s = np.empty((n, 0)) if direction is None else soa(direction)  # unread without directions
     corr = np.full(n, np.inf) if max_correction is None else max_correction.to(f64).cpu().numpy()
     q, qn = np.empty((n, B)), np.empty((n, B))
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)

@@ -157,3 +157,28 @@ def test_compiled_rows_are_the_torch_rows(problems):
     a = _RowsFused(lin, same.slots, same.w_v, V, mu[:2], st, same.pp)
     b = _RowsTorch(lin, same.slots, same.w_v, V, mu[:2], st)
     assert _rel(a.S, b.S) < 1e-10 and torch.equal(a.S, a.S.transpose(1, 2))
+
+
+@pytest.mark.parametrize("P", [1, 2, 5, 64])
+def test_compiled_cholesky_is_torch_cholesky(P):
+    """fleet_kernel.cholesky_rows / cholesky_solve_rows against torch.linalg.cholesky_ex / cholesky_solve on a batch of
+    positive definite matrices of odd and even sizes (the kernel takes two columns per pass), and the failing pivot
+    of matrices that are not positive definite reported as torch reports it (its index + 1, 0 for the others)."""
+    if not fleet_kernel.available("cpu"):
+        pytest.skip("numba not importable")
+    g = torch.Generator().manual_seed(P)
+    A = torch.randn(4, P + 3, P, generator=g, dtype=torch.float64)
+    S = A.transpose(1, 2) @ A + 1e-3 * torch.eye(P, dtype=torch.float64)
+    S[2] = S[2] - 2.0 * S[2][P // 2, P // 2] * torch.outer(torch.eye(P, dtype=torch.float64)[P // 2],
+                                                             torch.eye(P, dtype=torch.float64)[P // 2])
+    S[3, P - 1, P - 1] = float("nan")
+    L, info = torch.empty_like(S), torch.empty(4, dtype=torch.int64)
+    fleet_kernel.cholesky_rows(S.numpy(), L.numpy(), info.numpy())
+    L_ref, info_ref = torch.linalg.cholesky_ex(S)
+    assert info.tolist() == info_ref.tolist() and info[0] == 0 and info[2] == P // 2 + 1 and info[3] == P
+    assert _rel(L[:2], L_ref[:2]) < 1e-12 and torch.equal(L[:2], L[:2].tril())
+    b = torch.randn(2, P, generator=g, dtype=torch.float64)
+    x = torch.empty_like(b)
+    fleet_kernel.cholesky_solve_rows(L[:2].contiguous().numpy(), b.numpy(), x.numpy())
+    assert _rel(S[:2] @ x[..., None], b[..., None]) < 1e-9
+    assert _rel(x, torch.cholesky_solve(b[..., None], L_ref[:2])[..., 0]) < 1e-10

@@ -327,15 +327,25 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
     history: list[list[float]] = [[] for _ in range(M)]
     idx_all = torch.arange(M, device=X.device)
 
-    def lin_chunks(which, Xw, Vw):
-        """[(start, stop, linearization)] of the models ``which`` in chunks (positions in ``which``)."""
-        return [(c, min(c + chunk, which.numel()), bp.linearize(Xw[c:c + chunk], Vw[c:c + chunk], which[c:c + chunk]))
+    # a problem with a workspace (the fleet's) lends the trial linearizations and the steps' gathered inputs
+    # from it: they live only within an iteration, and fresh 10-100 MB blocks cost their page faults every time
+    ws = getattr(bp, "workspace", None)
+
+    def lin_chunks(which, Xw, Vw, reuse=False):
+        """[(start, stop, linearization)] of the models ``which`` in chunks (positions in ``which``); reuse: the
+        workspace's slot per chunk (consumed before the next call)."""
+        opt = (lambda c: {"slot": c // chunk}) if reuse and ws is not None else (lambda c: {})
+        return [(c, min(c + chunk, which.numel()),
+                 bp.linearize(Xw[c:c + chunk], Vw[c:c + chunk], which[c:c + chunk], **opt(c)))
                 for c in range(0, which.numel(), chunk)]
 
-    def rows(t, idx):
-        """t[idx], a view where idx is a run of consecutive models (no copy of the linearizations)."""
+    def rows(t, idx, name=None):
+        """t[idx], a view where idx is a run of consecutive models (no copy of the linearizations); else a copy,
+        into the workspace's buffer ``name`` where given."""
         if idx.numel() and int(idx[-1]) - int(idx[0]) + 1 == idx.numel():
             return t[int(idx[0]):int(idx[-1]) + 1]
+        if name is not None and ws is not None:
+            return torch.index_select(t, 0, idx, out=ws.take(name, (idx.numel(), *t.shape[1:]), t))
         return t[idx]
 
     def step(lin, Vw, dX, muw, which):
@@ -358,7 +368,8 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             it += 1
             w = active.nonzero()[:, 0]
             # steps of the active models, in chunks (memory)
-            steps = [step([rows(t, w[c:c + chunk]) for t in lin], V[w[c:c + chunk]], X[w[c:c + chunk]] - bp.mean,
+            steps = [step([rows(t, w[c:c + chunk], f"step{k}") for k, t in enumerate(lin)], V[w[c:c + chunk]],
+                          X[w[c:c + chunk]] - bp.mean,
                           mu[w[c:c + chunk]], w[c:c + chunk]) for c in range(0, w.numel(), chunk)]
             db, dv, lres = (torch.cat(t) for t in zip(*steps))
             Xn, Vn = X[w] + db, V[w] + dv
@@ -371,7 +382,7 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             need = (~flat).nonzero()[:, 0]
             wl = w[need]
             new_cost = cost[w].clone()
-            lin_n = lin_chunks(wl, Xn[need], Vn[need]) if need.numel() else []
+            lin_n = lin_chunks(wl, Xn[need], Vn[need], reuse=True) if need.numel() else []
             if need.numel():
                 nfev[wl.cpu()] += 1
                 for a, b, out in lin_n:

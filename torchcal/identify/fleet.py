@@ -39,6 +39,7 @@ from . import fleet_kernel
 from .fleet_kernel import factored_linearization_fused
 from ..models.jacobian import chebyshev_design
 from .structured import RobotStructure, factored_linearization, pair_basis, pose_slots, structured_steps
+from .workspace import Workspace
 
 
 def stack_units(units: Sequence[Measurements]) -> dict:
@@ -131,6 +132,7 @@ class FleetProblem(BatchedProblem):
             self.structure = RobotStructure(superset, self.layout)
             self.slots = pose_slots([u.q for u in units], [u.direction if st["has_direction"] else None for u in units], R)
             self.phi_p, self.pp = self._pose_basis()
+            self.workspace = Workspace()  # the solver's large temporaries, reused from one iteration to the next
 
     def _pins(self, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
         """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units."""
@@ -162,14 +164,17 @@ class FleetProblem(BatchedProblem):
         return phi, (pair_basis(phi[0], self.n).contiguous() if shared else None)
 
     @torch.no_grad()
-    def linearize(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor):
+    def linearize(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor, slot: int | None = None):
         """Whitened residual f (m, R, d), parameter Jacobian A (m, R, d, P) and joint-error Jacobian C
-        (m, R, d, n) of the units ``which`` (m,) at X (m, P), V (m, R, n), each on its own rows."""
+        (m, R, d, n) of the units ``which`` (m,) at X (m, P), V (m, R, n), each on its own rows (factored where
+        the model allows: f, C, E, Phi, Phi_p). slot: the compiled factored outputs are written into the
+        problem's workspace under this slot, valid until the next call with the same slot (the solver's
+        chunks, whose linearizations it copies or drops within the iteration); None: allocated."""
         inst, layout, R, st = self.instrument, self.layout, self.R, self.stack
         w = which.to(st["q"].device)
         q, tool, obs = st["q"][w], st["tool"][w], st["xyz"][w]
         if self.structure is not None:
-            return self._factored(X, V, w, q, tool, obs)
+            return self._factored(X, V, w, q, tool, obs, slot)
         wrapper = _Predict(self.superset, self.instrument)
 
         if st["has_direction"]:
@@ -188,15 +193,16 @@ class FleetProblem(BatchedProblem):
         kf = self.keep[which].to(A)
         return f * s, A * s[..., None] * kf[:, None, None, :], C * s[..., None]
 
-    def _factored(self, X, V, w, q, tool, obs):
+    def _factored(self, X, V, w, q, tool, obs, slot=None):
         """Whitened residual f (m, R, d), joint-error Jacobian C (m, R, d, n) and the factored parameter
         Jacobian (E (m, R, d, Q), Phi (m, R, n, K), each pose's Phi_p (m, Pp, n, K) at its command) of the units w."""
         st = self.stack
         direction = st["direction"][w] if st["has_direction"] else None
         s = self.scale[w] / self.instrument.weight.sigma
         if fleet_kernel.available(q.device):  # whitened in the kernel: a pass over E the less
+            out = None if slot is None else (lambda name, shape, like: self.workspace.take(f"lin{slot}.{name}", shape, like))
             f, Jv, E, Phi = factored_linearization_fused(self.superset, self.structure, self._params(X), q, tool,
-                                                         direction, V, obs, scale=s)
+                                                         direction, V, obs, scale=s, out=out)
             return f, Jv, E, Phi, self.phi_p[w]
         raw, Jv, E, Phi = factored_linearization(self.superset, self.structure, self._params(X), q, tool, direction, V,
                                                  obs)
@@ -208,7 +214,7 @@ class FleetProblem(BatchedProblem):
         if self.structure is None:
             return super().step(lin, V, dX, mu, which)
         return structured_steps(lin, self.structure, self.slots[which], self.w_v[which], V, self.lam, dX, mu,
-                                self.keep[which], pp=self.pp)
+                                self.keep[which], pp=self.pp, ws=self.workspace)
 
 
 @dataclass
@@ -235,7 +241,7 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     per unit (tracker points, SI; any number of rows each); noise: one
     :class:`NoiseModel` (None: the robot's) or M of them; prior, fixed, gauge,
     max_iter, ftol, xtol, mu0: as for :func:`torchcal.fit` (``method='lm'``);
-    chunk: units linearized together (None: as many as ~60 MB of factors and temporaries hold on the CPU,
+    chunk: units linearized together (None: as many as ~190 MB of factors and temporaries hold on the CPU,
     ~1 GB on a GPU). structured: the factored Jacobian and normal matrix (:mod:`.structured`) where the model
     allows (a RobotModel without compliance and fine tables, isotropic point targets); False: dense A; None
     (default): factored on the CPU, dense on a GPU, whose batched products are what it is fast at (100
@@ -264,7 +270,9 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
             per_unit = 8 * fp.R * (4 * fp.d * (fp.structure.ne + fp.structure.Nd) + 2 * fp.structure.size)
         else:  # f, A, C and the step's temporaries, roughly
             per_unit = 8 * fp.R * fp.d * fp.layout.size * 3
-        budget = 6e7 if fp.rows.device.type == "cpu" else 1e9  # bytes
+        # bytes; on the CPU 24 FANUC units (7.8 MB each): with the step's buffers reused (Workspace), 16-50 ran
+        # alike and 7-10 units 7-12 % slower (100 FANUCs, 2 cores, side by side); the smallest of the fast
+        budget = 1.9e8 if fp.rows.device.type == "cpu" else 1e9
         chunk = max(1, min(fp.M, int(budget // per_unit)))
     batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label="fitting the fleet's units together", t0=t0)
     return FleetFit(fp.models, batch, fp.layout)

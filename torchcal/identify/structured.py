@@ -1,5 +1,9 @@
 """The fleet's Gauss-Newton step in the Khatri-Rao structure of a robot model's Jacobian.
 
+Why one module: the factored linearization, the normal matrix's contraction and the step are one layout
+(the pair order, the gather into layout order, the pose slots) read by both the torch form and its compiled
+twin (:mod:`.fleet_kernel`); split, each half would restate it.
+
 Why this module exists. Profiled (12-20 FANUC units, order 6 + backlash,
 250 x 3 rows, 285 parameters), the dense batched solve spent its time on two
 things of the same size: forming the parameter Jacobian A (750 x 3 x 285 per
@@ -57,6 +61,7 @@ import torch
 from ..kinematics.fk import chain_frames
 from ..kinematics.transforms import twist_to_transform
 from ..models.jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
+from .workspace import Workspace
 
 GROUPS = ("joint_errors.coef", "joint_errors.backlash", "base.twist", "tools.delta")
 
@@ -278,27 +283,31 @@ def pair_basis(Phi_p: torch.Tensor, n: int) -> torch.Tensor:
     return (Pt[pi, :, :, None] * Pt[pj, :, None, :]).flatten(2)
 
 
-def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | None = None) -> torch.Tensor:
+def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | None = None,
+             ws: Workspace | None = None) -> torch.Tensor:
     """The normal matrix (m, P, P) in layout order from :func:`gram_parts` and the poses' basis values
     Phi_p (m, Pp, n, K): S[(i,a,k),(j,b,l)] = sum_p G_p[(i,a),(j,b)] Phi_p,i,k Phi_p,j,l (pairs i <= j, one
     batched product each), S[(i,a,k), c] = sum_p G_p[(i,a), c] Phi_p,i,k, S[c, c'] = sum_p G_p[c, c'].
-    pp: :func:`pair_basis` where every unit has the same poses (one product per pair for all the units)."""
+    pp: :func:`pair_basis` where every unit has the same poses (one product per pair for all the units).
+    ws: where the large temporaries and the result come from (:class:`Workspace`; None: allocated)."""
+    ws = Workspace() if ws is None else ws
     Gs, Gsd, Gdd, pi, pj = parts
     npair, m = Gs.shape[:2]
     Pp = Gs.shape[-1]
     n, A, K, Nd = st.n, st.A, st.K, st.Nd
     nb, nsd = npair * A * A * K * K, n * A * Nd * K
-    flat = Gs.new_empty(m, nb + nsd + Nd * Nd)
+    flat = ws.take("flat", (m, nb + nsd + Nd * Nd), Gs)
     # products with the poses' basis values on the left and the Gram blocks on the right, pose-major as the
     # compiled kernel writes them (read as they lie; 20-30 % faster than their transposed views on the left)
     if pp is not None:
-        blk = torch.bmm(pp.transpose(1, 2).contiguous(), Gs.permute(0, 4, 1, 2, 3).reshape(npair, Pp, m * A * A))
+        blk = torch.bmm(pp.transpose(1, 2).contiguous(), Gs.permute(0, 4, 1, 2, 3).reshape(npair, Pp, m * A * A),
+                        out=ws.take("blk", (npair, K * K, m * A * A), Gs))
         flat[:, :nb].view(m, npair, A * A, K * K).copy_(blk.view(npair, K * K, m, A * A).permute(2, 0, 3, 1))
     else:
         pi, pj = pi.to(Phi_p.device), pj.to(Phi_p.device)
         Pt = Phi_p.permute(2, 0, 1, 3)  # (n, m, Pp, K)
         PP = (Pt[pi, :, :, :, None] * Pt[pj, :, :, None, :]).reshape(npair * m, Pp, K * K)
-        blk = torch.bmm(Gs.reshape(npair * m, A * A, Pp), PP)
+        blk = torch.bmm(Gs.reshape(npair * m, A * A, Pp), PP, out=ws.take("blk", (npair * m, A * A, K * K), Gs))
         flat[:, :nb].view(m, npair, -1).copy_(blk.view(npair, m, -1).transpose(0, 1))
     if pp is not None:  # the same poses: (n, K, Pp) @ (n, Pp, m A Nd) -> (m, n, A, Nd, K)
         sd = torch.bmm(Phi_p[0].permute(1, 2, 0).contiguous(), Gsd.permute(1, 4, 0, 2, 3).reshape(n, Pp, m * A * Nd))
@@ -311,7 +320,7 @@ def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | 
     from . import fleet_kernel
 
     if fleet_kernel.available(flat.device):  # torch's indexed gather: 5 ns an entry, a tenth of a ms a unit
-        out = flat.new_empty(m, P, P)
+        out = ws.take("S", (m, P, P), flat)
         with fleet_kernel.dynamic():
             fleet_kernel.gather_rows(flat.numpy(), st.gather.numpy(), out.view(m, -1).numpy())
         return out
@@ -319,13 +328,14 @@ def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | 
 
 
 def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, refine: int = 0,
-                     tol: float = 1e-6, pp: torch.Tensor | None = None):
+                     tol: float = 1e-6, pp: torch.Tensor | None = None, ws: Workspace | None = None):
     """Damped Gauss-Newton steps of m units from factored linearizations (the factored
     :func:`~torchcal.identify.batched._schur_steps`).
 
     lin: (f (m, R, d), C (m, R, d, n), E (m, R, d, Q), Phi (m, R, n, K), Phi_p (m, Pp, n, K)), whitened, rows
     a unit does not fit zero; slots (m, Pp, T); w_v, V (m, R, n); lam (P,); dx (m, P); mu (m,); keep (m, P).
-    pp: :func:`pair_basis` of the poses where every unit has the same ones. refine, tol: at most ``refine`` conjugate-gradient iterations on the exact product (each row its own
+    pp: :func:`pair_basis` of the poses where every unit has the same ones; ws: the :class:`Workspace` of
+    the compiled path's large temporaries (None: allocated). refine, tol: at most ``refine`` conjugate-gradient iterations on the exact product (each row its own
     basis values, one factored pass each), preconditioned by S (the poses' basis values), until the
     residual's S^-1 norm is below tol of the right-hand side's: the rows of a pose differ in their joint
     errors (~1e-5 of the range), S by that, and one or two iterations make the step the exact one.
@@ -338,7 +348,7 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     """
     from . import fleet_kernel
 
-    rows = _RowsFused(lin, slots, w_v, V, mu, st, pp) if fleet_kernel.available(lin[0].device) else \
+    rows = _RowsFused(lin, slots, w_v, V, mu, st, pp, ws) if fleet_kernel.available(lin[0].device) else \
         _RowsTorch(lin, slots, w_v, V, mu, st, pp)
     E = lin[2]
     m = E.shape[0]
@@ -353,9 +363,20 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     damp = lam_m + mu[:, None] * diag_bb + (1.0 - kf)
     S.diagonal(dim1=1, dim2=2).add_(damp)
     rhs = -(rows.gx[:, idx] + lam_m * dx) * kf
-    Ls, info = torch.linalg.cholesky_ex(S)
+    if isinstance(rows, _RowsFused):
+        Ls, info = rows.ws.take("L", S.shape, S), torch.empty(m, dtype=torch.int64)
+        with fleet_kernel.dynamic():
+            fleet_kernel.cholesky_rows(S.numpy(), Ls.numpy(), info.numpy())
+    else:
+        Ls, info = torch.linalg.cholesky_ex(S)
     if bool((info != 0).any()):  # not positive definite: the least-squares solution
         solve = lambda r: torch.linalg.lstsq(S, r[..., None]).solution[..., 0]  # noqa: E731
+    elif isinstance(rows, _RowsFused):
+        def solve(r):
+            out = torch.empty_like(r)
+            with fleet_kernel.dynamic():
+                fleet_kernel.cholesky_solve_rows(Ls.numpy(), r.contiguous().numpy(), out.numpy())
+            return out
     else:
         solve = lambda r: torch.cholesky_solve(r[..., None], Ls)[..., 0]  # noqa: E731
     dbx = E.new_zeros(m, st.size)
@@ -432,7 +453,7 @@ class _RowsTorch:
 class _RowsFused(_RowsTorch):
     """:class:`_RowsTorch` by the compiled kernels of :mod:`.fleet_kernel` (CPU)."""
 
-    def __init__(self, lin, slots, w_v, V, mu, st, pp=None):
+    def __init__(self, lin, slots, w_v, V, mu, st, pp=None, ws: Workspace | None = None):
         from .fleet_kernel import dynamic, pose_blocks, schur_rows
 
         f, C, E, Phi, Phi_p = lin
@@ -443,22 +464,25 @@ class _RowsFused(_RowsTorch):
         self.lin, self.st = lin, st
         self.slots = slots.contiguous()
         like = dict(dtype=E.dtype)
-        self.Li, self.W = torch.empty(m, R, n, n, **like), torch.empty(m, R, n, d, **like)
-        self.z, self.Mm = torch.empty(m, R, n, **like), torch.empty(m, R, d, d, **like)
+        # Woodbury's factors of the joint errors' elimination (fleet_kernel._eliminate_row), not the torch form's Li, W, z
+        self.Dinv, self.gv = torch.empty(m, R, n, **like), torch.empty(m, R, n, **like)
+        self.Mm = torch.empty(m, R, d, d, **like)
         pi, pj = torch.triu_indices(n, n)
         pair = torch.zeros(n, n, dtype=torch.long)
         pair[pi, pj] = torch.arange(pi.numel())
-        Gs, Gsd = torch.empty(pi.numel(), Pp, m, A, A, **like), torch.empty(n, Pp, m, A, Nd, **like)
+        self.ws = ws = Workspace() if ws is None else ws
+        Gs, Gsd = ws.take("Gs", (pi.numel(), Pp, m, A, A), E), ws.take("Gsd", (n, Pp, m, A, Nd), E)
         Gdd, gx, dg = torch.empty(m, NB, Nd, Nd, **like), torch.empty(m, NB, st.size, **like), \
             torch.empty(m, NB, st.size, **like)
         self.c = [t.contiguous() for t in (f, C, E, Phi)]
         f_, C_, E_, Phi_ = (t.numpy() for t in self.c)
         with dynamic():
             schur_rows(f_, C_, E_, Phi_, V.contiguous().numpy(), w_v.contiguous().numpy(), mu.contiguous().numpy(),
-                       self.slots.numpy(), n, A, pair.numpy(), self.Li.numpy(), self.W.numpy(), self.z.numpy(),
+                       self.slots.numpy(), n, A, pair.numpy(), self.Dinv.numpy(), self.gv.numpy(),
                        self.Mm.numpy(), Gs.view(-1).numpy(), Gsd.view(-1).numpy(), Gdd.numpy(), gx.numpy(), dg.numpy())
         self.gx, self.diag_x = gx.sum(1), dg.sum(1)
-        self.S = contract((Gs.permute(0, 2, 3, 4, 1), Gsd.permute(2, 0, 3, 4, 1), Gdd.sum(1), pi, pj), Phi_p, st, pp)
+        self.S = contract((Gs.permute(0, 2, 3, 4, 1), Gsd.permute(2, 0, 3, 4, 1), Gdd.sum(1), pi, pj), Phi_p, st, pp,
+                          ws)
 
     def _apply(self, dbx, final):
         from .fleet_kernel import apply_rows, dynamic, pose_blocks
@@ -471,7 +495,7 @@ class _RowsFused(_RowsTorch):
         dv, lin = (E.new_zeros(m, R, n), E.new_zeros(m, R, d)) if final else (empty, empty)
         with dynamic():
             apply_rows(E.numpy(), Phi.numpy(), dbx.contiguous().numpy(), self.slots.numpy(), n, self.st.A, final,
-                       self.Mm.numpy(), self.Li.numpy(), self.W.numpy(), self.z.numpy(), f.numpy(), C.numpy(),
+                       self.Mm.numpy(), self.Dinv.numpy(), self.gv.numpy(), f.numpy(), C.numpy(),
                        sx.numpy(), dv.numpy(), lin.numpy())
         return (dv, lin) if final else sx.sum(1)
 

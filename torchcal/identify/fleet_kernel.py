@@ -17,10 +17,10 @@ scalars and small scratch arrays, blocks of poses handed to the threads one
 at a time (:func:`dynamic`); each pose's Gram matrix is formed in scratch
 right after its rows' elimination (no per-row copies of E and M E through
 memory) and written pose-major, where the contraction's batched products read
-it. Same formulas, term for term, as the torch form
-(chain_frames, so3_exp with its Taylor branch, so3_right_jacobian,
+it. Same formulas as the torch form (chain_frames, so3_exp, so3_right_jacobian,
 twist_jacobian, joint_axis_jacobian, the Chebyshev recurrence and its
-derivative); the tests hold both to rounding. CPU, float64, numba importable
+derivative), except where noted: the small-angle series of :func:`_so3_coeffs`, the joint errors'
+elimination by Woodbury (:func:`_eliminate_row`), the order of sums; the tests hold both to rounding. CPU, float64, numba importable
 (``TORCHCAL_NO_NUMBA`` unset); everything else takes the torch form.
 """
 
@@ -56,23 +56,19 @@ _POSES = 16  # poses per task of a unit (scratch is allocated per task: numba's 
 
 
 @njit(cache=True)
-def _exp_coeffs(w0, w1, w2):
-    """a, b of exp(S(w)) = I + a S + b S^2 (so3_exp, Taylor branch below theta^2 = 1e-8)."""
+def _so3_coeffs(w0, w1, w2):
+    """a, b, c of exp(S(w)) = I + a S + b S^2 (so3_exp) and J_r(w) = I - b S + c S^2 (so3_right_jacobian): one
+    sin and cos for both. Below theta^2 = 1e-4 (a joint's error rotation is ~1e-4-1e-3 rad) by their series to
+    theta^6, whose first omitted term is < 3e-22: no libm calls, and no cancellation in 1 - cos(theta), which
+    costs the closed form up to 1e-16 / theta^2 of b's and c's digits (the torch forms switch at 1e-8)."""
     t2 = w0 * w0 + w1 * w1 + w2 * w2
-    if t2 < 1e-8:
-        return 1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+    if t2 < 1e-4:
+        return (1.0 - t2 / 6.0 * (1.0 - t2 / 20.0 * (1.0 - t2 / 42.0)),
+                0.5 - t2 / 24.0 * (1.0 - t2 / 30.0 * (1.0 - t2 / 56.0)),
+                1.0 / 6.0 - t2 / 120.0 * (1.0 - t2 / 42.0 * (1.0 - t2 / 72.0)))
     t = math.sqrt(t2)
-    return math.sin(t) / t, (1.0 - math.cos(t)) / t2
-
-
-@njit(cache=True)
-def _rj_coeffs(w0, w1, w2):
-    """a, b of J_r(w) = I - a S + b S^2 (so3_right_jacobian, Taylor branch below theta^2 = 1e-8)."""
-    t2 = w0 * w0 + w1 * w1 + w2 * w2
-    if t2 < 1e-8:
-        return 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
-    t = math.sqrt(t2)
-    return (1.0 - math.cos(t)) / t2, (t - math.sin(t)) / (t2 * t)
+    st, ct = math.sin(t), math.cos(t)
+    return st / t, (1.0 - ct) / t2, (t - st) / (t2 * t)
 
 
 @njit(cache=True)
@@ -128,6 +124,8 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
         Jax = np.empty((3, n))
         slope = np.empty((3, n))
         Je = np.empty((3, 6))
+        rb = np.empty(n)  # J_r(e_i)'s coefficients, from the chain's pass
+        rc = np.empty(n)
         for r in range(c * _CHUNK, min(B, (c + 1) * _CHUNK)):
             mu = unit[r]
             for i in range(n):
@@ -177,7 +175,8 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
                 p1 += R[1, 0] * op[i, 0] + R[1, 1] * op[i, 1] + R[1, 2] * op[i, 2]
                 p2 += R[2, 0] * op[i, 0] + R[2, 1] * op[i, 1] + R[2, 2] * op[i, 2]
                 _mm(Rn, R, oR[i])
-                ea, eb = _exp_coeffs(e[i, 0], e[i, 1], e[i, 2])
+                ea, eb, rc[i] = _so3_coeffs(e[i, 0], e[i, 1], e[i, 2])
+                rb[i] = eb  # J_r's a is exp's b
                 _rot(Ex[i], e[i, 0], e[i, 1], e[i, 2], ea, eb)
                 p0 += Rn[0, 0] * e[i, 3] + Rn[0, 1] * e[i, 4] + Rn[0, 2] * e[i, 5]
                 p1 += Rn[1, 0] * e[i, 3] + Rn[1, 1] * e[i, 4] + Rn[1, 2] * e[i, 5]
@@ -215,8 +214,7 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
                 E_out[r, 2, q] = 0.0
             for i in range(n):
                 # twist_jacobian's point rows: [-S(p - o) R J_r(eps), R exp(S(eps))^T]
-                ra, rb = _rj_coeffs(e[i, 0], e[i, 1], e[i, 2])
-                _rot(M3, e[i, 0], e[i, 1], e[i, 2], -ra, rb)
+                _rot(M3, e[i, 0], e[i, 1], e[i, 2], -rb[i], rc[i])
                 _mm(RJ, jR[i], M3)
                 d0, d1, d2 = x0 - jp[i, 0], x1 - jp[i, 1], x2 - jp[i, 2]
                 for k in range(3):
@@ -654,7 +652,7 @@ def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, Dinv_o, gv_o, M_o, G
 @njit(parallel=True, cache=True, fastmath=True)
 def apply_rows(E, Phi, dbx, slots, n, A, final, M, Dinv, gv, f, C, sx_b, dv, lin):
     """A db of every row (E_r times the step's extended values weighted by the row's basis values), one task per
-    block of a unit's poses (:func:`pose_blocks`); final=False: the extended product A^T M A db, each block's
+    block of poses (:func:`pose_blocks`), every unit's; final=False: the extended product A^T M A db, each block's
     rows summed into sx_b (m, NB, size); final=True: the joint-error steps dv = -H_vv^-1 (g_v + C^T A db)
     (m, R, n) from :func:`schur_rows`' Dinv, gv and M (Woodbury, as :func:`_eliminate_row` says) and the
     linearized residual lin = f + A db + C dv (m, R, d)."""
@@ -665,63 +663,66 @@ def apply_rows(E, Phi, dbx, slots, n, A, final, M, Dinv, gv, f, C, sx_b, dv, lin
     Nd = Q - ne
     ns = ne * K
     NB = (Pp + _POSES - 1) // _POSES
-    for job in prange(m * NB):
-        u = job // NB
-        b = job % NB
+    for b in prange(NB):  # a block of poses, every unit's: the scratch allocated once a task (numba: ~µs each)
         wq = np.empty(Q)
         Adb = np.empty(d)
         MA = np.empty(d)
         tmp = np.empty(n)
         sxl = np.zeros(sx_b.shape[2])
-        for p in range(b * _POSES, min(Pp, (b + 1) * _POSES)):
-            for t in range(T):
-                r = slots[u, p, t]
-                if r >= R:
-                    continue
-                for i in range(n):
-                    for a in range(A):
-                        col = i * A + a
-                        x = 0.0
-                        for k in range(K):
-                            x += Phi[u, r, i, k] * dbx[u, col * K + k]
-                        wq[col] = x
-                for q in range(Nd):
-                    wq[ne + q] = dbx[u, ns + q]
-                for a in range(d):
-                    x = 0.0
-                    for q in range(Q):
-                        x += E[u, r, a, q] * wq[q]
-                    Adb[a] = x
-                if not final:
-                    for a in range(d):
-                        MA[a] = M[u, r, a, 0] * Adb[0] + M[u, r, a, 1] * Adb[1] + M[u, r, a, 2] * Adb[2]
+        for u in range(m):
+            dbu = dbx[u]
+            if not final:
+                sxl[:] = 0.0
+            for p in range(b * _POSES, min(Pp, (b + 1) * _POSES)):
+                for t in range(T):
+                    r = slots[u, p, t]
+                    if r >= R:
+                        continue
+                    Pr, Er = Phi[u, r], E[u, r]
                     for i in range(n):
                         for a in range(A):
                             col = i * A + a
-                            h = E[u, r, 0, col] * MA[0] + E[u, r, 1, col] * MA[1] + E[u, r, 2, col] * MA[2]
+                            x = 0.0
                             for k in range(K):
-                                sxl[col * K + k] += h * Phi[u, r, i, k]
+                                x += Pr[i, k] * dbu[col * K + k]
+                            wq[col] = x
                     for q in range(Nd):
-                        sxl[ns + q] += E[u, r, 0, ne + q] * MA[0] + E[u, r, 1, ne + q] * MA[1] + E[u, r, 2, ne + q] * MA[2]
-                else:
-                    s0 = s1 = s2 = 0.0  # C D^-1 x, x = g_v + C^T A db
-                    for i in range(n):
-                        c0, c1, c2 = C[u, r, 0, i], C[u, r, 1, i], C[u, r, 2, i]
-                        y = Dinv[u, r, i] * (gv[u, r, i] + c0 * Adb[0] + c1 * Adb[1] + c2 * Adb[2])
-                        tmp[i] = y
-                        s0 += c0 * y
-                        s1 += c1 * y
-                        s2 += c2 * y
-                    t0 = M[u, r, 0, 0] * s0 + M[u, r, 0, 1] * s1 + M[u, r, 0, 2] * s2
-                    t1 = M[u, r, 1, 0] * s0 + M[u, r, 1, 1] * s1 + M[u, r, 1, 2] * s2
-                    t2 = M[u, r, 2, 0] * s0 + M[u, r, 2, 1] * s1 + M[u, r, 2, 2] * s2
-                    for i in range(n):
-                        dv[u, r, i] = Dinv[u, r, i] * (C[u, r, 0, i] * t0 + C[u, r, 1, i] * t1 + C[u, r, 2, i] * t2) - tmp[i]
+                        wq[ne + q] = dbu[ns + q]
                     for a in range(d):
-                        x = f[u, r, a] + Adb[a]
-                        for j in range(n):
-                            x += C[u, r, a, j] * dv[u, r, j]
-                        lin[u, r, a] = x
-        if not final:
-            for q in range(sxl.size):
-                sx_b[u, b, q] = sxl[q]
+                        x = 0.0
+                        for q in range(Q):
+                            x += Er[a, q] * wq[q]
+                        Adb[a] = x
+                    if not final:
+                        for a in range(d):
+                            MA[a] = M[u, r, a, 0] * Adb[0] + M[u, r, a, 1] * Adb[1] + M[u, r, a, 2] * Adb[2]
+                        for i in range(n):
+                            for a in range(A):
+                                col = i * A + a
+                                h = E[u, r, 0, col] * MA[0] + E[u, r, 1, col] * MA[1] + E[u, r, 2, col] * MA[2]
+                                for k in range(K):
+                                    sxl[col * K + k] += h * Phi[u, r, i, k]
+                        for q in range(Nd):
+                            sxl[ns + q] += E[u, r, 0, ne + q] * MA[0] + E[u, r, 1, ne + q] * MA[1] + E[u, r, 2, ne + q] * MA[2]
+                    else:
+                        s0 = s1 = s2 = 0.0  # C D^-1 x, x = g_v + C^T A db
+                        for i in range(n):
+                            c0, c1, c2 = C[u, r, 0, i], C[u, r, 1, i], C[u, r, 2, i]
+                            y = Dinv[u, r, i] * (gv[u, r, i] + c0 * Adb[0] + c1 * Adb[1] + c2 * Adb[2])
+                            tmp[i] = y
+                            s0 += c0 * y
+                            s1 += c1 * y
+                            s2 += c2 * y
+                        t0 = M[u, r, 0, 0] * s0 + M[u, r, 0, 1] * s1 + M[u, r, 0, 2] * s2
+                        t1 = M[u, r, 1, 0] * s0 + M[u, r, 1, 1] * s1 + M[u, r, 1, 2] * s2
+                        t2 = M[u, r, 2, 0] * s0 + M[u, r, 2, 1] * s1 + M[u, r, 2, 2] * s2
+                        for i in range(n):
+                            dv[u, r, i] = Dinv[u, r, i] * (C[u, r, 0, i] * t0 + C[u, r, 1, i] * t1 + C[u, r, 2, i] * t2) - tmp[i]
+                        for a in range(d):
+                            x = f[u, r, a] + Adb[a]
+                            for j in range(n):
+                                x += C[u, r, a, j] * dv[u, r, j]
+                            lin[u, r, a] = x
+            if not final:
+                for q in range(sxl.size):
+                    sx_b[u, b, q] = sxl[q]

@@ -668,7 +668,7 @@ def apply_rows(E, Phi, dbx, slots, n, A, final, M, Dinv, gv, f, C, sx_b, dv, lin
         Adb = np.empty(d)
         MA = np.empty(d)
         tmp = np.empty(n)
-        sxl = np.zeros(sx_b.shape[2])
+        sxl = np.empty(sx_b.shape[2])  # zeroed per unit below
         for u in range(m):
             dbu = dbx[u]
             if not final:

@@ -367,18 +367,17 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
         Ls, info = rows.ws.take("L", S.shape, S), torch.empty(m, dtype=torch.int64)
         with fleet_kernel.dynamic():
             fleet_kernel.cholesky_rows(S.numpy(), Ls.numpy(), info.numpy())
-    else:
-        Ls, info = torch.linalg.cholesky_ex(S)
-    if bool((info != 0).any()):  # not positive definite: the least-squares solution
-        solve = lambda r: torch.linalg.lstsq(S, r[..., None]).solution[..., 0]  # noqa: E731
-    elif isinstance(rows, _RowsFused):
+
         def solve(r):
             out = torch.empty_like(r)
             with fleet_kernel.dynamic():
                 fleet_kernel.cholesky_solve_rows(Ls.numpy(), r.contiguous().numpy(), out.numpy())
             return out
     else:
+        Ls, info = torch.linalg.cholesky_ex(S)
         solve = lambda r: torch.cholesky_solve(r[..., None], Ls)[..., 0]  # noqa: E731
+    if bool((info != 0).any()):  # not positive definite: the least-squares solution
+        solve = lambda r: torch.linalg.lstsq(S, r[..., None]).solution[..., 0]  # noqa: E731
     dbx = E.new_zeros(m, st.size)
 
     def exact(x):  # the damped normal matrix times x, every row with its own basis values

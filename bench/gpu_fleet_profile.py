@@ -2,7 +2,7 @@
 with --sync-sites, where it waits for the device: every host sync (torch.cuda.set_sync_debug_mode("warn"))
 counted by its innermost torchcal source lines.
 
-    python bench/gpu_fleet_profile.py [--units 100] [--sync-sites]
+    python bench/gpu_fleet_profile.py [--units 100] [--modes default,structured,dense] [--no-table] [--sync-sites]
 """
 
 from __future__ import annotations
@@ -30,6 +30,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--units", type=int, default=100)
     ap.add_argument("--sync-sites", action="store_true")
+    ap.add_argument("--modes", default="default,structured,dense", help="fit_fleet's structured=None, True, False")
+    ap.add_argument("--no-table", action="store_true", help="timings only, no torch.profiler table")
     args = ap.parse_args()
     gpu = torch.device("cuda")
     robot = torchcal.load_robot("fanuc_lrmate200i")
@@ -46,7 +48,9 @@ def main():
     if args.sync_sites:
         return sync_sites(make, units, noise)
     best = {}
-    for structured in (True, False):
+    modes = {"default": None, "structured": True, "dense": False}
+    for label in args.modes.split(","):
+        structured = modes[label]
         times = []
         for _ in range(3):
             torch.cuda.synchronize()
@@ -55,8 +59,10 @@ def main():
             torch.cuda.synchronize()
             times.append(time.perf_counter() - t)
         best[structured] = min(times[1:])
-        print(f"structured={structured}: {[f'{x:.3f}' for x in times]} s; iterations max "
-              f"{int(max(u.nit for u in r.results)) if hasattr(r, 'results') else '?'}", flush=True)
+        print(f"{label} (structured={structured}): {[f'{x:.3f}' for x in times]} s; unit iterations max "
+              f"{max(u.nit for u in r.results)}, sum {sum(u.nit for u in r.results)}", flush=True)
+    if args.no_table:
+        return
     fast = min(best, key=best.get)
     from torch.profiler import ProfilerActivity, profile
 

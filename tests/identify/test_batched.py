@@ -85,3 +85,38 @@ def test_fit_structures_lands_at_the_separate_fits(setup):
         fit(alone, data, noise, Prior())
         a, b = row_errors(m, val).mean(), row_errors(alone, val).mean()
         assert abs(float(a / b) - 1) < 5e-3
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_schur_steps_solve_the_full_damped_normal_equations(seed):
+    """The batched step (joint errors eliminated per row in Woodbury form, both forms of M A) equals the solve
+    of each model's whole damped system in parameters and joint errors, formed and solved densely."""
+    from torchcal.identify import batched
+
+    g = torch.Generator().manual_seed(seed)
+    m, R, d, P, n = 3, 20, 3, 12, 6
+    rnd = lambda *s: torch.randn(*s, generator=g, dtype=torch.float64)
+    f, A, C, V, dx = rnd(m, R, d), rnd(m, R, d, P), rnd(m, R, d, n), rnd(m, R, n), rnd(m, P)
+    w_v = torch.rand(m, R, n, generator=g, dtype=torch.float64) + 0.1
+    lam = torch.rand(P, generator=g, dtype=torch.float64)
+    mu = torch.rand(m, generator=g, dtype=torch.float64)
+    keep = torch.rand(m, P, generator=g) > 0.25
+    A = A * keep[:, None, None, :]
+    db, dv, lin = batched._schur_steps(f, A, C, w_v, V, lam, dx, mu, keep)
+    assert torch.allclose(batched._blocks_times(batched._inv3_sym(torch.eye(3, dtype=torch.float64) + C @ C.transpose(-1, -2)), A),
+                          torch.linalg.inv(torch.eye(3, dtype=torch.float64) + C @ C.transpose(-1, -2)) @ A, atol=1e-12)
+    for k in range(m):
+        kf = keep[k].double()
+        J = torch.cat([A[k].reshape(R * d, P), torch.block_diag(*C[k])], 1)
+        H = J.T @ J
+        H[:P, :P] += torch.diag(lam * kf)
+        H[P:, P:] += torch.diag(w_v[k].reshape(-1))
+        grad = J.T @ f[k].reshape(-1)
+        grad[:P] += lam * kf * dx[k]
+        grad[P:] += (w_v[k] * V[k]).reshape(-1)
+        H = H + mu[k] * torch.diag(torch.diagonal(H))  # Marquardt's scaling
+        H[:P, :P] += torch.diag(1.0 - kf)  # an entry the model lacks: unit diagonal, no gradient, no step
+        step = -torch.linalg.solve(H, grad * torch.cat([kf, torch.ones(R * n, dtype=torch.float64)]))
+        assert torch.allclose(db[k], step[:P], atol=1e-10)
+        assert torch.allclose(dv[k].reshape(-1), step[P:], atol=1e-10)
+        assert torch.allclose(lin[k].reshape(-1), f[k].reshape(-1) + J @ step, atol=1e-10)

@@ -116,6 +116,30 @@ def test_structured_steps_are_the_dense_steps(problems):
                 assert _rel(y, x) < bound
 
 
+def test_dense_normal_steps_are_the_dense_steps(problems):
+    """The GPU's form (factored linearization expanded to A, one product for the normal matrix) takes the
+    step the dense linearization takes, and a solve in it ends where the dense solve ends."""
+    from torchcal.identify.batched import solve_batched
+
+    dense, fact, X, g = problems
+    dn = FleetProblem(lambda: torchcal.RobotModel(dense.superset.robot, TOOLS, orders=3, backlash=2), dense.units,
+                      dense.problem.noise, dense_normal=True)
+    assert dn.dense_normal and dn.structure is not None
+    V = 2e-5 * torch.randn(dn.M, dn.R, dn.n, generator=g, dtype=torch.float64) * dn.rows[..., None]
+    w = torch.arange(dn.M)
+    f, A, C = dense.linearize(X, V, w)
+    mu = torch.full((dn.M,), 1e-3, dtype=torch.float64)
+    a = _schur_steps(f, A, C, dense.w_v, V, dense.lam, X - dense.mean, mu, dense.keep)
+    b = dn.step(dn.linearize(X, V, w), V, X - dn.mean, mu, w)
+    for x, y in zip(a, b):
+        assert _rel(y, x) < 1e-9
+    ra, rb = solve_batched(dense, chunk=2), solve_batched(dn, chunk=2)
+    assert [r.nit for r in ra.results] == [r.nit for r in rb.results]
+    assert _rel(rb.x, ra.x) < 1e-8
+    # every unit's model holds its solution (the fleet's vectorized write), and start() reads it back
+    assert _rel(dn.start(), rb.x * dn.keep) < 1e-15
+
+
 def test_unsupported_models_take_the_dense_path():
     robot = torchcal.load_robot("fanuc_lrmate200i")
     model = torchcal.RobotModel(robot, TOOLS, orders=1, compliance=True)

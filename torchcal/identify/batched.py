@@ -125,7 +125,13 @@ class BatchedProblem:
         self.rows = rows
         sig0 = noises[0].sigma_m
         self.scale = torch.tensor([sig0 / nz.sigma_m for nz in noises], dtype=dt, device=dev)[:, None] * rows.to(dt)
-        w_v = torch.stack([1.0 / nz.joint_variance(d) for nz, d in zip(noises, directions)]).to(dev)
+        # one evaluation per distinct noise model over its models' rows (a fleet shares one: a GPU waits on
+        # every copy of a noise model's variances to it)
+        w_v = torch.empty(len(noises), *directions[0].shape, dtype=dt, device=dev)
+        for nz in {id(nz): nz for nz in noises}.values():
+            idx = [m for m, other in enumerate(noises) if other is nz]
+            value = 1.0 / nz.joint_variance(torch.stack([directions[m] for m in idx]).to(dev))
+            w_v[slice(None) if len(idx) == len(noises) else idx] = value
         if not bool(torch.isfinite(w_v).all()):
             raise ValueError(f"{who} needs positive joint variances (noise.joint_var_fwd / _bwd)")
         self.w_v = w_v
@@ -149,9 +155,28 @@ class BatchedProblem:
     def keep_device(self):
         return self.rows.device
 
+    def _stacked(self) -> list | None:
+        """Per layout entry, the M models' parameters of that name, where every model has it with the superset's
+        shape on its device (a fleet, a noise study); None otherwise (models of several structures)."""
+        out = []
+        owns = [dict(m.named_parameters()) for m in self.models]
+        for name, p, _ in self.layout.entries:
+            ps = [own.get(name) for own in owns]
+            if any(q is None or q.shape != p.shape or q.device != p.device for q in ps):
+                return None
+            out.append(ps)
+        return out
+
     def start(self) -> torch.Tensor:
         """(M, P) each model's current values in the superset's layout (entries it lacks: zero). Reads the
         models only (the superset may be one of them)."""
+        stacks = self._stacked()
+        if stacks is not None:  # one gather per entry for all models (a GPU waits on every boolean mask)
+            cols = []
+            for ps, idx in zip(stacks, self.layout._flat_index()):
+                flat = torch.stack([q.detach() for q in ps]).flatten(1)
+                cols.append(flat if idx is None else flat.index_select(1, idx.to(flat.device)))
+            return torch.cat(cols, 1).to(self.lam) * self.keep.to(self.lam)
         out = []
         for m in self.models:
             own = dict(m.named_parameters())
@@ -171,6 +196,18 @@ class BatchedProblem:
         """Write row m of X (M, P) into model m: its free entries in the superset's layout (entries it lacks
         are dropped; fixed groups keep their values). Reads nothing from the superset, which may be a model."""
         Xc = X.detach().clone()
+        stacks = self._stacked()
+        if stacks is not None:  # every model's entry from one scatter, then one copy per model and entry
+            i = 0
+            for ps, idx in zip(stacks, self.layout._flat_index()):
+                flat = torch.stack([q.detach() for q in ps]).flatten(1)
+                k = flat.shape[1] if idx is None else idx.numel()
+                vals = Xc[:, i:i + k].to(flat)
+                flat = vals if idx is None else flat.index_copy_(1, idx.to(flat.device), vals)
+                for q, row in zip(ps, flat):
+                    q.copy_(row.view_as(q))
+                i += k
+            return
         for m, model in enumerate(self.models):
             own = dict(model.named_parameters())
             i = 0
@@ -231,41 +268,67 @@ class BatchedProblem:
         return _schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
 
 
+def _inv3_sym(G: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) inverse of symmetric positive definite 3x3 matrices by the adjugate, elementwise (a batched
+    matmul or solve of 3x3 blocks is one tiny problem per block, the slowest form on a GPU)."""
+    a, b, c = G[..., 0, 0], G[..., 0, 1], G[..., 0, 2]
+    d, e, f = G[..., 1, 1], G[..., 1, 2], G[..., 2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    return torch.stack([A, B, C, B, D, E, C, E, F], -1).reshape(G.shape) / det[..., None, None]
+
+
+def _blocks_times(Mr: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
+    """Mr @ A for (..., d, d) blocks and (..., d, P) by d multiply-adds of rows: on a GPU a batched matmul of
+    small blocks runs one tiny product per block, 10-20x slower than this."""
+    out = Mr[..., 0, None] * A[..., 0, None, :]
+    for j in range(1, Mr.shape[-1]):
+        out = out + Mr[..., j, None] * A[..., j, None, :]
+    return out
+
+
 def _schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
     """Damped Gauss-Newton steps of m models at once (the batched :func:`~torchcal.identify.lm._schur_step`).
 
     f (m, R, d), A (m, R, d, P), C (m, R, d, n), w_v (m, R, n), V (m, R, n), lam (P,), dx (m, P), mu (m,),
     keep (m, P). -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d).
+
+    Each row's joint errors are eliminated in Woodbury form. Their damped block is
+    H_vv = C^T C + D, D = (1 + mu) w_v + mu diag(C^T C) diagonal, so the row's projector
+    I - C H_vv^-1 C^T is M = (I + C D^-1 C^T)^-1, a d x d inverse (d = 3), and
+    C H_vv^-1 = M C D^-1. The reduced normal matrix is sum_r A_r^T M_r A_r, one
+    product of (m, P, R d) by (m, R d, P) after M A is formed row by row; every
+    other product has an inner dimension of P or R d, or is elementwise.
     """
     m, R, d, P = A.shape
-    n = C.shape[-1]
     kf = keep.to(A)
     Af = A.reshape(m, R * d, P)
     lam_m = lam * kf
     diag_bb = (A * A).sum((1, 2)) + lam_m
-    g_b = (Af.transpose(1, 2) @ f.reshape(m, -1, 1))[..., 0] + lam_m * dx
-    Ct = C.transpose(-1, -2)  # (m, R, n, d)
-    H_vv = Ct @ C + torch.diag_embed(w_v)
-    g_v = (Ct @ f[..., None])[..., 0] + w_v * V
-    H_vv_d = H_vv + mu[:, None, None, None] * torch.diag_embed(torch.diagonal(H_vv, dim1=-2, dim2=-1))
-    L = torch.linalg.cholesky(H_vv_d)
-    eye_n = torch.eye(n, dtype=A.dtype, device=A.device).expand(m, R, n, n)
-    Li = torch.linalg.solve_triangular(L, eye_n, upper=False)
-    W = Li @ Ct  # (m, R, n, d)
-    z = Li @ g_v[..., None]  # (m, R, n, 1)
-    Mm = torch.eye(d, dtype=A.dtype, device=A.device) - W.transpose(-1, -2) @ W  # (m, R, d, d)
-    S = Af.transpose(1, 2) @ (Mm @ A).reshape(m, R * d, P)
+    mu4 = mu[:, None, None]
+    D = (1.0 + mu4) * w_v + mu4 * (C * C).sum(-2)  # (m, R, n)
+    CD = C / D[..., None, :]
+    G = (CD[..., :, None, :] * C[..., None, :, :]).sum(-1) + torch.eye(d, dtype=A.dtype, device=A.device)
+    Mr = _inv3_sym(G) if d == 3 else torch.linalg.inv(G)  # (m, R, d, d)
+    r = (Mr * (f - (CD * (w_v * V)[..., None, :]).sum(-1))[..., None, :]).sum(-1)  # f with the joint errors' response out
+    MA = Mr @ A if A.device.type == "cpu" else _blocks_times(Mr, A)
+    S = Af.transpose(1, 2) @ MA.reshape(m, R * d, P)
     S = 0.5 * (S + S.transpose(1, 2))
     # entries a model lacks: unit diagonal, zero right-hand side, so their step is zero
     S = S + torch.diag_embed(lam_m + mu[:, None] * diag_bb + (1.0 - kf))
-    rhs = -(g_b - (Af.transpose(1, 2) @ (W.transpose(-1, -2) @ z).reshape(m, -1, 1))[..., 0]) * kf
+    rhs = -((Af.transpose(1, 2) @ r.reshape(m, -1, 1))[..., 0] + lam_m * dx) * kf
     Ls, info = torch.linalg.cholesky_ex(S)
     db = torch.cholesky_solve(rhs[..., None], Ls)[..., 0]
     bad = info != 0
     if bool(bad.any()):
         db[bad] = torch.linalg.lstsq(S[bad], rhs[bad][..., None]).solution[..., 0]
-    dv = -(Li.transpose(-1, -2) @ (z + W @ (A @ db[:, None, :, None])))[..., 0]
-    lin = f + (A @ db[:, None, :, None])[..., 0] + (C @ dv[..., None])[..., 0]
+    Adb = (Af @ db[..., None]).reshape(m, R, d)
+    y = ((Adb + f)[..., None] * C).sum(-2) + w_v * V  # g_v + C^T A db  (m, R, n)
+    Dy = y / D
+    u = (Mr * (C * Dy[..., None, :]).sum(-1)[..., None, :]).sum(-1)  # M C D^-1 y  (m, R, d)
+    dv = (CD * u[..., None]).sum(-2) - Dy  # -(D^-1 y - D^-1 C^T M C D^-1 y)
+    lin = f + Adb + (C * dv[..., None, :]).sum(-1)
     return db, dv, lin
 
 
@@ -339,14 +402,27 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
                  bp.linearize(Xw[c:c + chunk], Vw[c:c + chunk], which[c:c + chunk], **opt(c)))
                 for c in range(0, which.numel(), chunk)]
 
-    def rows(t, idx, name=None):
-        """t[idx], a view where idx is a run of consecutive models (no copy of the linearizations); else a copy,
-        into the workspace's buffer ``name`` where given."""
-        if idx.numel() and int(idx[-1]) - int(idx[0]) + 1 == idx.numel():
-            return t[int(idx[0]):int(idx[-1]) + 1]
+    # which models are active, accepted, converged: decided on the host from one transfer per decision, and
+    # every index into the models' tensors kept on the host too (a GPU waits on each value it hands back)
+    def on(ic: torch.Tensor) -> torch.Tensor:
+        """A host index tensor on the models' device."""
+        return ic.to(X.device, non_blocking=True)
+
+    def run(ic: torch.Tensor) -> slice | None:
+        """The slice where the host index ic is a run of consecutive models, else None."""
+        if ic.numel() and int(ic[-1]) - int(ic[0]) + 1 == ic.numel():
+            return slice(int(ic[0]), int(ic[-1]) + 1)
+        return None
+
+    def rows(t, ic, name=None):
+        """t[ic] (ic: host index), a view where ic is a run of consecutive models (no copy of the
+        linearizations); else a copy, into the workspace's buffer ``name`` where given."""
+        sl = run(ic)
+        if sl is not None:
+            return t[sl]
         if name is not None and ws is not None:
-            return torch.index_select(t, 0, idx, out=ws.take(name, (idx.numel(), *t.shape[1:]), t))
-        return t[idx]
+            return torch.index_select(t, 0, on(ic), out=ws.take(name, (ic.numel(), *t.shape[1:]), t))
+        return t[on(ic)]
 
     def step(lin, Vw, dX, muw, which):
         if hasattr(bp, "step"):
@@ -360,15 +436,16 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
         cost = bp.cost_from(lin[0], X, V, idx_all)
         for m, c in enumerate(cost.tolist()):  # one transfer, not one host sync per model (a GPU waits on each)
             history[m].append(c)
-        active = torch.ones(M, dtype=torch.bool, device=X.device)
+        active = torch.ones(M, dtype=torch.bool)  # on the host
         first = torch.ones(M, dtype=torch.bool, device=X.device)
         fresh = torch.ones(M, dtype=torch.bool, device=X.device)  # the last step was accepted
         it = 0
         while bool(active.any()) and it < max_iter:
             it += 1
-            w = active.nonzero()[:, 0]
+            wc = active.nonzero()[:, 0]
+            w = on(wc)
             # steps of the active models, in chunks (memory)
-            steps = [step([rows(t, w[c:c + chunk], f"step{k}") for k, t in enumerate(lin)], V[w[c:c + chunk]],
+            steps = [step([rows(t, wc[c:c + chunk], f"step{k}") for k, t in enumerate(lin)], V[w[c:c + chunk]],
                           X[w[c:c + chunk]] - bp.mean,
                           mu[w[c:c + chunk]], w[c:c + chunk]) for c in range(0, w.numel(), chunk)]
             db, dv, lres = (torch.cat(t) for t in zip(*steps))
@@ -379,64 +456,73 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             # rejection the damping is raised and a small prediction says nothing); such a model stops here,
             # without paying a linearization to confirm it
             flat = fresh[w] & (~first[w]) & (predicted >= 0) & (predicted <= 0.1 * ftol * cost[w])
-            need = (~flat).nonzero()[:, 0]
-            wl = w[need]
+            flat_c = flat.cpu()
+            needc = (~flat_c).nonzero()[:, 0]
+            need, wlc = on(needc), wc[needc]
+            wl = on(wlc)
             new_cost = cost[w].clone()
-            lin_n = lin_chunks(wl, Xn[need], Vn[need], reuse=True) if need.numel() else []
-            if need.numel():
-                nfev[wl.cpu()] += 1
-                for a, b, out in lin_n:
-                    new_cost[need[a:b]] = bp.cost_from(out[0], Xn[need[a:b]], Vn[need[a:b]], wl[a:b])
+            lin_n = lin_chunks(wl, Xn[need], Vn[need], reuse=True) if needc.numel() else []
+            nfev[wlc] += 1
+            for a, b, out in lin_n:
+                new_cost[need[a:b]] = bp.cost_from(out[0], Xn[need[a:b]], Vn[need[a:b]], wl[a:b])
             actual = cost[w] - new_cost
             ok = (actual > 0) & (predicted > 0) & ~flat
             rho = actual / predicted.clamp(min=1e-300)
-            mu_w = torch.where(ok, mu[w] * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu[w] * nu[w])
-            nu_w = torch.where(ok, torch.full_like(nu[w], 2.0), nu[w] * 2.0)
+            mu[w] = torch.where(ok, mu[w] * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu[w] * nu[w])
+            nu[w] = torch.where(ok, torch.full_like(nu[w], 2.0), nu[w] * 2.0)
             stalled = ~ok & (predicted <= 1e-14 * cost[w].clamp(min=1.0))
             step_small = (db.abs() <= xtol * (X[w].abs() + xtol)).all(1)
+            conv_rel = ok & (actual <= ftol * new_cost) & (predicted <= ftol * new_cost * 10)
+            done = flat | stalled | conv_rel | (ok & step_small)
+            fresh[w] = ok
+            first[w] = False
+            # the per-model bookkeeping from one transfer
+            pack = torch.cat([torch.stack([ok, done, stalled, conv_rel]).to(new_cost), new_cost[None]]).cpu()
+            ok_c, done_c, stalled_c, rel_c = pack[:4].bool()
+            costs = pack[4].tolist()
             # accept: the trial point and its linearization become the current ones
-            okw = w[ok]
-            X[okw], V[okw], cost[okw] = Xn[ok], Vn[ok], new_cost[ok]
-            okl = ok[need]
+            okp = ok_c.nonzero()[:, 0]
+            if okp.numel():
+                okw, okp_d = on(wc[okp]), on(okp)
+                X.index_copy_(0, okw, Xn.index_select(0, okp_d))
+                V.index_copy_(0, okw, Vn.index_select(0, okp_d))
+                cost.index_copy_(0, okw, new_cost.index_select(0, okp_d))
+            okl = ok_c[needc]
             for a, b, out in lin_n:
                 sel = okl[a:b]
                 if bool(sel.all()):
+                    dst = run(wlc[a:b])
                     for t, tn in zip(lin, out):
-                        rows(t, wl[a:b]).copy_(tn) if int(wl[b - 1]) - int(wl[a]) + 1 == b - a else \
-                            t.index_copy_(0, wl[a:b], tn)
+                        t[dst].copy_(tn) if dst is not None else t.index_copy_(0, on(wlc[a:b]), tn)
                 elif bool(sel.any()):
+                    src, dst = on(sel.nonzero()[:, 0]), on(wlc[a:b][sel])
                     for t, tn in zip(lin, out):
-                        t[wl[a:b][sel]] = tn[sel]
-            mu[w], nu[w] = mu_w, nu_w
-            fresh[w] = ok
-            nit[w.cpu()] += 1
-            first[w] = False
-            conv_rel = ok & (actual <= ftol * new_cost) & (predicted <= ftol * new_cost * 10)
-            done = flat | stalled | conv_rel | (ok & step_small)
-            # the per-model bookkeeping from one transfer: on a GPU every scalar read is a host sync
-            flags = torch.stack([ok, done, flat, stalled, conv_rel]).cpu().tolist()
-            costs = new_cost.tolist()
-            for j, m in enumerate(w.tolist()):
-                okj, donej, flatj, stalledj, relj = (f[j] for f in flags)
-                if okj:
+                        t.index_copy_(0, dst, tn.index_select(0, src))
+            nit[wc] += 1
+            for j, m in enumerate(wc.tolist()):
+                if ok_c[j]:
                     history[m].append(costs[j])
-                if donej:
+                if done_c[j]:
                     success[m] = True
-                    message[m] = ("converged: the predicted cost reduction is below ftol" if flatj else
-                                  "converged: no step lowers the cost further" if stalledj else
-                                  "converged: relative cost reduction below ftol" if relj else
+                    message[m] = ("converged: the predicted cost reduction is below ftol" if flat_c[j] else
+                                  "converged: no step lowers the cost further" if stalled_c[j] else
+                                  "converged: relative cost reduction below ftol" if rel_c[j] else
                                   "converged: parameter step below xtol")
-            active[w] = ~done
-            bar.advance(sum(flags[1]), note=f"iteration {it}, {int(active.sum())} models active")
+            active[wc] = ~done_c
+            bar.advance(int(done_c.sum()), note=f"iteration {it}, {int(active.sum())} models active")
     elapsed = time.perf_counter() - t0
     names = bp.layout.names()
     results = []
     bp.write(X)
+    keep_c = bp.keep.cpu()
+    xs = torch.split(X[bp.keep].detach().clone(), keep_c.sum(1).tolist())  # one transfer of the masks' counts
+    V = V.detach()
+    costs = cost.tolist()
     for m, model in enumerate(models):
-        kn = [nm for nm, k in zip(names, bp.keep[m].tolist()) if k]
-        results.append(FitResult(x=X[m][bp.keep[m]].detach().clone(), v=V[m].detach().clone(), success=bool(success[m]),
-                                 message=message[m], nit=int(nit[m]), nfev=int(nfev[m]), fun=float(cost[m]), grad_norm=float("nan"),
-                                 time=elapsed / M, method="lm-batched", history=history[m], names=kn))
+        kn = [nm for nm, k in zip(names, keep_c[m].tolist()) if k]
+        results.append(FitResult(x=xs[m], v=V[m], success=bool(success[m]), message=message[m], nit=int(nit[m]),
+                                 nfev=int(nfev[m]), fun=costs[m], grad_norm=float("nan"), time=elapsed / M,
+                                 method="lm-batched", history=history[m], names=kn))
     return BatchedFitResult(results=results, x=X.detach().clone(), keep=bp.keep.clone(), iterations=it, time=elapsed,
                             names=names)
 

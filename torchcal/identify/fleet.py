@@ -23,6 +23,7 @@ the fleet's (a damaged gearbox, a bad measurement).
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -31,14 +32,15 @@ import torch
 from torch.func import functional_call, vmap
 
 from ..core.measurements import Measurements
-from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
+from .batched import BatchedFitResult, BatchedProblem, _Predict, _schur_steps, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
 from .problem import CalibrationProblem, Prior, _prefixed
 from . import fleet_kernel
 from .fleet_kernel import factored_linearization_fused
 from ..models.jacobian import chebyshev_design
-from .structured import RobotStructure, factored_linearization, pair_basis, pose_slots, structured_steps
+from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_slots,
+                         structured_steps)
 from .workspace import Workspace
 
 
@@ -57,9 +59,6 @@ def stack_units(units: Sequence[Measurements]) -> dict:
             raise ValueError(f"fleet: unit {k} ({u.source or 'data'}) has {u.q.shape[1]} joints, unit 0 has {n}")
         if len(u) == 0:
             raise ValueError(f"fleet: unit {k} ({u.source or 'data'}) has no rows")
-        if bool(torch.isnan(u.xyz).any()):
-            r = int(torch.isnan(u.xyz).any(1).nonzero()[0])
-            raise ValueError(f"fleet: unit {k} ({u.source or 'data'}), data row {int(u.rows[r])}: no measured x, y, z")
     if len({bool(u.has_direction) for u in units}) > 1:
         raise ValueError("fleet: some units have approach directions (dir columns) and some do not")
     R = max(len(u) for u in units)
@@ -68,11 +67,16 @@ def stack_units(units: Sequence[Measurements]) -> dict:
         extra = R - t.shape[0]
         return t if extra == 0 else torch.cat([t, t[:1].expand(extra, *t.shape[1:])])
 
+    xyz = torch.stack([pad(u.xyz) for u in units])
+    if bool(torch.isnan(xyz).any()):  # one test for the fleet (a GPU waits on each)
+        k, r = (int(i) for i in torch.isnan(xyz).any(2).nonzero()[0])
+        u = units[k]
+        raise ValueError(f"fleet: unit {k} ({u.source or 'data'}), data row {int(u.rows[r])}: no measured x, y, z")
     return {
         "q": torch.stack([pad(u.q) for u in units]),
         "tool": torch.stack([pad(u.tool) for u in units]),
         "direction": torch.stack([pad(u.direction) for u in units]),
-        "xyz": torch.stack([pad(u.xyz) for u in units]),
+        "xyz": xyz,
         "rows": torch.stack([torch.arange(R, device=u.q.device) < len(u) for u in units]),
         "has_direction": bool(units[0].has_direction),
     }
@@ -81,26 +85,31 @@ def stack_units(units: Sequence[Measurements]) -> dict:
 class FleetProblem(BatchedProblem):
     """The implicit-loop MLE of M units, each its own model and its own data, stacked on a leading axis.
 
-    make: () -> a fresh model of the type (every unit's model and the
-    superset come from it); units: M :class:`Measurements` (tracker points,
+    make: () -> a fresh model of the type (called once: the superset, and every
+    unit's model a copy of it); units: M :class:`Measurements` (tracker points,
     SI); noise: one :class:`NoiseModel` or M of them; prior, fixed, gauge: as
     for :func:`torchcal.fit`. gauge_units: how many units' rows are pooled to
     judge the gauge (the structural redundancy is the same for every unit; None: the first units whose
     rows hold 4x as many residuals as there are parameters, one FANUC unit of 250 x 3 poses).
     The models start at zero error (or at ``start``: (P,) values in the
-    superset's layout, e.g. a fleet mean).
+    superset's layout, e.g. a fleet mean). structured: the factored Jacobian where the model has one (else
+    dense A by ``vmap``); dense_normal: with the factored Jacobian, the normal matrix from the dense A it
+    expands to (one large product, what a GPU is fast at) instead of per-pose Gram blocks.
     """
 
     def __init__(self, make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
                  prior: Prior | None = Prior(), fixed=(), gauge: bool = True, gauge_units: int | None = None,
-                 models: Sequence[torch.nn.Module] | None = None, structured: bool = True):
+                 models: Sequence[torch.nn.Module] | None = None, structured: bool = True, dense_normal: bool = False):
         from .fit import resolve_noise
 
         M = len(units)
         if M == 0:
             raise ValueError("fit_fleet: no units")
         superset = make()
-        models = [make() for _ in range(M)] if models is None else list(models)
+        # every unit's model a copy of one fresh model of the type: the same as make() would give, without
+        # building each again (on a GPU, make() copies every tensor from the host, and the host waits on each)
+        models = [copy.deepcopy(superset, {id(superset.robot): superset.robot} if hasattr(superset, "robot") else {})
+                  for _ in range(M)] if models is None else list(models)
         if len(models) != M:
             raise ValueError(f"fit_fleet: {len(models)} models for {M} units")
         dev = superset.device
@@ -108,7 +117,8 @@ class FleetProblem(BatchedProblem):
         noises = list(noise) if isinstance(noise, (list, tuple)) else [noise] * M
         if len(noises) != M:
             raise ValueError(f"fit_fleet: {len(noises)} noise models for {M} units")
-        noises = [resolve_noise(superset, nz) for nz in noises]
+        resolved = {id(nz): resolve_noise(superset, nz) for nz in noises}  # a shared noise model stays shared
+        noises = [resolved[id(nz)] for nz in noises]
         self.superset, self.models, self.units = superset, models, units
         self.problem = CalibrationProblem(superset, units[0], noises[0], prior, fixed)
         p = self.problem
@@ -128,11 +138,15 @@ class FleetProblem(BatchedProblem):
         self.keep = keep
         # the factored Jacobian (torchcal.identify.structured) where the model has one, else dense A
         self.structure = None
+        self.dense_normal = False
         if structured and RobotStructure.supports(superset, p.instrument, self.layout):
             self.structure = RobotStructure(superset, self.layout)
-            self.slots = pose_slots([u.q for u in units], [u.direction if st["has_direction"] else None for u in units], R)
-            self.phi_p, self.pp = self._pose_basis()
+            self.dense_normal = bool(dense_normal)
             self.workspace = Workspace()  # the solver's large temporaries, reused from one iteration to the next
+            if not self.dense_normal:  # the per-pose Gram blocks' poses and basis values
+                self.slots = pose_slots([u.q for u in units], [u.direction if st["has_direction"] else None
+                                                               for u in units], R)
+                self.phi_p, self.pp = self._pose_basis()
 
     def _pins(self, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
         """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units."""
@@ -203,16 +217,21 @@ class FleetProblem(BatchedProblem):
             out = None if slot is None else (lambda name, shape, like: self.workspace.take(f"lin{slot}.{name}", shape, like))
             f, Jv, E, Phi = factored_linearization_fused(self.superset, self.structure, self._params(X), q, tool,
                                                          direction, V, obs, scale=s, out=out)
-            return f, Jv, E, Phi, self.phi_p[w]
+            return (f, Jv, E, Phi) if self.dense_normal else (f, Jv, E, Phi, self.phi_p[w])
         raw, Jv, E, Phi = factored_linearization(self.superset, self.structure, self._params(X), q, tool, direction, V,
                                                  obs)
         s = s[:, :, None]
-        return raw * s, Jv * s[..., None], E * s[..., None], Phi, self.phi_p[w]
+        out = raw * s, Jv * s[..., None], E * s[..., None], Phi
+        return out if self.dense_normal else (*out, self.phi_p[w])
 
     def step(self, lin, V, dX, mu, which):
         """Damped Gauss-Newton steps of the units ``which`` (factored where the model allows, else dense)."""
         if self.structure is None:
             return super().step(lin, V, dX, mu, which)
+        if self.dense_normal:
+            f, C, E, Phi = lin
+            A = dense_jacobian(E, Phi, self.structure) * self.keep[which].to(E)[:, None, None, :]
+            return _schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
         return structured_steps(lin, self.structure, self.slots[which], self.w_v[which], V, self.lam, dX, mu,
                                 self.keep[which], pp=self.pp, ws=self.workspace)
 
@@ -242,10 +261,11 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     :class:`NoiseModel` (None: the robot's) or M of them; prior, fixed, gauge,
     max_iter, ftol, xtol, mu0: as for :func:`torchcal.fit` (``method='lm'``);
     chunk: units linearized together (None: as many as ~190 MB of factors and temporaries hold on the CPU,
-    ~1 GB on a GPU). structured: the factored Jacobian and normal matrix (:mod:`.structured`) where the model
-    allows (a RobotModel without compliance and fine tables, isotropic point targets); False: dense A; None
-    (default): factored on the CPU, dense on a GPU, whose batched products are what it is fast at (100
-    FANUCs on an H200: 0.69-0.70 s dense against 0.74-0.82 s factored, bench/gpu_fleet_profile.py).
+    a quarter of the free memory on a GPU). structured: True, the factored Jacobian and normal matrix
+    (:mod:`.structured`) where the model allows (a RobotModel without compliance and fine tables, isotropic
+    point targets); False: dense A by ``vmap`` of the model's Jacobians; None (default): True on the CPU, and
+    on a GPU the factored Jacobian expanded to dense A, whose normal matrix is one large product (what a GPU
+    is fast at; the per-pose Gram blocks are many small ones).
     Each unit's result is its own fit's (the same optimum, up to the stopping
     tolerance). -> :class:`FleetFit` (each unit's model fitted in place).
 
@@ -262,17 +282,18 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
         [True, True, True]
     """
     t0 = time.perf_counter()
-    if structured is None:
-        structured = not units or units[0].xyz.device.type == "cpu"
-    fp = FleetProblem(make, units, noise, prior, fixed, gauge, gauge_units, structured=structured)
+    on_cpu = not units or units[0].xyz.device.type == "cpu"
+    fp = FleetProblem(make, units, noise, prior, fixed, gauge, gauge_units, structured=structured is not False,
+                      dense_normal=not on_cpu if structured is None else False)
     if chunk is None:
-        if fp.structure is not None:  # factors, per-pose Gram blocks and temporaries: ~8 MB a FANUC unit
+        if fp.structure is not None and not fp.dense_normal:  # factors, per-pose Gram blocks, temporaries
             per_unit = 8 * fp.R * (4 * fp.d * (fp.structure.ne + fp.structure.Nd) + 2 * fp.structure.size)
-        else:  # f, A, C and the step's temporaries, roughly
-            per_unit = 8 * fp.R * fp.d * fp.layout.size * 3
-        # bytes; on the CPU 24 FANUC units (7.8 MB each): with the step's buffers reused (Workspace), 16-50 ran
-        # alike and 7-10 units 7-12 % slower (100 FANUCs, 2 cores, side by side); the smallest of the fast
-        budget = 1.9e8 if fp.rows.device.type == "cpu" else 1e9
+        else:  # A, M A and the step's other temporaries, roughly
+            per_unit = 8 * fp.R * fp.d * fp.layout.size * 4
+        if on_cpu:  # bytes; 24 FANUC units (7.8 MB each): with the step's buffers reused (Workspace), 16-50 ran
+            budget = 1.9e8  # alike and 7-10 units 7-12 % slower (100 FANUCs, 2 cores, side by side)
+        else:  # a GPU: every unit in one chunk where a quarter of the free memory holds them (a chunk is launches)
+            budget = max(1e9, 0.25 * torch.cuda.mem_get_info(units[0].xyz.device)[0])
         chunk = max(1, min(fp.M, int(budget // per_unit)))
     batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label="fitting the fleet's units together", t0=t0)
     return FleetFit(fp.models, batch, fp.layout)

@@ -98,7 +98,8 @@ def homogeneous(R: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     """Assemble (..., 4, 4) from a rotation (..., 3, 3) and a translation (..., 3)."""
     shape = _broadcast(R.shape[:-2], p.shape[:-1])
     top = torch.cat([R.expand(shape + (3, 3)), p.expand(shape + (3,))[..., None]], -1)
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(shape + (1, 4))
+    # (0, 0, 0, 1) made on the device: a constant copied from the host makes a GPU wait (a sync per call)
+    bottom = torch.nn.functional.pad(R.new_ones(()).expand(shape + (1, 1)), (3, 0))
     return torch.cat([top, bottom], -2)
 
 

@@ -8,7 +8,7 @@ import torch
 import torchcal
 import torchcal.sim
 from torchcal.identify import fleet_kernel
-from torchcal.identify.batched import _schur_steps
+from torchcal.identify.schur import schur_steps
 from torchcal.identify.fleet import FleetProblem
 from torchcal.identify.structured import (RobotStructure, contract, dense_jacobian, factored_linearization,
                                           gram_parts, pair_basis, structured_steps)
@@ -109,7 +109,7 @@ def test_structured_steps_are_the_dense_steps(problems):
     lin = fact.linearize(X, V, w)
     for mu0 in (1e-8, 1e-2):
         mu = torch.full((fact.M,), mu0, dtype=torch.float64)
-        a = _schur_steps(f, A, C, dense.w_v, V, dense.lam, X - dense.mean, mu, dense.keep)
+        a = schur_steps(f, A, C, dense.w_v, V, dense.lam, X - dense.mean, mu, dense.keep)
         args = (lin, fact.structure, fact.slots, fact.w_v, V, fact.lam, X - fact.mean, mu, fact.keep)
         for (refine, tol), bound in (((30, 1e-14), 1e-8), ((3, 1e-7), 1e-4)):  # to convergence; the default
             for x, y in zip(a, structured_steps(*args, refine=refine, tol=tol)):
@@ -129,7 +129,7 @@ def test_dense_normal_steps_are_the_dense_steps(problems):
     w = torch.arange(dn.M)
     f, A, C = dense.linearize(X, V, w)
     mu = torch.full((dn.M,), 1e-3, dtype=torch.float64)
-    a = _schur_steps(f, A, C, dense.w_v, V, dense.lam, X - dense.mean, mu, dense.keep)
+    a = schur_steps(f, A, C, dense.w_v, V, dense.lam, X - dense.mean, mu, dense.keep)
     b = dn.step(dn.linearize(X, V, w), V, X - dn.mean, mu, w)
     for x, y in zip(a, b):
         assert _rel(y, x) < 1e-9

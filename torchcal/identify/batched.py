@@ -32,10 +32,10 @@ from ..core.progress import task
 from ..core.threads import threads_for_work
 from .candidates import structure_mask
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
-from .layout import copy_overlap
 from .lm import MU0
 from .problem import CalibrationProblem, NoiseModel, Prior, _prefixed
 from .result import FitResult
+from .schur import schur_steps
 
 
 @dataclass
@@ -265,71 +265,7 @@ class BatchedProblem:
         joint errors V, prior offsets dX = X - mean, dampings mu. -> db (m, P), dv (m, R, n), predicted
         linearized residual (m, R, d)."""
         f, A, C = lin
-        return _schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
-
-
-def _inv3_sym(G: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) inverse of symmetric positive definite 3x3 matrices by the adjugate, elementwise (a batched
-    matmul or solve of 3x3 blocks is one tiny problem per block, the slowest form on a GPU)."""
-    a, b, c = G[..., 0, 0], G[..., 0, 1], G[..., 0, 2]
-    d, e, f = G[..., 1, 1], G[..., 1, 2], G[..., 2, 2]
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A + b * B + c * C
-    return torch.stack([A, B, C, B, D, E, C, E, F], -1).reshape(G.shape) / det[..., None, None]
-
-
-def _blocks_times(Mr: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
-    """Mr @ A for (..., d, d) blocks and (..., d, P) by d multiply-adds of rows: on a GPU a batched matmul of
-    small blocks runs one tiny product per block, 10-20x slower than this."""
-    out = Mr[..., 0, None] * A[..., 0, None, :]
-    for j in range(1, Mr.shape[-1]):
-        out = out + Mr[..., j, None] * A[..., j, None, :]
-    return out
-
-
-def _schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
-    """Damped Gauss-Newton steps of m models at once (the batched :func:`~torchcal.identify.lm._schur_step`).
-
-    f (m, R, d), A (m, R, d, P), C (m, R, d, n), w_v (m, R, n), V (m, R, n), lam (P,), dx (m, P), mu (m,),
-    keep (m, P). -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d).
-
-    Each row's joint errors are eliminated in Woodbury form. Their damped block is
-    H_vv = C^T C + D, D = (1 + mu) w_v + mu diag(C^T C) diagonal, so the row's projector
-    I - C H_vv^-1 C^T is M = (I + C D^-1 C^T)^-1, a d x d inverse (d = 3), and
-    C H_vv^-1 = M C D^-1. The reduced normal matrix is sum_r A_r^T M_r A_r, one
-    product of (m, P, R d) by (m, R d, P) after M A is formed row by row; every
-    other product has an inner dimension of P or R d, or is elementwise.
-    """
-    m, R, d, P = A.shape
-    kf = keep.to(A)
-    Af = A.reshape(m, R * d, P)
-    lam_m = lam * kf
-    diag_bb = (A * A).sum((1, 2)) + lam_m
-    mu4 = mu[:, None, None]
-    D = (1.0 + mu4) * w_v + mu4 * (C * C).sum(-2)  # (m, R, n)
-    CD = C / D[..., None, :]
-    G = (CD[..., :, None, :] * C[..., None, :, :]).sum(-1) + torch.eye(d, dtype=A.dtype, device=A.device)
-    Mr = _inv3_sym(G) if d == 3 else torch.linalg.inv(G)  # (m, R, d, d)
-    r = (Mr * (f - (CD * (w_v * V)[..., None, :]).sum(-1))[..., None, :]).sum(-1)  # f with the joint errors' response out
-    MA = Mr @ A if A.device.type == "cpu" else _blocks_times(Mr, A)
-    S = Af.transpose(1, 2) @ MA.reshape(m, R * d, P)
-    S = 0.5 * (S + S.transpose(1, 2))
-    # entries a model lacks: unit diagonal, zero right-hand side, so their step is zero
-    S = S + torch.diag_embed(lam_m + mu[:, None] * diag_bb + (1.0 - kf))
-    rhs = -((Af.transpose(1, 2) @ r.reshape(m, -1, 1))[..., 0] + lam_m * dx) * kf
-    Ls, info = torch.linalg.cholesky_ex(S)
-    db = torch.cholesky_solve(rhs[..., None], Ls)[..., 0]
-    bad = info != 0
-    if bool(bad.any()):
-        db[bad] = torch.linalg.lstsq(S[bad], rhs[bad][..., None]).solution[..., 0]
-    Adb = (Af @ db[..., None]).reshape(m, R, d)
-    y = ((Adb + f)[..., None] * C).sum(-2) + w_v * V  # g_v + C^T A db  (m, R, n)
-    Dy = y / D
-    u = (Mr * (C * Dy[..., None, :]).sum(-1)[..., None, :]).sum(-1)  # M C D^-1 y  (m, R, d)
-    dv = (CD * u[..., None]).sum(-2) - Dy  # -(D^-1 y - D^-1 C^T M C D^-1 y)
-    lin = f + Adb + (C * dv[..., None, :]).sum(-1)
-    return db, dv, lin
+        return schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
 
 
 def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, noise: NoiseModel | Sequence | None = None,
@@ -428,7 +364,7 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
         if hasattr(bp, "step"):
             return bp.step(lin, Vw, dX, muw, which)
         f, A, C = lin
-        return _schur_steps(f, A, C, bp.w_v[which], Vw, bp.lam, dX, muw, bp.keep[which])
+        return schur_steps(f, A, C, bp.w_v[which], Vw, bp.lam, dX, muw, bp.keep[which])
 
     with threads_for_work(work), task(label, total=M) as bar:
         # f first; the rest is whatever bp's step reads (A, C or factors)
@@ -525,59 +461,3 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
                                  method="lm-batched", history=history[m], names=kn))
     return BatchedFitResult(results=results, x=X.detach().clone(), keep=bp.keep.clone(), iterations=it, time=elapsed,
                             names=names)
-
-
-def fit_structures(make, keys: Sequence, data: Measurements, noise: NoiseModel | None = None,
-                   prior: Prior | None = Prior(), center=None, **options) -> tuple[list[torch.nn.Module], BatchedFitResult]:
-    """Fit one model per structure key (e.g. per-joint order lists) of one factory on one data set, together.
-
-    make(key) -> a fresh model; keys: the structures; center: the key fitted
-    first (default: the middle one). The center is fitted exactly, every
-    other model starts from its one-step solve at the center's linearization
-    (:class:`~torchcal.identify.candidates.SharedLinearization`: already
-    within ~0.1 % of its optimum for neighbours), and then all are polished
-    together by :func:`fit_batch` (a few iterations each instead of tens from
-    zero). -> (the fitted models, in ``keys`` order, and the batch result).
-
-    Example:
-        >>> import torch, torchcal
-        >>> robot = torchcal.load_robot("fanuc_lrmate200i")
-        >>> tools = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161]], dtype=torch.float64)
-        >>> truth = torchcal.TruthRobot.fanuc_paper2(robot, tools, 0)
-        >>> q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 40, 0)
-        >>> data = torchcal.simulate(truth, q, [0, 1], torchcal.NoiseModel.from_robot(robot), 0)
-        >>> models, out = fit_structures(lambda o: torchcal.RobotModel(robot, tools, orders=o), [1, 2, 3], data)
-        >>> len(models), all(r.success for r in out.results)
-        (3, True)
-    """
-    from .candidates import SharedLinearization
-    from .fit import fit, resolve_noise
-
-    keys = list(keys)
-    models = [make(k) for k in keys]
-    noise = resolve_noise(models[0], noise)
-    center = keys[len(keys) // 2] if center is None else center
-    # the superset: every parameter at the largest shape any model has
-    shapes: dict[str, list[int]] = {}
-    for m in models:
-        for name, p in m.named_parameters():
-            s = shapes.setdefault(name, list(p.shape))
-            shapes[name] = [max(a, b) for a, b in zip(s, p.shape)]
-    superset = max(models, key=lambda m: sum(p.numel() for p in m.parameters()))
-    if any(list(p.shape) != shapes[n] for n, p in superset.named_parameters()):
-        raise ValueError("fit_structures: no model carries every term of the others; give keys whose largest "
-                         "model contains the rest (e.g. orders up to the largest)")
-    superset = make(keys[models.index(superset)])
-    fit_opts = {k: v for k, v in options.items() if k in ("fixed", "gauge", "ftol", "xtol", "max_iter", "mu0")}
-    c = make(center)
-    r = fit(c, data, noise, prior, **fit_opts)
-    copy_overlap(c, superset)
-    with task("one-step solves of every model", total=None):
-        lin = SharedLinearization(superset, data, noise, prior, v=r.v, fixed=fit_opts.get("fixed", ()),
-                                  gauge=fit_opts.get("gauge", True))
-        X = lin.solve(lin.masks(models))
-    for m, x in zip(models, X):
-        lin.layout.set(x)
-        copy_overlap(superset, m)
-    out = fit_batch(superset, models, data, noise, prior, **{k: v for k, v in options.items() if k != "center"})
-    return models, out

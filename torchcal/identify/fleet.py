@@ -23,7 +23,6 @@ the fleet's (a damaged gearbox, a bad measurement).
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -32,10 +31,12 @@ import torch
 from torch.func import functional_call, vmap
 
 from ..core.measurements import Measurements
-from .batched import BatchedFitResult, BatchedProblem, _Predict, _schur_steps, solve_batched
+from ..core.replicate import replicate
+from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
 from .problem import CalibrationProblem, Prior, _prefixed
+from .schur import schur_steps
 from . import fleet_kernel
 from .fleet_kernel import factored_linearization_fused
 from ..models.jacobian import chebyshev_design
@@ -106,10 +107,9 @@ class FleetProblem(BatchedProblem):
         if M == 0:
             raise ValueError("fit_fleet: no units")
         superset = make()
-        # every unit's model a copy of one fresh model of the type: the same as make() would give, without
-        # building each again (on a GPU, make() copies every tensor from the host, and the host waits on each)
-        models = [copy.deepcopy(superset, {id(superset.robot): superset.robot} if hasattr(superset, "robot") else {})
-                  for _ in range(M)] if models is None else list(models)
+        # every unit's model a copy of one fresh model of the type: what make() would give, without building
+        # each again (on a GPU, make() copies every tensor from the host, and the host waits on each)
+        models = [replicate(superset) for _ in range(M)] if models is None else list(models)
         if len(models) != M:
             raise ValueError(f"fit_fleet: {len(models)} models for {M} units")
         dev = superset.device
@@ -149,14 +149,19 @@ class FleetProblem(BatchedProblem):
                 self.phi_p, self.pp = self._pose_basis()
 
     def _pins(self, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
-        """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units."""
-        x0 = torch.zeros(self.layout.size, dtype=torch.float64, device=self.rows.device)
+        """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units.
+
+        Judged on the host wherever the fleet is: the greedy test is a loop over the columns, each a few
+        small products (on a GPU, hundreds of tiny kernels and a sync per column)."""
+        cpu = torch.device("cpu")
+        judge = self.superset if self.superset.device == cpu else replicate(self.superset).to(cpu)
+        x0 = torch.zeros(self.layout.size, dtype=torch.float64)
         blocks = []
         if gauge_units is None:  # the first units until their rows (x d) are 4x the parameters: data enough
             rows = torch.cumsum(torch.tensor([len(u) * self.d for u in self.units]), 0)
             gauge_units = int((rows < 4 * self.layout.size).sum()) + 1
         for u in self.units[:max(1, int(gauge_units))]:
-            prob = CalibrationProblem(self.superset, u, noise, prior, fixed)
+            prob = CalibrationProblem(judge, u.to(cpu), noise, prior, fixed)
             blocks.append(prob.linearize(x0, torch.zeros_like(prob.data.q))[1].reshape(-1, self.layout.size))
         basis = gauge_basis(torch.cat(blocks), gauge_priority(self.layout.roles()))
         # every unit carries the same terms (one model type): judge each distinct column subset once
@@ -231,7 +236,7 @@ class FleetProblem(BatchedProblem):
         if self.dense_normal:
             f, C, E, Phi = lin
             A = dense_jacobian(E, Phi, self.structure) * self.keep[which].to(E)[:, None, None, :]
-            return _schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
+            return schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
         return structured_steps(lin, self.structure, self.slots[which], self.w_v[which], V, self.lam, dX, mu,
                                 self.keep[which], pp=self.pp, ws=self.workspace)
 

@@ -330,7 +330,7 @@ def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | 
 def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, refine: int = 0,
                      tol: float = 1e-6, pp: torch.Tensor | None = None, ws: Workspace | None = None):
     """Damped Gauss-Newton steps of m units from factored linearizations (the factored
-    :func:`~torchcal.identify.batched._schur_steps`).
+    :func:`~torchcal.identify.schur.schur_steps`).
 
     lin: (f (m, R, d), C (m, R, d, n), E (m, R, d, Q), Phi (m, R, n, K), Phi_p (m, Pp, n, K)), whitened, rows
     a unit does not fit zero; slots (m, Pp, T); w_v, V (m, R, n); lam (P,); dx (m, P); mu (m,); keep (m, P).

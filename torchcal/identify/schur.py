@@ -14,7 +14,7 @@ import torch
 
 def inv3_sym(G: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) inverse of symmetric positive definite 3x3 matrices by the adjugate, elementwise (a batched
-    matmul or solve of 3x3 blocks is one tiny problem per block, the slowest form on a GPU)."""
+    solve of 3x3 blocks is one tiny problem per block on a GPU)."""
     a, b, c = G[..., 0, 0], G[..., 0, 1], G[..., 0, 2]
     d, e, f = G[..., 1, 1], G[..., 1, 2], G[..., 2, 2]
     A, B, C = d * f - e * e, c * e - b * f, b * e - c * d

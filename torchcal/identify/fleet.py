@@ -297,8 +297,10 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
             per_unit = 8 * fp.R * fp.d * fp.layout.size * 4
         if on_cpu:  # bytes; 24 FANUC units (7.8 MB each): with the step's buffers reused (Workspace), 16-50 ran
             budget = 1.9e8  # alike and 7-10 units 7-12 % slower (100 FANUCs, 2 cores, side by side)
-        else:  # a GPU: every unit in one chunk where a quarter of the free memory holds them (a chunk is launches)
-            budget = max(1e9, 0.25 * torch.cuda.mem_get_info(units[0].xyz.device)[0])
+        elif units[0].xyz.device.type == "cuda":  # every unit in one chunk where a quarter of the free memory
+            budget = max(1e9, 0.25 * torch.cuda.mem_get_info(units[0].xyz.device)[0])  # holds them: fewer launches
+        else:
+            budget = 1e9
         chunk = max(1, min(fp.M, int(budget // per_unit)))
     batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label="fitting the fleet's units together", t0=t0)
     return FleetFit(fp.models, batch, fp.layout)

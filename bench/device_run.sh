@@ -1,12 +1,28 @@
 #!/usr/bin/env bash
 # One device session: the CUDA tests and the GPU bench (card named), the CPU side on 2 host cores, quiet and with
-# one CPU-bound competitor on one of those two cores. Wheels the image lacks travel in .whl (numba's own llvmlite
+# one CPU-bound competitor on one of those two cores. `bash bench/device_run.sh --fleet` (optionally BASE=dir):
+# the fleet alone. Wheels the image lacks travel in .whl (numba's own llvmlite
 # included: the image's numba does not import with its NumPy).
 set -o pipefail
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 NUMBA_CACHE_DIR=/tmp/numba-cache
 python3 -c "import torch, numpy, numba; print('torch', torch.__version__, torch.cuda.get_device_name(), 'numpy', numpy.__version__, 'numba', numba.__version__)"
 lscpu | grep -E "Model name|^CPU\(s\)"
+if [ "$1" = "--fleet" ]; then  # the fleet alone (~3 min): CUDA fleet tests, the ratio quiet and loaded, and
+  # with BASE=<a source tree carried in> that tree's GPU fleet beside this one's (the same session: GPU hosts
+  # differ by up to 1.7x between sessions), then where the solve still waits for the device
+  timeout 60 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py -k "fleet or fit" 2>&1 | tail -2
+  timeout 120 taskset -c 0,1 python3 bench/gpu.py --units 100 --cpu-threads 2 --only fleet > $OUT/fleet_quiet.txt 2>&1
+  tail -1 $OUT/fleet_quiet.txt | sed 's/^/quiet  /'
+  taskset -c 0 python3 -c "while True: pass" & C=$!
+  timeout 120 taskset -c 0,1 python3 bench/gpu.py --units 100 --cpu-threads 2 --only fleet > $OUT/fleet_loaded.txt 2>&1
+  kill $C; tail -1 $OUT/fleet_loaded.txt | sed 's/^/loaded /'
+  for s in ${BASE:+$BASE} .; do
+    PYTHONPATH=/tmp/site:$PWD/$s timeout 40 python3 bench/gpu_fleet_profile.py --modes default --no-table 2>&1 | tail -1 | sed "s|^|$s: |"
+  done
+  timeout 30 python3 bench/gpu_fleet_profile.py --sync-sites 2>&1 | head -8
+  exit 0
+fi
 # numba compiles the CPU kernels once (cached) while the CUDA tests run
 python3 - > $OUT/warm.txt 2>&1 <<'PY' &
 import torchcal, torch, torchcal.sim, time

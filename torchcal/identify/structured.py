@@ -506,7 +506,8 @@ class _RowsFused(_RowsTorch):
 
 
 def dense_jacobian(E: torch.Tensor, Phi: torch.Tensor, st: RobotStructure) -> torch.Tensor:
-    """The plain parameter Jacobian (m, R, d, P) in layout order from the factored one (for tests)."""
+    """The plain parameter Jacobian (m, R, d, P) in layout order from the factored one (the fleet's GPU form,
+    whose normal matrix is one product of it; and the tests' reference)."""
     m, R, d, _ = E.shape
     Es = E[..., :st.ne].reshape(m, R, d, st.n, st.A)
     struct = (Es[..., None] * Phi[:, :, None, :, None, :]).reshape(m, R, d, st.ns)

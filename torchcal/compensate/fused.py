@@ -64,10 +64,14 @@ def poses_soa(T: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
     return T[:, :3, :3].to(torch.float64).permute(1, 2, 0).contiguous().numpy(), soa(T[:, :3, 3])
 
 
-def kernel_threads() -> int:
-    """Before a compiled kernel runs: numba's pool follows torch's thread setting (torchcal.core.threads.limit_threads
-    sets both, so a caller's limit holds), and the process counts as warm (:func:`warm`). -> the thread count (the
-    rows of the kernel's work arrays: :func:`flange_work`)."""
+def kernel_threads(family: str) -> int:
+    """Before a compiled kernel of ``family`` (a key of :data:`torchcal.core.compiled.FAMILIES`) runs: numba's pool
+    follows torch's thread setting (torchcal.core.threads.limit_threads sets both, so a caller's limit holds), the
+    process counts as warm (:func:`warm`), and a cold cache is announced (its compile takes minutes). -> the
+    thread count (the rows of the kernel's work arrays: :func:`flange_work`)."""
+    from ..core.compiled import notice
+
+    notice(family)
     numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
     mark_warm()
     return numba.get_num_threads()
@@ -414,7 +418,7 @@ class FusedFlange:
         s = q if sT is None else sT.detach().to(torch.float64).contiguous().numpy()
         # dynamic scheduling, one block of _CHUNK poses at a time: with a static split a thread that shares its
         # core with another process holds up the whole call (a busy neighbour would cost 2x, not 1.33x)
-        threads = kernel_threads()
+        threads = kernel_threads("flange")
         with numba.parallel_chunksize(1):
             _kernels()(q, s, sT is not None, errors, *self.model, *self.chain, *(self.base if errors else self.no_base),
                        R.numpy(), p.numpy(), J.numpy(), jacobian, threads)

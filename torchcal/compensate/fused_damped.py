@@ -302,7 +302,7 @@ def solve_damped(fused, q0: torch.Tensor, target: torch.Tensor, direction: torch
     it = np.zeros(M, dtype=np.int64)
     step = np.empty(M)
     conv, blk, sta = np.zeros(M, dtype=np.bool_), np.zeros(M, dtype=np.bool_), np.zeros(M, dtype=np.bool_)
-    threads = kernel_threads()
+    threads = kernel_threads("damped")
     with numba.parallel_chunksize(1):  # dynamic: rows take very different iteration counts
         damped_soa(qT, s, direction is not None, *fused.model, *fused.chain, *fused.base, TR, Tp, soa(ref),
                    step_b, max_step is not None, corr_b, max_correction is not None, bool(stop_at_bound),

@@ -451,7 +451,7 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     C, G1p, G2p = np.empty((B, 4, 4)), np.empty((3, B)), np.empty((3, B))
-    threads = kernel_threads()
+    threads = kernel_threads("targets")
     with numba.parallel_chunksize(1):  # dynamic: a thread beside a busy neighbour does not hold up the call
         targets_soa(rows(seed), s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
                     rows(target), rows(t_nominal), rows(t_actual), G1p, G2p, False, True, float(ik_tol),
@@ -480,7 +480,7 @@ def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     goal, G2p = np.empty((B, 3, 3)), np.empty((3, B))
     none = np.empty((0, 3))
-    threads = kernel_threads()
+    threads = kernel_threads("targets")
     with numba.parallel_chunksize(1):
         targets_soa(rows(q_nom), s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
                     goal, none, none, none, G2p, True, False, 0.0, 0, 0.0,

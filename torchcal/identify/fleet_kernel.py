@@ -33,6 +33,8 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
+from ..core.compiled import notice
+
 try:  # numba is a dependency, but the torch form computes the same numbers without it
     import numba
 
@@ -451,8 +453,10 @@ def pose_blocks(Pp: int) -> int:
 @contextmanager
 def dynamic():
     """Hand a parallel kernel's tasks to the threads one at a time: with numba's static split, a thread that
-    shares its core with another process holds up the whole call (as torchcal.compensate.fused does)."""
+    shares its core with another process holds up the whole call (as torchcal.compensate.fused does). Every
+    kernel call of this module runs inside it, so it is also where a cold cache is announced (once a process)."""
     if HAVE_NUMBA:
+        notice("fleet")
         with numba.parallel_chunksize(1):
             yield
     else:  # pragma: no cover

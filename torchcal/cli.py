@@ -717,8 +717,8 @@ def compile_cmd(
     for col in ("family", "status", "seconds"):
         t.add_column(col, justify="right" if col == "seconds" else "left")
     for c in results:
-        status = (f"failed: {c.error}" if c.error else f"compiled ({len(c.missing)} kernels)" if c.missing
-                  else "in the cache already")
+        kernels = f"{len(c.missing)} kernel{'s' if len(c.missing) > 1 else ''}"
+        status = f"failed: {c.error}" if c.error else f"compiled ({kernels})" if c.missing else "in the cache already"
         t.add_row(c.family, status, f"{c.seconds:.1f}" if c.seconds else "")
     _console().print(t)
     failed = [c.family for c in results if c.error]

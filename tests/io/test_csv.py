@@ -234,3 +234,20 @@ def test_data_error_is_a_torchcal_error():
     from torchcal.core.exceptions import TorchcalError
 
     assert issubclass(DataError, TorchcalError) and issubclass(DataError, ValueError)
+
+
+def test_line_numbers_survive_column_access_without_a_copy_per_row(tmp_path):
+    """pandas deep-copies a frame's attrs on every column access: the line numbers are an immutable tuple whose
+    copy is itself (a list of ints cost a call per row on every access), and they still name the file's lines."""
+    import copy
+
+    from torchcal.io.csv import LineNumbers, read_raw_table
+
+    p = tmp_path / "blank_line.csv"
+    p.write_text("pose,tool,q1\n0,0,1.0\n\n1,0,2.0\n")
+    df = read_raw_table(p)
+    lines = df.attrs["lines"]
+    assert isinstance(lines, LineNumbers) and list(lines) == [2, 3, 4]
+    assert copy.deepcopy(lines) is lines
+    col = df["q1"]  # a column access: pandas' __finalize__ deep-copies attrs into the Series
+    assert col.attrs["lines"] is lines and df.attrs["lines"] is lines

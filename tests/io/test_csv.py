@@ -6,6 +6,8 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 import torch
 
 from torchcal.io.csv import MAX_LISTED, DataError, read_measurements, read_table, write_measurements
@@ -251,3 +253,31 @@ def test_line_numbers_survive_column_access_without_a_copy_per_row(tmp_path):
     assert copy.deepcopy(lines) is lines
     col = df["q1"]  # a column access: pandas' __finalize__ deep-copies attrs into the Series
     assert col.attrs["lines"] is lines and df.attrs["lines"] is lines
+
+
+@settings(max_examples=60, deadline=None)
+@given(cells=st.lists(st.lists(st.text(alphabet="0123456789.-eE \t\u00a0\u2003x;", max_size=6), min_size=3, max_size=3),
+                      min_size=1, max_size=6))
+def test_a_file_read_without_stripping_is_the_file_read_with_it(tmp_path_factory, cells):
+    """read_raw_table strips cells only where the file holds whitespace other than line breaks (or quotes): the
+    frame is the one stripping every cell gives (the reference: the padding test made to match always)."""
+    import torchcal.io.csv as C
+
+    p = tmp_path_factory.mktemp("strip") / "t.csv"
+    p.write_text("pose,tool,q1\n" + "".join(",".join(r) + "\n" for r in cells), encoding="utf-8")
+
+    def read():
+        try:
+            df = C.read_raw_table(p)
+        except DataError as exc:
+            return str(exc)
+        return df.to_dict("list"), list(df.attrs["lines"])
+
+    fast = read()
+    always = re.compile(r"[\s\S]")
+    real, C._PADDING = C._PADDING, always
+    try:
+        ref = read()
+    finally:
+        C._PADDING = real
+    assert fast == ref

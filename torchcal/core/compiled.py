@@ -76,7 +76,8 @@ def notice(family: str) -> None:
     if missing:
         log.warning("compiling torchcal's %s kernels for this CPU (%s) into numba's cache: once per install, "
                     "%s on a 2-core machine; later runs load them in ~0.5 s. `torchcal compile` builds every "
-                    "family ahead of time, side by side", family, ", ".join(missing), FAMILIES[family][2])
+                    "family ahead of time, side by side (TORCHCAL_NO_NUMBA=1 runs the torch forms instead: no "
+                    "compile, slower per pose)", family, ", ".join(missing), FAMILIES[family][2])
 
 
 __all__ = ["FAMILIES", "cached", "cold", "notice", "quiet"]

@@ -166,6 +166,12 @@ def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[
     return [h.strip() for h in header], starts, widths
 
 
+def _blank_rows(df: pd.DataFrame) -> np.ndarray:
+    """(R,) bool: the rows whose every cell is empty text. On the cells as one object array (pandas' own
+    comparison of a frame of strings took 4x as long)."""
+    return (df.to_numpy(dtype=object) == "").all(1)
+
+
 def read_raw_table(path: Path) -> pd.DataFrame:
     """Every cell as stripped text ('' where empty), one row per record, blank lines kept as rows.
 
@@ -214,7 +220,7 @@ def read_raw_table(path: Path) -> pd.DataFrame:
         for c in df.columns:
             df[c] = df[c].astype(str).str.strip()
     # trailing blank lines are an editor artefact, not rows; blank lines in between are reported
-    blank = (df == "").all(axis=1).to_numpy()
+    blank = _blank_rows(df)
     end = len(df)
     while end > 0 and blank[end - 1]:
         end -= 1
@@ -300,7 +306,7 @@ def parse_table(
     problems: list[Problem] = []
     cols = set(df.columns)
     R = len(df)
-    blank = (df == "").all(axis=1).to_numpy()
+    blank = _blank_rows(df)
     for r in np.flatnonzero(blank):
         problems.append(Problem(int(r) + 1, None, "blank line between data rows; remove it (rows are never skipped)"))
     df = df.copy()

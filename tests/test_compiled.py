@@ -99,3 +99,11 @@ def test_unknown_families_are_refused_by_name():
     assert "unknown kernel families bogus" in res.output and "known: targets, fleet, damped, flange" in res.output
     res = CliRunner().invoke(app, ["compile", "--jobs", "0"])
     assert res.exit_code == 2 and "--jobs 0" in res.output
+
+
+def test_without_numba_there_is_nothing_to_compile_and_nothing_is_wrong(monkeypatch):
+    monkeypatch.setattr(fused, "HAVE_NUMBA", False)
+    with pytest.raises(RuntimeError, match="TORCHCAL_NO_NUMBA"):
+        compile_kernels()
+    res = CliRunner().invoke(app, ["compile"])
+    assert res.exit_code == 0 and "nothing to compile" in res.output and "torch forms run instead" in res.output

@@ -711,8 +711,9 @@ def compile_cmd(
 
         try:
             results = compile_kernels(families, jobs, force, progress=done)
-        except RuntimeError as exc:
-            raise ConfigError(str(exc)) from None
+        except RuntimeError as exc:  # no numba in use: nothing to build, and nothing is wrong
+            typer.echo(f"nothing to compile: {str(exc).split(': ', 1)[1]}")
+            return
     t = Table(title="numba's cache: torchcal's compiled kernels")
     for col in ("family", "status", "seconds"):
         t.add_column(col, justify="right" if col == "seconds" else "left")

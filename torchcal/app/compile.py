@@ -21,8 +21,9 @@ from multiprocessing import get_context
 from ..core.compiled import FAMILIES, cold, quiet
 
 ORDER = ("targets", "fleet", "damped", "flange")
-"""Families in the order they start: the longest compiles first (stop 28's measurement), so that on two
-processes the four end together as nearly as they can."""
+"""Families in the order they start, the longest compile first (stop 28: targets 140 s, fleet 43 s, damped 35 s,
+flange 15 s on one core): on two processes the targets pass compiles on one while the other three follow each
+other on the second, and the whole takes about as long as the targets pass alone."""
 
 
 @dataclass
@@ -146,8 +147,8 @@ def compile_kernels(families=None, jobs: int | None = None, force: bool = False,
     if unknown:
         raise ValueError(f"compile_kernels: unknown kernel families {unknown}; known: {', '.join(ORDER)}")
     if not fused.HAVE_NUMBA:
-        raise RuntimeError("compile_kernels: numba is not importable here (or TORCHCAL_NO_NUMBA is set): the torch "
-                           "forms run instead and there is nothing to compile")
+        raise RuntimeError("compile_kernels: numba is not importable here (or TORCHCAL_NO_NUMBA is set), so the torch "
+                           "forms run instead")
     out = {f: Compiled(f, [], 0.0) for f in names}
     todo = [f for f in ORDER if f in names and (force or cold(f))]
     if todo:

@@ -688,9 +688,10 @@ def compile_cmd(
 ):
     """Build torchcal's compiled kernels into numba's cache now, not in the first run that needs them.
 
-    Once per install (and after a numba or CPU change): about 2.5 min on 2
-    cores, against ~3 min inside the first compensation and ~45 s inside the
-    first fleet. Prints each family: compiled, or already in the cache.
+    Once per install (and after a numba or CPU change): about 3 min on 2
+    cores for all four families, side by side (one after another, inside the
+    first compensation and the first fleet, ~3 min 50 s). Prints each family:
+    compiled, or already in the cache.
     """
     from .app.config import ConfigError
 

@@ -125,7 +125,8 @@ def _run(family: str) -> Compiled:
     except Exception as exc:  # reported per family: the others still compile
         return Compiled(family, missing, time.perf_counter() - t, f"{type(exc).__name__}: {exc}")
     left = cold(family)
-    err = f"still not in numba's cache after the warm-up: {', '.join(left)}" if left else None
+    err = (f"still not in numba's cache after the warm-up: {', '.join(left)} (can this user write numba's cache "
+           f"directory? NUMBA_CACHE_DIR chooses another)") if left else None
     return Compiled(family, missing, time.perf_counter() - t, err)
 
 

@@ -28,6 +28,11 @@ HAVE_NUMBA = True
 @numba.njit(cache=True)
 def k(x):
     return x + {add}
+
+
+@numba.njit  # not cached: the process has it, the disk never will
+def j(x):
+    return x - 1
 """
 
 
@@ -48,6 +53,9 @@ compiled.notice("probe")
 compiled.notice("probe")  # once a process
 print("value", kmod.k(1.0))
 print("after", compiled.cold("probe"), compiled.cached(kmod.k))
+print("on disk", compiled.cached(kmod.k, on_disk=True))
+kmod.j(1.0)
+print("uncached", compiled.cached(kmod.j), compiled.cached(kmod.j, on_disk=True))
 """
 
 
@@ -58,6 +66,8 @@ def test_a_kernel_is_cold_until_compiled_then_cached_across_processes_until_its_
     first = _python(PROBE, cache, src)
     assert first.returncode == 0, first.stderr
     assert "before ['k'] False" in first.stdout and "value 2.0" in first.stdout and "after [] True" in first.stdout
+    assert "on disk True" in first.stdout  # numba wrote it
+    assert "uncached True None" in first.stdout  # in this process, but nothing on disk to read back
     assert first.stderr.count("compiling torchcal's probe kernels for this CPU (k)") == 1, first.stderr
     # a new process finds the machine code on disk before any call, and says nothing
     second = _python(PROBE, cache, src)

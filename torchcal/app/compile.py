@@ -119,14 +119,15 @@ def _run(family: str) -> Compiled:
     torch.set_num_threads(1)  # the workers run side by side; numba compiles on one thread anyway
     quiet()  # the command reports each family; a worker's own notice would repeat it
     t = time.perf_counter()
-    missing = cold(family)
+    missing = cold(family, unknown=True)
     try:
         WARM[family]()
     except Exception as exc:  # reported per family: the others still compile
         return Compiled(family, missing, time.perf_counter() - t, f"{type(exc).__name__}: {exc}")
-    left = cold(family)
-    err = (f"still not in numba's cache after the warm-up: {', '.join(left)} (can this user write numba's cache "
-           f"directory? NUMBA_CACHE_DIR chooses another)") if left else None
+    # read back from the disk: this process holds the code either way, the next one only what numba saved
+    left = cold(family, unknown=True, on_disk=True)
+    err = (f"not in numba's cache after the warm-up, or the cache cannot be read: {', '.join(left)} (can this "
+           f"user write numba's cache directory? NUMBA_CACHE_DIR chooses another)") if left else None
     return Compiled(family, missing, time.perf_counter() - t, err)
 
 
@@ -151,7 +152,7 @@ def compile_kernels(families=None, jobs: int | None = None, force: bool = False,
         raise RuntimeError("compile_kernels: numba is not importable here (or TORCHCAL_NO_NUMBA is set), so the torch "
                            "forms run instead")
     out = {f: Compiled(f, [], 0.0) for f in names}
-    todo = [f for f in ORDER if f in names and (force or cold(f))]
+    todo = [f for f in ORDER if f in names and (force or cold(f, unknown=True))]
     if todo:
         cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         workers = max(1, min(len(todo), cpus if jobs is None else int(jobs)))

@@ -35,11 +35,12 @@ AMD EPYC VM (stop 28: 43, 15, 35 and 140 s). ``torchcal compile`` builds them on
 _NOTICED: set[str] = set()
 
 
-def cached(dispatcher) -> bool | None:
+def cached(dispatcher, on_disk: bool = False) -> bool | None:
     """True where numba's cache holds machine code of ``dispatcher`` (a ``numba.njit(cache=True)`` function) for
-    this source and this CPU; False where the next call compiles; None where it cannot tell."""
+    this source and this CPU (or, unless ``on_disk``, this process has it already); False where the next call
+    compiles; None where it cannot tell (numba's internals moved, or its cache directory cannot be read)."""
     try:
-        if dispatcher.overloads:  # compiled or loaded in this process already
+        if dispatcher.overloads and not on_disk:  # compiled or loaded in this process already
             return True
         cache = dispatcher._cache
         index = cache._cache_file._load_index()  # {} where missing, of another numba version, or stale
@@ -49,16 +50,17 @@ def cached(dispatcher) -> bool | None:
         return None
 
 
-def cold(family: str) -> list[str]:
+def cold(family: str, unknown: bool = False, on_disk: bool = False) -> list[str]:
     """The entry points of ``family`` (a key of :data:`FAMILIES`) the next call compiles (empty: all cached, or
-    numba missing or unreadable)."""
+    numba missing). unknown: also those whose state cannot be told (:func:`cached` None); on_disk: as
+    :func:`cached`'s."""
     import importlib
 
     module, names, _ = FAMILIES[family]
     mod = importlib.import_module(module)
     if not getattr(mod, "HAVE_NUMBA", False):
         return []
-    return [nm for nm in names if cached(getattr(mod, nm)) is False]
+    return [nm for nm in names if cached(getattr(mod, nm), on_disk) in ((False, None) if unknown else (False,))]
 
 
 def quiet() -> None:

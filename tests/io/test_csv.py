@@ -256,7 +256,7 @@ def test_line_numbers_survive_column_access_without_a_copy_per_row(tmp_path):
 
 
 @settings(max_examples=60, deadline=None)
-@given(cells=st.lists(st.lists(st.text(alphabet="0123456789.-eE \t\u00a0\u2003x;", max_size=6), min_size=3, max_size=3),
+@given(cells=st.lists(st.lists(st.text(alphabet="0123456789.-eE \t\r\u00a0\u2003x;", max_size=6), min_size=3, max_size=3),
                       min_size=1, max_size=6))
 def test_a_file_read_without_stripping_is_the_file_read_with_it(tmp_path_factory, cells):
     """read_raw_table strips cells only where the file holds whitespace other than line breaks (or quotes): the

@@ -23,6 +23,7 @@ Rows are never dropped. Units are converted with :mod:`torchcal.core.units` only
 from __future__ import annotations
 
 import csv as _csv
+import io
 import logging
 import re
 from dataclasses import dataclass
@@ -108,7 +109,7 @@ log = logging.getLogger("torchcal.io.csv")
 CONTRACT_COLUMN = re.compile(r"^(pose|tool|x|y|z|q\d+|dir\d+)$")
 """Names of the columns the contract interprets (the ones a decimal comma is read in)."""
 
-_PADDING = re.compile(r"[^\S\n]")
+_PADDING = re.compile(r"[^\S\r\n]")
 """Whitespace that str.strip would take from a cell (anything str.isspace but the line breaks pandas consumes)."""
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+(?:[eE][+-]?\d+)?$")
 
@@ -144,13 +145,17 @@ class LineNumbers(tuple):
         return self
 
 
-def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[int]]:
-    """Header names, first file line and field count of every record (csv module: knows quoted newlines)."""
+def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[int], bool]:
+    """Header names, first file line and field count of every record (csv module: knows quoted newlines), and
+    whether any cell may need stripping: the file holds whitespace other than line breaks, or quotes (a quoted
+    cell may hold a line break)."""
     if not path.is_file():
         raise DataError(path, [Problem(None, None, missing_file_message(path))])
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:
-            reader = _csv.reader(fh, delimiter=delimiter)
+            text = fh.read()
+            padded = '"' in text or _PADDING.search(text) is not None
+            reader = _csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
             header = next(reader, None)
             starts, widths, prev = [], [], reader.line_num
             for rec in reader:
@@ -163,7 +168,7 @@ def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[
         raise DataError(path, [Problem(None, None, f"not a well-formed CSV: {exc}")]) from None
     if not header or all(not h.strip() for h in header):
         raise DataError(path, [Problem(None, None, "no header line; the first line must name the columns")])
-    return [h.strip() for h in header], starts, widths
+    return [h.strip() for h in header], starts, widths, padded
 
 
 def _blank_rows(df: pd.DataFrame) -> np.ndarray:
@@ -185,7 +190,7 @@ def read_raw_table(path: Path) -> pd.DataFrame:
     other columns are carried through as written.
     """
     sep = _delimiter(path)
-    names, starts, widths = _scan(path, sep)
+    names, starts, widths, padded = _scan(path, sep)
     problems = []
     seen: dict[str, int] = {}
     for i, name in enumerate(names):
@@ -213,10 +218,7 @@ def read_raw_table(path: Path) -> pd.DataFrame:
         starts = [None] * len(df)
     df.columns = names
     df = df.fillna("")
-    # stripping is a Python call per cell (a third of reading a clean file); a file without any whitespace but
-    # its line breaks, and without quotes (a quoted cell may hold a line break), has nothing to strip
-    text = path.read_text(encoding="utf-8-sig", errors="replace")
-    if '"' in text or _PADDING.search(text) is not None:
+    if padded:  # stripping is a Python call per cell, a third of reading a clean file, which has nothing to strip
         for c in df.columns:
             df[c] = df[c].astype(str).str.strip()
     # trailing blank lines are an editor artefact, not rows; blank lines in between are reported

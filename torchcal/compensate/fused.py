@@ -26,6 +26,8 @@ import os
 import numpy as np
 import torch
 
+from ..core.compiled import notice
+
 try:  # numba is a dependency, but the torch kernel computes the same numbers without it
     import numba
 
@@ -69,8 +71,6 @@ def kernel_threads(family: str) -> int:
     follows torch's thread setting (torchcal.core.threads.limit_threads sets both, so a caller's limit holds), the
     process counts as warm (:func:`warm`), and a cold cache is announced (its compile takes minutes). -> the
     thread count (the rows of the kernel's work arrays: :func:`flange_work`)."""
-    from ..core.compiled import notice
-
     notice(family)
     numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
     mark_warm()

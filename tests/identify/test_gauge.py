@@ -109,3 +109,21 @@ def test_fix_gauge_pins_the_same_names_from_a_warm_start(fanuc, tools_m):
         assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
     assert "joint1.eps_z.c0" in names["fresh"]
     assert names["warm"] == names["fresh"]
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), P=st.integers(1, 70), rank_deficit=st.integers(0, 20),
+       block=st.integers(1, 40))
+def test_blocked_full_test_equals_the_column_by_column_test(seed, P, rank_deficit, block):
+    """The blocked greedy test of the full column set (one QR per block, restarting after each pinned column)
+    pins exactly the columns that the column-by-column Gram-Schmidt pins, whatever the block size and
+    wherever the dependent columns fall against the block edges."""
+    from torchcal.identify.gauge import _greedy, _greedy_full, _unit_columns_in_order
+
+    rank = max(1, P - rank_deficit)
+    A = _matrix(seed, P + 5, rank, P) if rank < P else torch.randn(P + 5, P, dtype=torch.float64,
+                                                                  generator=torch.Generator().manual_seed(seed))
+    Bt, _ = _unit_columns_in_order(A, torch.arange(P))
+    full = _greedy_full(Bt, 1e-7, block)
+    assert torch.equal(full, _greedy(Bt, torch.ones(1, P, dtype=torch.bool), 1e-7)[0])
+    assert int(full.sum()) == P - int(torch.linalg.matrix_rank(A))

@@ -32,6 +32,7 @@ from torch.func import functional_call, vmap
 
 from ..core.measurements import Measurements
 from ..core.replicate import replicate
+from ..core.threads import limit_threads
 from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
@@ -154,7 +155,15 @@ class FleetProblem(BatchedProblem):
         Judged on the host wherever the fleet is: the greedy test is a loop over the columns, each a few
         small products (on a GPU, hundreds of tiny kernels and a sync per column)."""
         cpu = torch.device("cpu")
-        judge = self.superset if self.superset.device == cpu else replicate(self.superset).to(cpu)
+        if self.superset.device == cpu:
+            return self._pins_on_host(self.superset, keep, noise, prior, fixed, gauge_units)
+        # one host thread: beside a GPU the host only feeds it, and a parallel region on a host whose other core
+        # is busy waits for its descheduled thread
+        with limit_threads(1):
+            return self._pins_on_host(replicate(self.superset).to(cpu), keep, noise, prior, fixed, gauge_units)
+
+    def _pins_on_host(self, judge, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
+        cpu = torch.device("cpu")
         x0 = torch.zeros(self.layout.size, dtype=torch.float64)
         blocks = []
         if gauge_units is None:  # the first units until their rows (x d) are 4x the parameters: data enough

@@ -85,6 +85,38 @@ def _greedy_body(Bt: torch.Tensor, keep: torch.Tensor, rtol: float, candidates: 
     return dependent
 
 
+def _greedy_full(Bt: torch.Tensor, rtol: float, block: int = 32) -> torch.Tensor:
+    """The greedy test of :func:`_greedy` for the full set of columns alone, in blocks. -> (P,) bool.
+
+    A block of the next columns is projected off the kept directions and factored by one QR: while its
+    columns are independent, |R_jj| is exactly the greedy test's new norm of column j against everything
+    kept before it. At the first dependent column the block's directions before it are kept, the column is
+    pinned and the next block starts after it. A dependent column's own reflector is never kept, so it
+    cannot use up a dimension that a later column needs (the trap of a plain QR of all the columns). One QR
+    per block and per pinned column instead of a dozen small products per column: the per-column loop was
+    ~0.2 ms a column (285 columns of a FANUC: 65 ms, a tenth of a single fit), this ~10x less.
+    """
+    P, n = Bt.shape
+    dependent = torch.zeros(P, dtype=torch.bool)
+    Q = Bt.new_zeros(P, n)  # the kept directions, first K rows
+    K, s = 0, 0
+    with threads_for_work(8.0 * P * n * block):
+        while s < P:
+            c = min(s + block, P)
+            W = _project_out(Bt[None, s:c], Q[None, :K])[0]  # (L, n)
+            q, r = torch.linalg.qr(W.T, mode="reduced")  # (n, L), (L, L)
+            small = (torch.diagonal(r).abs() < rtol).nonzero()
+            j = int(small[0, 0]) if small.numel() else c - s
+            Q[K:K + j] = q[:, :j].T
+            K += j
+            if j < c - s:
+                dependent[s + j] = True
+                s += j + 1
+            else:
+                s = c
+    return dependent
+
+
 def _unit_columns_in_order(A: torch.Tensor, order: torch.Tensor):
     """A's columns in ``order``, unit-normalized, as rows (P, n), reduced to at most P coordinates by one QR
     (A = Q R with Q orthonormal keeps every inner product, so the greedy test gives the same answer on R)."""
@@ -120,7 +152,7 @@ def gauge_basis(A: torch.Tensor, order: torch.Tensor | None = None, rtol: float 
     P = A.shape[1]
     order = torch.arange(P) if order is None else order.cpu()
     Bt, zero = _unit_columns_in_order(A, order)
-    full = _greedy(Bt, torch.ones(1, P, dtype=torch.bool, device=Bt.device), rtol)[0]
+    full = _greedy_full(Bt, rtol).to(Bt.device)
     return Bt, order, zero, full
 
 
@@ -137,8 +169,12 @@ def dependent_columns_masked(basis, keep: torch.Tensor, rtol: float = 1e-7, chun
     M, P = keep.shape
     kp = keep[:, order.to(keep.device)].to(Bt.device)
     out = torch.zeros(M, P, dtype=torch.bool)
-    for c0 in range(0, M, chunk):
-        out[c0:c0 + chunk, order] = _greedy(Bt, kp[c0:c0 + chunk], rtol, full).cpu()
+    whole = kp.all(1).cpu()  # the full set's own answer is already known (a fleet: every unit carries every term)
+    out[whole.nonzero()[:, 0][:, None], order] = full.cpu()
+    part = (~whole).nonzero()[:, 0]
+    for c0 in range(0, part.numel(), chunk):
+        rows = part[c0:c0 + chunk]
+        out[rows[:, None], order] = _greedy(Bt, kp[rows.to(kp.device)], rtol, full).cpu()
     return (out.to(keep.device) & keep) | (keep & zero[None, :].to(keep.device))
 
 

@@ -59,7 +59,7 @@ from __future__ import annotations
 import torch
 
 from ..kinematics.fk import chain_frames
-from ..kinematics.transforms import twist_to_transform
+from ..kinematics.transforms import small_matmul, twist_to_transform
 from ..models.jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
 from .workspace import Workspace
 
@@ -213,10 +213,10 @@ def factored_linearization(model, st: RobotStructure, params: dict, q, tool, dir
     jR, jp, F = chain_frames(model.origins, model.axes, model.prismatic, theta, twist_to_transform(e), model.tip, T0)
     pts = model.tools.nominal + params["tools.delta"]  # (m, T, 3)
     p_t = pts[torch.arange(m, device=q.device)[:, None], tool].reshape(B, 3)
-    p = (F[:, :3, :3] @ p_t[..., None])[..., 0] + F[:, :3, 3]
+    p = small_matmul(F[:, :3, :3], p_t[..., None])[..., 0] + F[:, :3, 3]
     Je = twist_jacobian(jR, jp, e, p[:, None, :])[:, :, :3, :]  # (B, n, 3, 6)
     Jax = joint_axis_jacobian(jR, jp, model.axes, model.prismatic, p)[:, :3, :]
-    slope = torch.einsum("bnct,bnt->bcn", Je, de)
+    slope = small_matmul(Je, de[..., None])[..., 0].transpose(1, 2)  # (B, 3, n)
     Jv = Jax @ model.coupling + slope @ model.error_coupling  # (B, 3, n)
     cols = [Je.permute(0, 2, 1, 3)]  # (B, 3, n, 6)
     if st.A == 7:

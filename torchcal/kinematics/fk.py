@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from .transforms import axis_angle_to_matrix, homogeneous
+from .transforms import axis_angle_to_matrix, homogeneous, small_matmul
 
 
 def joint_motion(axes: torch.Tensor, prismatic: torch.Tensor, theta: torch.Tensor):
@@ -60,12 +60,12 @@ def chain_frames(
         R = R @ oR
         if joint_errors is not None:
             E = joint_errors[..., i, :, :]
-            p = p + (R @ E[..., :3, 3:4])[..., 0]
-            R = R @ E[..., :3, :3]
+            p = p + small_matmul(R, E[..., :3, 3:4])[..., 0]
+            R = small_matmul(R, E[..., :3, :3])
         frames_R.append(R)
         frames_p.append(p)
-        p = p + (R @ mp[:, i, :, None])[..., 0]
-        R = R @ mR[:, i]
+        p = p + small_matmul(R, mp[:, i, :, None])[..., 0]
+        R = small_matmul(R, mR[:, i])
     if tip is not None:
         p = p + R @ tip[:3, 3]
         R = R @ tip[:3, :3]
@@ -86,7 +86,7 @@ def geometric_jacobian(joint_R, joint_p, axes, prismatic, point) -> torch.Tensor
     velocity, per unit joint velocity. Error terms are held fixed (their
     slopes are not included).
     """
-    z = (joint_R @ axes[:, :, None])[..., 0]  # (B, n, 3)
+    z = small_matmul(joint_R, axes[:, :, None])[..., 0]  # (B, n, 3)
     lin_rev = torch.linalg.cross(z, point[:, None, :] - joint_p, dim=-1)
     pm = prismatic[None, :, None]
     lin = torch.where(pm, z, lin_rev)

@@ -10,6 +10,23 @@ from __future__ import annotations
 import torch
 
 
+def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` for stacks of small matrices: (..., i, k) @ (..., k, j) -> (..., i, j), batch dims broadcast.
+
+    On the CPU it is ``a @ b``. Elsewhere one elementwise product and one sum over k: a GPU's batched matmul
+    of tiny blocks runs one tiny product per block, ~0.28 ms per call of 75 000 3 x 3 blocks on an H200
+    (a fleet's linearization makes ~55 such calls, most of the fleet solve's GPU time), the elementwise
+    form a few microseconds. Meant for k of a few; the result equals ``a @ b`` to rounding.
+    """
+    return a @ b if a.device.type == "cpu" else elementwise_matmul(a, b)
+
+
+def elementwise_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` (..., i, k) @ (..., k, j) as one broadcast product and a sum over k (:func:`small_matmul`'s
+    form off the CPU)."""
+    return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
+
+
 def skew(v: torch.Tensor) -> torch.Tensor:
     """Skew-symmetric matrix S(v) with S(v) w = v x w.  v: (..., 3) -> (..., 3, 3)."""
     x, y, z = v.unbind(-1)
@@ -25,7 +42,7 @@ def axis_angle_to_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tenso
     s = torch.sin(angle)[..., None, None]
     c = torch.cos(angle)[..., None, None]
     eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
-    return eye + s * k + (1.0 - c) * (k @ k)
+    return eye + s * k + (1.0 - c) * small_matmul(k, k)
 
 
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
@@ -42,7 +59,7 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
     b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, (1.0 - torch.cos(t)) / t2)
     k = skew(w)
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+    return eye + a[..., None, None] * k + b[..., None, None] * small_matmul(k, k)
 
 
 def so3_log(R: torch.Tensor) -> torch.Tensor:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 
 from ..core.basis import chebyshev_with_derivative
-from ..kinematics.transforms import skew, so3_exp
+from ..kinematics.transforms import skew, small_matmul, so3_exp
 
 
 def so3_right_jacobian(w: torch.Tensor) -> torch.Tensor:
@@ -28,7 +28,7 @@ def so3_right_jacobian(w: torch.Tensor) -> torch.Tensor:
     b = torch.where(small, 1.0 / 6.0 - t2 / 120.0, (t - torch.sin(t)) / (t2s * t))
     K = skew(w)
     eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    return eye - a[..., None, None] * K + b[..., None, None] * (K @ K)
+    return eye - a[..., None, None] * K + b[..., None, None] * small_matmul(K, K)
 
 
 def twist_jacobian(frame_R: torch.Tensor, frame_p: torch.Tensor, twist: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
@@ -40,9 +40,9 @@ def twist_jacobian(frame_R: torch.Tensor, frame_p: torch.Tensor, twist: torch.Te
     -> (..., 6, 6): d(point velocity; angular velocity) / d(eps, delta).
     """
     Jr = so3_right_jacobian(twist[..., :3])
-    RJ = frame_R @ Jr
-    R_before = frame_R @ so3_exp(twist[..., :3]).transpose(-1, -2)
-    lin_eps = -skew(point - frame_p) @ RJ
+    RJ = small_matmul(frame_R, Jr)
+    R_before = small_matmul(frame_R, so3_exp(twist[..., :3]).transpose(-1, -2))
+    lin_eps = -small_matmul(skew(point - frame_p), RJ)
     top = torch.cat([lin_eps, R_before], -1)
     bottom = torch.cat([RJ, torch.zeros_like(RJ)], -1)
     return torch.cat([top, bottom], -2)
@@ -54,7 +54,7 @@ def joint_axis_jacobian(joint_R: torch.Tensor, joint_p: torch.Tensor, axes: torc
     joint_R: (B, n, 3, 3), joint_p: (B, n, 3) joint frames; axes: (n, 3);
     prismatic: (n,); point: (B, 3). -> (B, 6, n).
     """
-    z = (joint_R @ axes[:, :, None])[..., 0]
+    z = small_matmul(joint_R, axes[:, :, None])[..., 0]
     lin = torch.where(prismatic[None, :, None], z, torch.linalg.cross(z, point[:, None, :] - joint_p, dim=-1))
     ang = torch.where(prismatic[None, :, None], torch.zeros_like(z), z)
     return torch.cat([lin, ang], -1).transpose(1, 2)

@@ -4,23 +4,34 @@
 # the fleet alone. Wheels the image lacks travel in .whl (numba's own llvmlite
 # included: the image's numba does not import with its NumPy).
 set -o pipefail
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+# .whl: wheels, or site.tar.xz (the same packages installed here with --target, xz-packed: llvmlite's wheel alone
+# is 60 MB, the 64 MiB a call may carry)
+if [ -f .whl/site.tar.xz ]; then mkdir -p /tmp/site && tar -C /tmp/site -xJf .whl/site.tar.xz || exit 1
+else python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1; fi
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 NUMBA_CACHE_DIR=/tmp/numba-cache
 python3 -c "import torch, numpy, numba; print('torch', torch.__version__, torch.cuda.get_device_name(), 'numpy', numpy.__version__, 'numba', numba.__version__)"
 lscpu | grep -E "Model name|^CPU\(s\)"
-if [ "$1" = "--fleet" ]; then  # the fleet alone (~3 min): CUDA fleet tests, the ratio quiet and loaded, and
-  # with BASE=<a source tree carried in> that tree's GPU fleet beside this one's (the same session: GPU hosts
-  # differ by up to 1.7x between sessions), then where the solve still waits for the device
-  timeout 60 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py -k "fleet or fit" 2>&1 | tail -2
+if [ "$1" = "--fleet" ]; then  # the fleet (~6 min): the CUDA tests, the fleet's ratio quiet and loaded, with
+  # BASE=<a source tree carried in> that tree's GPU fleet beside this one's, alternated (the same session: GPU
+  # hosts differ by up to 1.7x between sessions), cProfile of the host's time in one GPU solve quiet and
+  # loaded, then the other GPU cases (one fit, prediction, compensation) quiet
+  python3 -m torchcal.cli compile --only fleet > $OUT/compile.txt 2>&1 &  # the CPU side's kernels, cached
+  timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py 2>&1 | tail -2
+  wait; tail -2 $OUT/compile.txt | head -1
   timeout 120 taskset -c 0,1 python3 bench/gpu.py --units 100 --cpu-threads 2 --only fleet > $OUT/fleet_quiet.txt 2>&1
   tail -1 $OUT/fleet_quiet.txt | sed 's/^/quiet  /'
   taskset -c 0 python3 -c "while True: pass" & C=$!
   timeout 120 taskset -c 0,1 python3 bench/gpu.py --units 100 --cpu-threads 2 --only fleet > $OUT/fleet_loaded.txt 2>&1
-  kill $C; tail -1 $OUT/fleet_loaded.txt | sed 's/^/loaded /'
-  for s in ${BASE:+$BASE} .; do
+  tail -1 $OUT/fleet_loaded.txt | sed 's/^/loaded /'
+  timeout 60 taskset -c 0,1 python3 bench/gpu_fleet_profile.py --cprofile > $OUT/cprofile_loaded.txt 2>&1
+  kill $C
+  grep -m1 "profiled solve" $OUT/cprofile_loaded.txt | sed 's/^/loaded /'
+  for s in ${BASE:+$BASE} . ${BASE:+$BASE} .; do
     PYTHONPATH=/tmp/site:$PWD/$s timeout 40 python3 bench/gpu_fleet_profile.py --modes default --no-table 2>&1 | tail -1 | sed "s|^|$s: |"
   done
-  timeout 30 python3 bench/gpu_fleet_profile.py --sync-sites 2>&1 | head -8
+  timeout 60 python3 bench/gpu_fleet_profile.py --cprofile > $OUT/cprofile.txt 2>&1
+  grep -m1 "profiled solve" $OUT/cprofile.txt; grep -A12 "Ordered by: internal" $OUT/cprofile.txt | tail -9 | cut -c1-130
+  timeout 150 taskset -c 0,1 python3 bench/gpu.py --units 100 --cpu-threads 2 --only fit,prediction,compensation 2>&1 | tee $OUT/gpu_rest.txt | tail -7
   exit 0
 fi
 # numba compiles the CPU kernels once (cached) while the CUDA tests run

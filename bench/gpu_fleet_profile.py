@@ -3,6 +3,10 @@ with --sync-sites, where it waits for the device: every host sync (torch.cuda.se
 counted by its innermost torchcal source lines.
 
     python bench/gpu_fleet_profile.py [--units 100] [--modes default,structured,dense] [--no-table] [--sync-sites]
+                                      [--cprofile]
+
+--cprofile: where the host's time goes in one GPU fleet solve (after a warm-up): cProfile's functions by their
+own time and by cumulative time (the GPU waits on the host there, so the host's time is the solve's).
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ def main():
     ap.add_argument("--sync-sites", action="store_true")
     ap.add_argument("--modes", default="default,structured,dense", help="fit_fleet's structured=None, True, False")
     ap.add_argument("--no-table", action="store_true", help="timings only, no torch.profiler table")
+    ap.add_argument("--cprofile", action="store_true", help="cProfile of the host's time in one solve")
     args = ap.parse_args()
     gpu = torch.device("cuda")
     robot = torchcal.load_robot("fanuc_lrmate200i")
@@ -47,6 +52,8 @@ def main():
 
     if args.sync_sites:
         return sync_sites(make, units, noise)
+    if args.cprofile:
+        return host_profile(make, units, noise)
     best = {}
     modes = {"default": None, "structured": True, "dense": False}
     for label in args.modes.split(","):
@@ -75,6 +82,26 @@ def main():
     n_launch = sum(e.count for e in ka if e.key in ("cudaLaunchKernel", "cudaLaunchKernelExC"))
     n_sync = sum(e.count for e in ka if "Synchronize" in e.key or e.key in ("aten::item", "aten::nonzero"))
     print(f"kernel launches {n_launch}, host syncs (item/nonzero/synchronize) {n_sync}")
+
+
+def host_profile(make, units, noise) -> None:
+    """cProfile of one fleet solve after two warm-ups: the top functions by own and by cumulative time."""
+    import cProfile
+    import pstats
+
+    for _ in range(2):
+        fit_fleet(make, units, noise)
+    torch.cuda.synchronize()
+    pr = cProfile.Profile()
+    t = time.perf_counter()
+    pr.enable()
+    fit_fleet(make, units, noise)
+    torch.cuda.synchronize()
+    pr.disable()
+    print(f"profiled solve {time.perf_counter() - t:.3f} s (with cProfile's overhead)")
+    st = pstats.Stats(pr)
+    st.sort_stats("tottime").print_stats(25)
+    st.sort_stats("cumulative").print_stats(45)
 
 
 def sync_sites(make, units, noise) -> None:

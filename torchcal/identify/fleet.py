@@ -152,8 +152,8 @@ class FleetProblem(BatchedProblem):
     def _pins(self, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
         """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units.
 
-        Judged on the host wherever the fleet is: the greedy test is a loop over the columns, each a few
-        small products (on a GPU, hundreds of tiny kernels and a sync per column)."""
+        Judged on the host wherever the fleet is: the greedy test walks the columns in blocks, each a few
+        small products and a QR (on a GPU, tiny kernels and a sync per block)."""
         cpu = torch.device("cpu")
         if self.superset.device == cpu:
             return self._pins_on_host(self.superset, keep, noise, prior, fixed, gauge_units)

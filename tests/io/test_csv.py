@@ -281,3 +281,27 @@ def test_a_file_read_without_stripping_is_the_file_read_with_it(tmp_path_factory
     finally:
         C._PADDING = real
     assert fast == ref
+
+
+@settings(max_examples=60, deadline=None)
+@given(cells=st.lists(st.one_of(
+    st.text(alphabet="0123456789.+-eE_, \u00a0\u0661xnaifINF", max_size=8),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.sampled_from(["", "-0", "1e400", "1e-400", "+.5", "5.", "1_000", "Infinity", "0x10", "\u0661\u0662"])),
+    min_size=1, max_size=40))
+def test_numbers_parsed_as_pandas_parses_a_column_of_strings(cells):
+    """parse_numbers reads a column's cells as one object array: the same values (signed zeros and
+    overflow included) and the same rejected cells as pandas' conversion of the column of strings."""
+    import numpy as np
+    import pandas as pd
+
+    from torchcal.io.csv import parse_numbers
+
+    df = pd.DataFrame({"x": pd.Series(cells, dtype="string[python]")})
+    problems = []
+    got = parse_numbers(df, "x", problems)
+    ref = pd.to_numeric(df["x"], errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
+    assert np.array_equal(np.isnan(got), np.isnan(ref))
+    ok = ~np.isnan(ref)
+    assert np.array_equal(got[ok], ref[ok]) and np.array_equal(np.signbit(got[ok]), np.signbit(ref[ok]))
+    assert sorted(p.row for p in problems) == [int(r) + 1 for r in np.flatnonzero(~np.isfinite(ref))]

@@ -258,7 +258,9 @@ def parse_numbers(df: pd.DataFrame, column: str, problems: list[Problem]) -> np.
     Rows flagged in ``df.attrs['blank']`` (blank lines, reported once each) are not reported again.
     """
     text = df[column]
-    values = pd.to_numeric(text, errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
+    # on the cells as one object array: the same conversion and the same rejections as on the Series of
+    # strings, in half the time (its string-array path; a 750-row file has 17 such columns)
+    values = np.asarray(pd.to_numeric(text.to_numpy(dtype=object), errors="coerce"), dtype=np.float64)
     bad = ~np.isfinite(values)
     blank = df.attrs.get("blank")
     if blank is not None and len(blank) == len(bad):

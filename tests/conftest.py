@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torchcal  # noqa: F401  before torch, as users do: it sets OMP_WAIT_POLICY=PASSIVE (torchcal.core.threads)
 
+import math  # noqa: E402
+
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
@@ -127,3 +129,33 @@ PRISMATIC_URDF = """<?xml version="1.0"?>
     <origin xyz="0 0 0.1" rpy="0 0 0"/><axis xyz="1 0 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
 </robot>
 """
+
+
+# the KUKA LBR iiwa 14 R820's standard DH parameters (a = 0): a robot users bring, from its datasheet
+D_MM = [360.0, 0.0, 420.0, 0.0, 400.0, 0.0, 126.0]
+ALPHA_DEG = [-90.0, 90.0, 90.0, -90.0, -90.0, 90.0, 0.0]
+LIMIT_DEG = [170, 120, 170, 120, 170, 120, 175]
+
+
+def _urdf_from_dh(path):
+    """A user's URDF of the KUKA LBR iiwa 14 R820 written from its datasheet's standard DH table (joint i's
+    origin carries link i-1's a, d and alpha): a 7-axis robot torchcal does not bundle."""
+    joints, prev = [], (0.0, 0.0, 0.0)  # (d, a, alpha) of the previous link
+    for i, (d, al, lim) in enumerate(zip(D_MM, ALPHA_DEG, LIMIT_DEG)):
+        pd, pa, pal = prev
+        parent = "base_link" if i == 0 else f"link{i}"
+        joints.append(f'<link name="link{i + 1}"/><joint name="a{i + 1}" type="revolute"><parent link="{parent}"/>'
+                      f'<child link="link{i + 1}"/><origin xyz="{pa / 1e3} 0 {pd / 1e3}" rpy="{math.radians(pal)} 0 0"/>'
+                      f'<axis xyz="0 0 1"/><limit lower="{-math.radians(lim)}" upper="{math.radians(lim)}" '
+                      'effort="1" velocity="1"/></joint>')
+        prev = (d, 0.0, al)
+    pd, pa, pal = prev
+    flange = (f'<link name="flange"/><joint name="flange_joint" type="fixed"><parent link="link7"/>'
+              f'<child link="flange"/><origin xyz="{pa / 1e3} 0 {pd / 1e3}" rpy="{math.radians(pal)} 0 0"/></joint>')
+    path.write_text('<robot name="iiwa14_from_dh"><link name="base_link"/>' + "".join(joints) + flange + "</robot>")
+    return path
+
+
+@pytest.fixture(scope="session")
+def iiwa(tmp_path_factory):
+    return torchcal.load_robot(str(_urdf_from_dh(tmp_path_factory.mktemp("user") / "iiwa14.urdf")))

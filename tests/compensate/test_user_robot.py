@@ -12,43 +12,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 import torch
 
 import torchcal
 from torchcal.compensate.result import SINGULAR_FLOOR
 from torchcal.compensate.targets import tool_pose
 
-from conftest import randomize, standard_dh
+from conftest import ALPHA_DEG, D_MM, randomize, standard_dh
 
-D_MM = [360.0, 0.0, 420.0, 0.0, 400.0, 0.0, 126.0]
-ALPHA_DEG = [-90.0, 90.0, 90.0, -90.0, -90.0, 90.0, 0.0]
-LIMIT_DEG = [170, 120, 170, 120, 170, 120, 175]
 REASONS = ("out of reach", "needs more than the bound", "joint limit", "singular", "branch change")
 """The causes a flagged row may give (issue 17: out of reach, more than the bound, joint limit, singular; and
 the branch test's own)."""
-
-
-def _urdf_from_dh(path):
-    joints, prev = [], (0.0, 0.0, 0.0)  # (d, a, alpha) of the previous link
-    for i, (d, al, lim) in enumerate(zip(D_MM, ALPHA_DEG, LIMIT_DEG)):
-        pd, pa, pal = prev
-        parent = "base_link" if i == 0 else f"link{i}"
-        joints.append(f'<link name="link{i + 1}"/><joint name="a{i + 1}" type="revolute"><parent link="{parent}"/>'
-                      f'<child link="link{i + 1}"/><origin xyz="{pa / 1e3} 0 {pd / 1e3}" rpy="{math.radians(pal)} 0 0"/>'
-                      f'<axis xyz="0 0 1"/><limit lower="{-math.radians(lim)}" upper="{math.radians(lim)}" '
-                      'effort="1" velocity="1"/></joint>')
-        prev = (d, 0.0, al)
-    pd, pa, pal = prev
-    flange = (f'<link name="flange"/><joint name="flange_joint" type="fixed"><parent link="link7"/>'
-              f'<child link="flange"/><origin xyz="{pa / 1e3} 0 {pd / 1e3}" rpy="{math.radians(pal)} 0 0"/></joint>')
-    path.write_text('<robot name="iiwa14_from_dh"><link name="base_link"/>' + "".join(joints) + flange + "</robot>")
-    return path
-
-
-@pytest.fixture(scope="module")
-def iiwa(tmp_path_factory):
-    return torchcal.load_robot(str(_urdf_from_dh(tmp_path_factory.mktemp("user") / "iiwa14.urdf")))
 
 
 def _elbow_stretched(robot, count, seed):

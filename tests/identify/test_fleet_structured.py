@@ -206,3 +206,38 @@ def test_compiled_cholesky_is_torch_cholesky(P):
     fleet_kernel.cholesky_solve_rows(L[:2].contiguous().numpy(), b.numpy(), x.numpy())
     assert _rel(S[:2] @ x[..., None], b[..., None]) < 1e-9
     assert _rel(x, torch.cholesky_solve(b[..., None], L_ref[:2])[..., 0]) < 1e-10
+
+
+def test_a_users_7_axis_robot_fleet_lands_where_each_unit_alone_lands(iiwa):
+    """A fleet of a robot we do not bundle (a 7-axis arm from a datasheet's DH table, conftest.iiwa) takes the
+    factored and compiled path like the bundled ones, and every unit lands on its own fit's optimum. The
+    truths are random error models of a higher order than the fitted one (their residual is not the noise)."""
+    from conftest import randomize
+    from torchcal.core.measurements import Measurements
+    from torchcal.identify.fleet import fit_fleet
+
+    tools = torch.tensor([[0.03, 0.05, 0.1], [0.05, -0.03, 0.1]], dtype=torch.float64)
+    noise = torchcal.NoiseModel.from_file_units(0.02, [1e-4] * 7, [1e-4] * 7)
+    q = torchcal.sim.quasi_random_commands(iiwa.joint_map.limits * 0.9, 60, 0)
+    g = torch.Generator().manual_seed(0)
+    s = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+    units = []
+    for k in range(3):
+        truth = randomize(torchcal.RobotModel(iiwa, tools, orders=4, backlash=True), 20 + k)
+        qq, dd = q.repeat(2, 1), s.repeat(2, 1)
+        tool = torch.arange(2).repeat_interleave(len(q))
+        with torch.no_grad():
+            xyz = truth.points(qq, tool, dd) + 2e-5 * torch.randn(len(qq), 3, generator=g, dtype=torch.float64)
+        units.append(Measurements(q=qq, tool=tool, xyz=xyz, direction=dd, pose=torch.arange(len(q)).repeat(2),
+                                  rows=torch.arange(len(qq)) + 1, has_direction=True))
+
+    def make():
+        return torchcal.RobotModel(iiwa, tools, orders=3, backlash=True)
+
+    fp = FleetProblem(make, units, noise)
+    assert fp.structure is not None and fp.n == 7  # the factored path, as for a bundled robot
+    out = fit_fleet(make, units, noise)
+    for u, r in zip(units, out.results):
+        alone = torchcal.fit(make(), u, noise)
+        assert r.success and alone.success
+        assert abs(r.fun - alone.fun) <= 1e-6 * alone.fun

@@ -93,8 +93,8 @@ class FleetProblem(BatchedProblem):
     for :func:`torchcal.fit`. gauge_units: how many units' rows are pooled to
     judge the gauge (the structural redundancy is the same for every unit; None: the first units whose
     rows hold 4x as many residuals as there are parameters, one FANUC unit of 250 x 3 poses).
-    The models start at zero error (or at ``start``: (P,) values in the
-    superset's layout, e.g. a fleet mean). structured: the factored Jacobian where the model has one (else
+    models: the units' models (None: copies of the superset); each starts from its own current values (a fresh
+    model: zero error; a model loaded with a fleet mean starts there). structured: the factored Jacobian where the model has one (else
     dense A by ``vmap``); dense_normal: with the factored Jacobian, the normal matrix from the dense A it
     expands to (one large product, what a GPU is fast at) instead of per-pose Gram blocks.
     """

@@ -154,3 +154,29 @@ def test_gamma_ppf_inverts_scipy_special_gammainc(a, q, scale):
     from torchcal.core.gamma_fit import gamma_ppf
 
     assert gamma_ppf(q, a, scale) == pytest.approx(float(special.gammaincinv(a, q)) * scale, rel=1e-8)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), directions=st.booleans(), backlash=st.booleans(), order=st.integers(0, 5))
+def test_compiled_point_residuals_are_the_models(fanuc, tools_m, seed, directions, backlash, order):
+    """point_residuals(compiled=True) (compensation's compiled flange kernel) gives a RobotModel's own residuals,
+    random errors in every term, with and without approach directions; a model the kernel cannot take (gravity
+    compliance) falls back to its own points."""
+    from conftest import randomize
+    from torchcal.models.robot import RobotModel
+
+    g = torch.Generator().manual_seed(seed)
+    lim = fanuc.joint_map.limits
+    q = lim[:, 0] + torch.rand(40, 6, generator=g, dtype=torch.float64) * (lim[:, 1] - lim[:, 0])
+    s = torch.where(torch.rand(40, 6, generator=g) > 0.5, 1.0, -1.0).to(torch.float64)
+    tool = torch.randint(0, 3, (40,), generator=g)
+    xyz = 0.5 * torch.rand(40, 3, generator=g, dtype=torch.float64)
+    data = Measurements.from_tensors(q, tool, xyz, direction=s if directions else None)
+    from torchcal.kinematics.transforms import twist_to_transform
+
+    tracker = twist_to_transform(torch.tensor([0.3, -0.2, 1.1, 1.5, -0.4, 0.2], dtype=torch.float64))  # the frame
+    for compliance in (False, True):
+        model = randomize(RobotModel(fanuc, tools_m, orders=order, backlash=backlash, base_nominal=tracker,
+                                     compliance=compliance), seed)
+        torch.testing.assert_close(point_residuals(model, data, compiled=True), point_residuals(model, data),
+                                   rtol=0, atol=1e-13)

@@ -33,24 +33,48 @@ def check_xyz(data: Measurements) -> None:
         )
 
 
-def point_residuals(model, data: Measurements, nominal: bool = False) -> torch.Tensor:
+def point_residuals(model, data: Measurements, nominal: bool = False, compiled: bool = False) -> torch.Tensor:
     """Distance between predicted and measured points, (R,) metres.
 
     model: anything with ``points(q, tool, direction=None)`` (a
     :class:`torchcal.models.robot.RobotModel`, a :class:`torchcal.analysis.cpa.CPAModel`, ...)
     and, for ``nominal=True``, ``nominal_points(q, tool)``.
     data: measurements with xyz (R, 3) in the measurement frame, metres.
+    compiled: a RobotModel's points by compensation's compiled flange kernel where it applies (numba, the CPU,
+    float64, no gravity compliance or fine tables; the same points to ~1e-15 m, a 750-row set 3.6x faster); it
+    imports numba, which a caller that already uses it (a fleet) pays nothing for.
     -> |p_model(q, tool, s) - xyz| per row, with the joint positioning errors
     v left at zero (the honest judge of a model, see the module docstring).
     Approach directions are passed only when the data records them.
     """
     check_xyz(data)
     with torch.no_grad():
+        p = None
         if nominal:
             p = model.nominal_points(data.q, data.tool)
-        else:
+        elif compiled:
+            p = _compiled_points(model, data)
+        if p is None:
             p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
         return torch.linalg.norm(p - data.xyz.to(p), dim=-1).detach()
+
+
+def _compiled_points(model, data: Measurements) -> torch.Tensor | None:
+    """model.points (R, 3) at zero joint errors by :class:`~torchcal.compensate.kernel.FlangeKernel`'s compiled
+    flange (E_base F_a, the robot's nominal base frame) where it applies, else None."""
+    from ..compensate.kernel import FlangeKernel
+    from ..models.robot import RobotModel
+
+    if not isinstance(model, RobotModel):
+        return None
+    k = FlangeKernel(model)
+    if k.fused is None:  # no numba, not the CPU or float64, or a flange that depends on the whole configuration
+        return None
+    R, p = k.flange(data.q.T, data.direction.T if data.has_direction else None)  # (3, 3, R), (3, R)
+    t = model.tools()[data.tool]  # (R, 3)
+    pf = (R * t.T[None]).sum(1) + p
+    N = model.base.nominal
+    return (N[:3, :3] @ pf + N[:3, 3:4]).T
 
 
 @dataclass

@@ -65,8 +65,8 @@ def _compiled_points(model, data: Measurements) -> torch.Tensor | None:
     from ..compensate.kernel import FlangeKernel
     from ..models.robot import RobotModel
 
-    if not isinstance(model, RobotModel):
-        return None
+    if not isinstance(model, RobotModel) or data.q.device.type != "cpu" or data.q.dtype != torch.float64:
+        return None  # (a GPU fleet's units: no kernel to build)
     k = FlangeKernel(model)
     if k.fused is None:  # no numba, not the CPU or float64, or a flange that depends on the whole configuration
         return None

@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pandas as pd
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 import torch
 
@@ -289,9 +289,12 @@ def test_a_file_read_without_stripping_is_the_file_read_with_it(tmp_path_factory
     st.floats(allow_nan=True, allow_infinity=True).map(repr),
     st.sampled_from(["", "-0", "1e400", "1e-400", "+.5", "5.", "1_000", "Infinity", "0x10", "\u0661\u0662"])),
     min_size=1, max_size=40))
+@example(cells=["E", "-0"])  # found by this test in CI: the two forms sign this zero differently
 def test_numbers_parsed_as_pandas_parses_a_column_of_strings(cells):
-    """parse_numbers reads a column's cells as one object array: the same values (signed zeros and
-    overflow included) and the same rejected cells as pandas' conversion of the column of strings."""
+    """parse_numbers reads a column's cells as one object array: the same values (overflow included) and the
+    same rejected cells as pandas' conversion of the column of strings. Not the sign of a zero: pandas reads
+    '-0' as -0.0 or 0.0 depending on the column's other cells, in either form (['E', '-0']: 0.0 from the
+    strings, -0.0 from the object array; other columns the other way round), and no arithmetic here sees it."""
     import numpy as np
     import pandas as pd
 
@@ -303,5 +306,5 @@ def test_numbers_parsed_as_pandas_parses_a_column_of_strings(cells):
     ref = pd.to_numeric(df["x"], errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
     assert np.array_equal(np.isnan(got), np.isnan(ref))
     ok = ~np.isnan(ref)
-    assert np.array_equal(got[ok], ref[ok]) and np.array_equal(np.signbit(got[ok]), np.signbit(ref[ok]))
+    assert np.array_equal(got[ok], ref[ok])  # == : -0.0 equals 0.0
     assert sorted(p.row for p in problems) == [int(r) + 1 for r in np.flatnonzero(~np.isfinite(ref))]

@@ -92,7 +92,8 @@ def test_fit_structures_lands_at_the_separate_fits(setup):
 def test_schur_steps_solve_the_full_damped_normal_equations(seed):
     """The batched step (joint errors eliminated per row in Woodbury form, both forms of M A) equals the solve
     of each model's whole damped system in parameters and joint errors, formed and solved densely."""
-    from torchcal.identify.schur import blocks_times, inv3_sym, schur_steps
+    from torchcal.identify.schur import inv3_sym, schur_steps
+    from torchcal.kinematics.transforms import rowwise_matmul
 
     g = torch.Generator().manual_seed(seed)
     m, R, d, P, n = 3, 20, 3, 12, 6
@@ -104,7 +105,7 @@ def test_schur_steps_solve_the_full_damped_normal_equations(seed):
     keep = torch.rand(m, P, generator=g) > 0.25
     A = A * keep[:, None, None, :]
     db, dv, lin = schur_steps(f, A, C, w_v, V, lam, dx, mu, keep)
-    assert torch.allclose(blocks_times(inv3_sym(torch.eye(3, dtype=torch.float64) + C @ C.transpose(-1, -2)), A),
+    assert torch.allclose(rowwise_matmul(inv3_sym(torch.eye(3, dtype=torch.float64) + C @ C.transpose(-1, -2)), A),
                           torch.linalg.inv(torch.eye(3, dtype=torch.float64) + C @ C.transpose(-1, -2)) @ A, atol=1e-12)
     for k in range(m):
         kf = keep[k].double()

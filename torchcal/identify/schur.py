@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from ..kinematics.transforms import small_matmul
+
 
 def inv3_sym(G: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) inverse of symmetric positive definite 3x3 matrices by the adjugate, elementwise (a batched
@@ -21,15 +23,6 @@ def inv3_sym(G: torch.Tensor) -> torch.Tensor:
     D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
     det = a * A + b * B + c * C
     return torch.stack([A, B, C, B, D, E, C, E, F], -1).reshape(G.shape) / det[..., None, None]
-
-
-def blocks_times(Mr: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
-    """Mr @ A for (..., d, d) blocks and (..., d, P) by d multiply-adds of rows (on a GPU a batched matmul of
-    small blocks runs one tiny product per block)."""
-    out = Mr[..., 0, None] * A[..., 0, None, :]
-    for j in range(1, Mr.shape[-1]):
-        out = out + Mr[..., j, None] * A[..., j, None, :]
-    return out
 
 
 def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
@@ -56,7 +49,7 @@ def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
     G = (CD[..., :, None, :] * C[..., None, :, :]).sum(-1) + torch.eye(d, dtype=A.dtype, device=A.device)
     Mr = inv3_sym(G) if d == 3 else torch.linalg.inv(G)  # (m, R, d, d)
     r = (Mr * (f - (CD * (w_v * V)[..., None, :]).sum(-1))[..., None, :]).sum(-1)  # f with the joint errors' response out
-    MA = Mr @ A if A.device.type == "cpu" else blocks_times(Mr, A)  # on the CPU, matmul is the faster
+    MA = small_matmul(Mr, A)
     S = Af.transpose(1, 2) @ MA.reshape(m, R * d, P)
     S = 0.5 * (S + S.transpose(1, 2))
     # entries a model lacks: unit diagonal, zero right-hand side, so their step is zero
@@ -76,4 +69,4 @@ def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
     return db, dv, lin
 
 
-__all__ = ["blocks_times", "inv3_sym", "schur_steps"]
+__all__ = ["inv3_sym", "schur_steps"]

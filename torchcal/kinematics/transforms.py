@@ -10,21 +10,40 @@ from __future__ import annotations
 import torch
 
 
-def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a @ b`` for stacks of small matrices: (..., i, k) @ (..., k, j) -> (..., i, j), batch dims broadcast.
+_BROADCAST_COLUMNS = 8
+"""Up to this many columns of the right operand, :func:`small_matmul` off the CPU takes the broadcast form (two
+kernels; its temporary is k times the result); wider ones (a Jacobian's parameters) the row form."""
 
-    On the CPU it is ``a @ b``. Elsewhere one elementwise product and one sum over k: a GPU's batched matmul
-    of tiny blocks runs one tiny product per block, ~0.28 ms per call of 75 000 3 x 3 blocks on an H200
-    (a fleet's linearization makes ~55 such calls, most of the fleet solve's GPU time), the elementwise
-    form a few microseconds. Meant for k of a few; the result equals ``a @ b`` to rounding.
+
+def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` for stacks of small blocks: (..., i, k) @ (..., k, j) -> (..., i, j), batch dims broadcast, k of a
+    few.
+
+    On the CPU it is ``a @ b``. Elsewhere elementwise: a GPU's batched matmul of tiny blocks runs one tiny
+    product per block, ~0.28 ms per call of 75 000 3 x 3 blocks on an H200 (a fleet's linearization makes ~55
+    such calls, most of the fleet solve's GPU time). Narrow b (j <= 8: frames, points): one broadcast product
+    and a sum (:func:`elementwise_matmul`); wide b (a row's Jacobian, j = the parameters): k multiply-adds of
+    rows (:func:`rowwise_matmul`), whose temporaries are only as large as the result. Equal to ``a @ b`` to
+    rounding.
     """
-    return a @ b if a.device.type == "cpu" else elementwise_matmul(a, b)
+    if a.device.type == "cpu":
+        return a @ b
+    return elementwise_matmul(a, b) if b.shape[-1] <= _BROADCAST_COLUMNS else rowwise_matmul(a, b)
 
 
 def elementwise_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """``a @ b`` (..., i, k) @ (..., k, j) as one broadcast product and a sum over k (:func:`small_matmul`'s
-    form off the CPU)."""
+    form for narrow b off the CPU)."""
     return (a[..., :, :, None] * b[..., None, :, :]).sum(-2)
+
+
+def rowwise_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` (..., i, k) @ (..., k, j) as k multiply-adds of b's rows (:func:`small_matmul`'s form for wide
+    b off the CPU)."""
+    out = a[..., 0, None] * b[..., 0, None, :]
+    for j in range(1, a.shape[-1]):
+        out = out + a[..., j, None] * b[..., j, None, :]
+    return out
 
 
 def skew(v: torch.Tensor) -> torch.Tensor:

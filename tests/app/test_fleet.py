@@ -135,6 +135,90 @@ def test_fleet_command_writes_unit_runs_and_reports_a_broken_unit(tmp_path, robo
     assert isinstance(model, torchcal.RobotModel)
 
 
+def test_fleet_command_fails_only_the_unit_of_another_format(tmp_path, robot):
+    """A unit whose file lacks the approach directions the others have cannot share their solve (one model
+    structure): it alone is reported, naming its file and why, and the others are fitted (before, the whole cell
+    failed with them)."""
+    import pandas as pd
+
+    from torchcal.app.fleet import run_fleet
+
+    cfg = _write_fleet(tmp_path, robot, count=4)
+    f = tmp_path / "ident" / "unit01.csv"
+    d = pd.read_csv(f)
+    d.drop(columns=[c for c in d.columns if c.startswith("dir")]).to_csv(f, index=False)
+    res = run_fleet(cfg, out=tmp_path / "fleet-run")
+    status = {r["unit"]: r["status"] for r in res.rows}
+    assert status == {"unit00": "fitted", "unit01": "failed", "unit02": "fitted", "unit03": "fitted"}
+    bad = next(r for r in res.rows if r["unit"] == "unit01")
+    assert "unit01.csv" in bad["reason"] and "approach directions" in bad["reason"]
+
+
+def test_fleet_command_judges_a_unit_with_too_few_poses_apart(tmp_path, robot):
+    """A unit with fewer equations than parameters is fitted (the prior holds it) but reported as not
+    determined: no outlier score, not flagged, left out of the fleet prior; the others are scored as before."""
+    import math
+
+    from torchcal.app.fleet import run_fleet
+    from torchcal.app.fleet_prior import prior_from_fleet_run
+    from torchcal.io.csv import write_measurements
+
+    cfg = _write_fleet(tmp_path, robot, count=4)
+    _, units, _ = _units(robot, 5, poses=40)
+    write_measurements(tmp_path / "ident" / "unit09.csv", units[4].subset(units[4].pose < 5), robot)
+    res = run_fleet(cfg, out=tmp_path / "fleet-run")
+    rows = {r["unit"]: r for r in res.rows}
+    thin = rows["unit09"]
+    assert thin["status"] == "fitted" and thin["rows"] == 15 and thin["determined"] is False
+    assert math.isnan(thin["outlier_score"]) and thin["flagged"] is False and "too few poses" in thin["findings"]
+    for k in range(4):
+        r = rows[f"unit{k:02d}"]
+        assert r["determined"] is True and math.isfinite(r["outlier_score"])
+    got = prior_from_fleet_run(res.run_dir)
+    assert got.left_out == ["unit09"] and len(got.units) == 4
+
+
+def test_fleet_command_chooses_one_backlash_structure(tmp_path, robot):
+    """model.backlash: true is resolved once on every unit's rows, not per cell on its first unit: with one
+    unit per cell and one unit whose joint-1 direction follows its position (alone it would get the low
+    order), every unit's model has the same backlash orders, the pooled choice, also in its own config."""
+    import pandas as pd
+
+    from torchcal.app.config import load_config
+    from torchcal.app.fleet import run_fleet
+    from torchcal.identify.backlash import default_backlash_orders
+    from torchcal.io.csv import read_measurements
+    from torchcal.io.rundir import load_model
+
+    import numpy as np
+
+    cfg = _write_fleet(tmp_path, robot, count=4)
+    g = np.random.default_rng(3)
+    for k in range(4):  # directions independent of position (identifiable backlash), unit00's joint 1 not
+        f = tmp_path / "ident" / f"unit{k:02d}.csv"
+        d = pd.read_csv(f)
+        signs = g.choice([-1, 1], size=(d["pose"].max() + 1, 6))[d["pose"].to_numpy()]
+        for j in range(6):
+            d[f"dir{j + 1}"] = signs[:, j]
+        if k == 0:
+            d["dir1"] = np.where(d["q1"] >= d["q1"].median(), 1, -1)
+        d.to_csv(f, index=False)
+    lim = robot.joint_map.limits
+    data = [read_measurements(tmp_path / "ident" / f"unit{k:02d}.csv", robot, 3) for k in range(4)]
+    alone = default_backlash_orders([3] * 6, data[0].q, data[0].direction, lim)[0]
+    pooled = default_backlash_orders([3] * 6, torch.cat([u.q for u in data]), torch.cat([u.direction for u in data]),
+                                     lim)[0]
+    others = default_backlash_orders([3] * 6, data[1].q, data[1].direction, lim)[0]
+    assert alone != others  # the case: decided per cell, the units would differ
+    res = run_fleet(cfg, ["fleet.cell=1", "model.order=3"], out=tmp_path / "fleet-run")
+    assert all(r["status"] == "fitted" for r in res.rows)
+    for r in res.rows:
+        model = load_model(res.run_dir / "units" / r["unit"])
+        assert model.joint_errors.backlash_orders.tolist() == pooled, r["unit"]
+        unit_cfg = load_config(res.run_dir / "units" / r["unit"] / "config.yaml")
+        assert list(unit_cfg.model.backlash) == pooled
+
+
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray not installed (pip install 'torchcal[ray]')")
 def test_ray_engine_matches_local(tmp_path, robot):
     """fleet.engine=ray (a local Ray, 2 workers) computes what the local engine computes, cell by cell."""

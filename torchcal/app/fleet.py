@@ -9,13 +9,15 @@ and convergence). ``fleet.engine: ray`` sends the cells to Ray (a local Ray
 started for the run, or the cluster at ``fleet.address``); every engine forms
 the same cells from the same data, so a Ray run computes what the local run
 computes. A unit whose file cannot be read is reported (``summary.csv``,
-status ``failed``, with the reason) and the others go on; a cell that fails on
-a worker is reported the same way for its units.
+status ``failed``, with the reason) and the others go on, as is a unit whose
+file lacks the approach directions the others have (or alone has them); a cell
+that fails on a worker is reported the same way for its units.
 
 The run directory holds ``config.yaml``, ``versions.json``, ``run.log``,
 ``summary.csv`` / ``fleet.json`` (per unit: status, rows, convergence,
-identification / validation mean and max in mm, the outlier score and what
-was flagged) and ``units/<name>/`` with the unit's own ``config.yaml`` (a
+identification / validation mean and max in mm, ``determined``: whether the
+data hold as many equations as the model has parameters, the outlier score and
+what was flagged) and ``units/<name>/`` with the unit's own ``config.yaml`` (a
 ``torchcal fit`` of it refits that unit alone), ``model.pt`` (usable by
 ``torchcal predict`` / ``compensate``) and ``metrics.json``.
 """
@@ -217,6 +219,9 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 bar.advance(note=name)
         if not loaded:
             raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
+        loaded = _same_format(loaded, rows, robot)
+        cfg = _fleet_backlash(cfg, robot, loaded)
+        determined = _data_checks(cfg, robot, T, loaded)
         size = int(cfg.fleet.cell)
         cells = [[(n, i) for n, i, _ in loaded[c:c + size]] for c in range(0, len(loaded), size)]
         config_yaml = to_yaml(cfg)
@@ -241,18 +246,30 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
                 _evaluate(u, model, idents, vals, rows, device)
-        if len(fitted) >= 3:
-            fake = FleetFit([m for _, m in fitted], None)
+        for u, _ in fitted:
+            rows[u["name"]]["determined"] = u["name"] not in determined
+        # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
+        # part of the fleet's spread
+        scored = [(u, m) for u, m in fitted if u["name"] not in determined]
+        for u, _ in fitted:
+            if u["name"] in determined:
+                rows[u["name"]].update(outlier_score=float("nan"), flagged=False,
+                                       findings=f"not scored: {determined[u['name']]}")
+        if len(scored) >= 3:
+            fake = FleetFit([m for _, m in scored], None)
             score, findings = parameter_outliers(fake, float(cfg.fleet.threshold))
-            for f in findings:  # the unit by its name, not its place among the fitted units
-                f.unit = fitted[f.unit][0]["name"]
+            for f in findings:  # the unit by its name, not its place among the scored units
+                f.unit = scored[f.unit][0]["name"]
             result.findings = findings
-            for k, (u, _) in enumerate(fitted):
+            for k, (u, _) in enumerate(scored):
                 mine = [str(f) for f in findings if f.unit == u["name"]]
                 rows[u["name"]].update(outlier_score=float(score[k]), flagged=bool(mine), findings="; ".join(
                     s.split(": ", 1)[1] for s in mine))
             for f in findings:
                 log.warning("flagged: %s", f)
+        elif fitted:
+            log.warning("outliers: %d unit(s) with data enough to judge, at least 3 are needed; none scored",
+                        len(scored))
         by_name = {name: (str(fi), None if fv is None else str(fv)) for name, fi, fv in files}
         for u, model in fitted:
             name = u["name"]
@@ -272,6 +289,80 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                  f"{len(failed)} failed{' ' + str(failed) if failed else ''}, "
                  f"{len({f.unit for f in result.findings})} flagged; {run_dir / 'summary.csv'}")
     return result
+
+
+def _same_format(loaded: list, rows: dict, robot) -> list:
+    """The units whose files share the fleet's format: with approach directions (dir columns) or without, as
+    most units are (with them on a tie). A fleet fits one model structure in one solve, and backlash follows the
+    directions; each other unit gets a failure row saying why, and the rest are fitted."""
+    have = [u for u in loaded if u[1].has_direction]
+    lack = [u for u in loaded if not u[1].has_direction]
+    if not have or not lack:
+        return loaded
+    keep, odd = (have, lack) if len(have) >= len(lack) else (lack, have)
+    n = robot.joint_map.n
+    cols = f"dir1..dir{n} columns"
+    for name, ident, _ in odd:
+        why = (f"{ident.source or name}: no approach directions ({cols}), while {len(keep)} of the fleet's "
+               f"{len(loaded)} readable units have them" if keep is have else
+               f"{ident.source or name}: approach directions ({cols}), while {len(keep)} of the fleet's "
+               f"{len(loaded)} readable units have none")
+        why += ("; a fleet fits one model structure (backlash follows the directions): give every unit the same "
+                "columns, or fit this unit alone with `torchcal fit`")
+        rows[name] = {"unit": name, "status": "failed", "reason": why}
+        log.warning("unit %s: not fitted: %s", name, why)
+    return keep
+
+
+def _fleet_backlash(cfg, robot, loaded: list):
+    """cfg with ``model.backlash: true`` resolved once for the whole fleet: the orders
+    :func:`~torchcal.identify.backlash.default_backlash_orders` chooses on every unit's identification rows
+    together. Each cell deciding on its own first unit would give units of one fleet different structures
+    (and the outlier test and the fleet prior compare like with like); the resolved list goes into the run's and
+    every unit's config, so a unit refitted alone keeps the fleet's structure."""
+    from .config import updated
+    from ..identify.backlash import default_backlash_orders
+
+    if cfg.model.backlash is not True or not loaded[0][1].has_direction:
+        return cfg
+    n = robot.joint_map.n
+    order = cfg.model.order
+    orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+    q = torch.cat([d.q for _, d, _ in loaded])
+    direction = torch.cat([d.direction for _, d, _ in loaded])
+    chosen, _ = default_backlash_orders(orders, q, direction, robot.joint_map.limits.to(q))
+    log.info("backlash orders %s (model.backlash: true), chosen once on the %d units' %d identification rows",
+             chosen, len(loaded), q.shape[0])
+    return updated(cfg, {"model.backlash": chosen})
+
+
+def _data_checks(cfg, robot, T: int, loaded: list) -> dict:
+    """What each unit's identification data cannot determine, warned as ``torchcal fit`` warns it. -> {unit
+    name: why} for the units with fewer equations (3 per row) than the model's parameters: they are fitted (the
+    prior holds what the data leave open) but neither judged for outliers nor part of the fleet prior."""
+    from ..identify.layout import ParameterLayout
+    from .common import config_backlash
+
+    n = robot.joint_map.n
+    order = cfg.model.order
+    orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+    P = ParameterLayout(_factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(orders)).size
+    out = {}
+    for name, ident, _ in loaded:
+        E = 3 * len(ident)
+        seen = set(torch.unique(ident.tool).tolist())
+        missing = [t for t in range(T) if t not in seen]
+        if missing:
+            log.warning("unit %s: tool%s %s never measured: %s vector is the prior's", name,
+                        "s" if len(missing) > 1 else "", missing, "their" if len(missing) > 1 else "its")
+        if E < P:
+            per_pose = 3 * max(len(seen), 1)
+            out[name] = (f"too few poses: {len(ident)} row{'s give' if len(ident) != 1 else ' gives'} {E} equations "
+                         f"for {P} parameters")
+            log.warning("unit %s: %s; its parameters are mostly the prior's (measure at least %d poses with %d "
+                        "tool%s): fitted, not judged for outliers, left out of the fleet prior", name, out[name],
+                        -(-P // per_pose), len(seen), "s" if len(seen) != 1 else "")
+    return out
 
 
 def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device) -> None:
@@ -303,6 +394,7 @@ def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
         df.to_csv(tmp, index=False, float_format="%.6g")
     write_json(run_dir / "fleet.json", {"time_s": result.time, "solve_time_s": result.solve_time,
                                         "engine": cfg.fleet.engine, "cell": int(cfg.fleet.cell),
+                                        "model_backlash": cfg.model.backlash,  # as resolved for the whole fleet
                                         "units": result.rows, "findings": [str(f) for f in result.findings]})
 
 

@@ -19,7 +19,7 @@ class FleetRunPrior:
     """A fleet run's parameter distribution as a prior (:func:`prior_from_fleet_run`): ``block`` (a
     :class:`~torchcal.identify.blocks.GaussianPrior` for :func:`torchcal.fit`'s ``blocks``), ``mean`` (P,) in the
     full parameter layout (the unit's start), ``names`` (P,) that layout's entries, the ``units`` used and the ones
-    ``left_out`` (failed or flagged), the covariance ``method``, ``free`` (P,) bool: the entries the fleet fitted
+    ``left_out`` (failed, flagged or under-determined), the covariance ``method``, ``free`` (P,) bool: the entries the fleet fitted
     (the others its gauge pinned), ``unit_model``: the first used unit's fitted model (the type's structure and
     tools)."""
 
@@ -41,8 +41,8 @@ class FleetRunPrior:
 def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=None) -> FleetRunPrior:
     """The fitted units of a ``torchcal fleet`` run directory as a Gaussian prior for one more unit of the type.
 
-    Units whose fit failed or that the fleet flagged (a damaged gearbox, a bad measurement) are left out; at
-    least 3 must remain. Entries that are zero in every unit are the ones the fleet's gauge fixing pinned: they
+    Units whose fit failed, that the fleet flagged (a damaged gearbox, a bad measurement) or whose data could not
+    determine their parameters (fewer equations than parameters) are left out; at least 3 must remain. Entries that are zero in every unit are the ones the fleet's gauge fixing pinned: they
     are held at zero by a tight prior (``pin_gauge``), so a unit fitted without its own gauge fixing stays in
     the coordinates the fleet's covariance was estimated in. method: as
     :func:`torchcal.identify.fleet_prior.fleet_covariance`; robot: the unit's robot, refused (ConfigError) when
@@ -59,7 +59,9 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=Non
     run_dir = Path(run_dir)
     table = pd.read_csv(run_dir / "summary.csv")
     flagged = table["flagged"].fillna(False).astype(bool) if "flagged" in table else False
-    use = table["status"].eq("fitted") & ~flagged
+    # a unit with fewer equations than parameters holds the prior's values, not the type's spread
+    thin = ~table["determined"].fillna(True).astype(bool) if "determined" in table else False
+    use = table["status"].eq("fitted") & ~flagged & ~thin
     names = [str(u) for u in table.loc[use, "unit"]]
     left_out = [str(u) for u in table.loc[~use, "unit"]]
     if len(names) < 3:

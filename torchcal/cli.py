@@ -325,6 +325,8 @@ def fleet_cmd(
     for r in result.rows:
         t.add_row(*[f"{r[c]:.4f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
     _console().print(t)
+    for w in result.warnings:
+        _console().print(f"warning: {w}", markup=False)
     failed = [r["unit"] for r in result.rows if r["status"] == "failed"]
     if failed:
         _console().print(f"warning: {len(failed)} unit(s) not fitted: {', '.join(failed)} (summary.csv: reason)", markup=False)

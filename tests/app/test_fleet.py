@@ -154,6 +154,32 @@ def test_fleet_command_fails_only_the_unit_of_another_format(tmp_path, robot):
     assert "unit01.csv" in bad["reason"] and "approach directions" in bad["reason"]
 
 
+def test_fleet_command_names_what_it_does_not_use(tmp_path, robot):
+    """Validation files are matched by name: a unit without one and a file that names no unit are warned about
+    (not silently skipped); two files naming one unit are refused before anything runs."""
+    import shutil
+
+    from torchcal.app.fleet import run_fleet
+    from torchcal.core.exceptions import ConfigError
+
+    cfg = _write_fleet(tmp_path, robot, count=3)
+    (tmp_path / "val").mkdir()
+    shutil.copy(tmp_path / "ident" / "unit00.csv", tmp_path / "val" / "unit00.csv")
+    shutil.copy(tmp_path / "ident" / "unit01.csv", tmp_path / "val" / "unit77.csv")
+    cfg.write_text(cfg.read_text().replace("identification: ident", "identification: ident, validation: val"))
+    res = run_fleet(cfg, out=tmp_path / "fleet-run")
+    rows = {r["unit"]: r for r in res.rows}
+    assert "validation_mean_mm" in rows["unit00"] and "validation_mean_mm" not in rows["unit01"]
+    gap = [w for w in res.warnings if "no file" in w]
+    assert len(gap) == 1 and "unit01, unit02" in gap[0]
+    assert any("unit77.csv" in w for w in res.warnings)
+    assert "unit77.csv" in (res.run_dir / "run.log").read_text()
+    shutil.copy(tmp_path / "ident" / "unit02.csv", tmp_path / "ident" / "unit02.tsv")
+    with pytest.raises(ConfigError, match="unit02.csv and unit02.tsv"):
+        run_fleet(cfg, out=tmp_path / "fleet-run-2")
+    assert not (tmp_path / "fleet-run-2").exists()
+
+
 def test_fleet_command_judges_a_unit_with_too_few_poses_apart(tmp_path, robot):
     """A unit with fewer equations than parameters is fitted (the prior holds it) but reported as not
     determined: no outlier score, not flagged, left out of the fleet prior; the others are scored as before."""

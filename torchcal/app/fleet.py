@@ -42,13 +42,15 @@ log = logging.getLogger("torchcal")
 
 @dataclass
 class FleetRunResult:
-    """What :func:`run_fleet` did: the run directory, one dict per unit (``rows``), the findings, the time."""
+    """What :func:`run_fleet` did: the run directory, one dict per unit (``rows``), the findings, the time, and the
+    warnings about the data (a unit without validation, too few poses, an unmeasured tool)."""
 
     run_dir: Path
     rows: list[dict] = field(default_factory=list)
     findings: list = field(default_factory=list)
     time: float = 0.0
     solve_time: float = 0.0
+    warnings: list[str] = field(default_factory=list)  # what the data leave open, also in run.log
 
 
 def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
@@ -65,11 +67,31 @@ def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
     if val is not None and not val.is_dir():
         raise ConfigError(f"{label}: key 'data.validation': a fleet needs a folder with files named like the "
                           f"identification files, got {val}")
+    stems: dict[str, list[Path]] = {}
+    for f in files:
+        stems.setdefault(f.stem, []).append(f)
+    clash = {k: v for k, v in stems.items() if len(v) > 1}
+    if clash:  # a unit is named by its file's stem: two files of one name would be one unit's run twice
+        raise ConfigError(f"{label}: key 'data.identification': a unit is named by its file, and "
+                          + "; ".join(f"{' and '.join(p.name for p in v)} both name unit '{k}'" for k, v in clash.items())
+                          + ": rename or remove one of each")
     out = []
     for f in files:
         v = val / f.name if val is not None else None
         out.append((f.stem, f, v if v is not None and v.is_file() else None))
     return out
+
+
+def validation_gaps(cfg, files: list) -> tuple[list[str], list[Path]]:
+    """With ``data.validation``: the units without a validation file of their name, and the validation files
+    that name no unit (neither is used; both are worth a word, not silence)."""
+    if not cfg.data.validation:
+        return [], []
+    val = Path(cfg.data.validation)
+    names = {fi.name for _, fi, _ in files}
+    orphans = sorted(p for p in val.iterdir() if p.is_file() and p.suffix.lower() in (".csv", ".tsv")
+                     and p.name not in names)
+    return [n for n, _, fv in files if fv is None], orphans
 
 
 def _check_fleet_config(cfg) -> None:
@@ -201,8 +223,20 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     atomic_write_text(run_dir / "config.yaml", to_yaml(cfg))
     write_json(run_dir / "versions.json", collect_versions(device))
     result = FleetRunResult(run_dir)
+
+    def warn(msg: str) -> None:
+        log.warning(msg)
+        result.warnings.append(msg)
+
     with run_log(run_dir):
         log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}")
+        no_val, orphans = validation_gaps(cfg, files)
+        if no_val:
+            warn(f"data.validation: no file in {cfg.data.validation} for {len(no_val)} unit(s): {', '.join(no_val)} "
+                 "(their validation columns stay empty)")
+        if orphans:
+            warn(f"data.validation: {', '.join(p.name for p in orphans)} name{'s' if len(orphans) == 1 else ''} no "
+                 "unit's identification file: not used")
         loaded, rows = [], {}
         with task("reading the units' files", total=len(files)) as bar:
             for name, fi, fv in files:
@@ -221,7 +255,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
         loaded = _same_format(loaded, rows, robot)
         cfg = _fleet_backlash(cfg, robot, loaded)
-        determined = _data_checks(cfg, robot, T, loaded)
+        determined = _data_checks(cfg, robot, T, loaded, warn)
         size = int(cfg.fleet.cell)
         cells = [[(n, i) for n, i, _ in loaded[c:c + size]] for c in range(0, len(loaded), size)]
         config_yaml = to_yaml(cfg)
@@ -268,8 +302,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             for f in findings:
                 log.warning("flagged: %s", f)
         elif fitted:
-            log.warning("outliers: %d unit(s) with data enough to judge, at least 3 are needed; none scored",
-                        len(scored))
+            warn(f"outliers: {len(scored)} unit(s) with data enough to judge, at least 3 are needed; none scored")
         by_name = {name: (str(fi), None if fv is None else str(fv)) for name, fi, fv in files}
         for u, model in fitted:
             name = u["name"]
@@ -336,8 +369,8 @@ def _fleet_backlash(cfg, robot, loaded: list):
     return updated(cfg, {"model.backlash": chosen})
 
 
-def _data_checks(cfg, robot, T: int, loaded: list) -> dict:
-    """What each unit's identification data cannot determine, warned as ``torchcal fit`` warns it. -> {unit
+def _data_checks(cfg, robot, T: int, loaded: list, warn) -> dict:
+    """What each unit's identification data cannot determine, told to ``warn`` as ``torchcal fit`` warns it. -> {unit
     name: why} for the units with fewer equations (3 per row) than the model's parameters: they are fitted (the
     prior holds what the data leave open) but neither judged for outliers nor part of the fleet prior."""
     from ..identify.layout import ParameterLayout
@@ -353,15 +386,16 @@ def _data_checks(cfg, robot, T: int, loaded: list) -> dict:
         seen = set(torch.unique(ident.tool).tolist())
         missing = [t for t in range(T) if t not in seen]
         if missing:
-            log.warning("unit %s: tool%s %s never measured: %s vector is the prior's", name,
-                        "s" if len(missing) > 1 else "", missing, "their" if len(missing) > 1 else "its")
+            many = len(missing) > 1
+            warn(f"unit {name}: tool{'s' if many else ''} {missing} never measured: {'their' if many else 'its'} "
+                 "vector is the prior's")
         if E < P:
             per_pose = 3 * max(len(seen), 1)
             out[name] = (f"too few poses: {len(ident)} row{'s give' if len(ident) != 1 else ' gives'} {E} equations "
                          f"for {P} parameters")
-            log.warning("unit %s: %s; its parameters are mostly the prior's (measure at least %d poses with %d "
-                        "tool%s): fitted, not judged for outliers, left out of the fleet prior", name, out[name],
-                        -(-P // per_pose), len(seen), "s" if len(seen) != 1 else "")
+            warn(f"unit {name}: {out[name]}; its parameters are mostly the prior's (measure at least "
+                 f"{-(-P // per_pose)} poses with {len(seen)} tool{'s' if len(seen) != 1 else ''}): fitted, not "
+                 "judged for outliers, left out of the fleet prior")
     return out
 
 

@@ -248,7 +248,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     log.warning("unit %s: not fitted: %s", name, exc)
                 else:
                     for note in notes:
-                        log.warning("unit %s: %s", name, note)
+                        warn(f"unit {name}: {note}")
                     loaded.append((name, ident, val))
                 bar.advance(note=name)
         if not loaded:

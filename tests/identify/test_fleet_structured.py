@@ -236,7 +236,7 @@ def test_a_users_7_axis_robot_fleet_lands_where_each_unit_alone_lands(iiwa):
 
     fp = FleetProblem(make, units, noise)
     assert fp.structure is not None and fp.n == 7  # the factored path, as for a bundled robot
-    out = fit_fleet(make, units, noise)
+    out = fit_fleet(make, units, noise, ftol=1e-8)  # the single fit's stopping point: the same optimum
     for u, r in zip(units, out.results):
         alone = torchcal.fit(make(), u, noise)
         assert r.success and alone.success

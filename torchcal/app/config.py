@@ -218,6 +218,10 @@ class FleetConfig:
     threshold: float = 5.0
     """Robust z above which a unit's joint is flagged, when it is also 3x the fleet median or more
     (torchcal.identify.fleet.parameter_outliers)."""
+    ftol: float = 1e-4
+    """Relative cost reduction at which every unit's fit stops (torchcal.identify.fleet.FLEET_FTOL: each unit
+    within a few hundredths of a percent of its own fit's residuals). solver.ftol is a single fit's and is not
+    used here; 1e-8 gives the single fit's stopping point."""
 
 
 @dataclass(frozen=True)
@@ -616,6 +620,8 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
         fail("fleet.cell", f"must be a positive number of units, got {fleet.cell}")
     if not float(fleet.threshold) > 0:
         fail("fleet.threshold", f"must be positive, got {fleet.threshold}")
+    if not 0 < float(fleet.ftol) < 1:
+        fail("fleet.ftol", f"must be between 0 and 1 (a relative cost reduction), got {fleet.ftol}")
     n_poses = cfg.data.n_poses
     if n_poses is not None and (not _is_int(n_poses) or n_poses < 1):
         fail("data.n_poses", f"{n_poses!r}: give a positive number of poses (or null for all)")

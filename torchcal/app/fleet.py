@@ -152,7 +152,8 @@ def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -
                                                    robot.joint_map.limits.to(data[0].q))
     noise = config_noise(cfg, robot, cfg.config_file or "config")
     prior = config_prior(cfg)
-    opts = {k: v for k, v in solver_options(cfg).items() if k in ("ftol", "max_iter")}
+    opts = {k: v for k, v in solver_options(cfg).items() if k == "max_iter"}
+    opts["ftol"] = float(cfg.fleet.ftol)  # solver.ftol is a single fit's (run_fleet says so where it is set)
     old = threads.get_override()
     threads.set_threads(int(n_threads))
     try:
@@ -230,6 +231,11 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
 
     with run_log(run_dir):
         log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}")
+        from .config import SolverConfig
+
+        if float(cfg.solver.ftol) != SolverConfig.ftol:
+            warn(f"solver.ftol ({cfg.solver.ftol:g}) is a single fit's; the fleet's units stop at fleet.ftol "
+                 f"({float(cfg.fleet.ftol):g}): set that one")
         no_val, orphans = validation_gaps(cfg, files)
         if no_val:
             warn(f"data.validation: no file in {cfg.data.validation} for {len(no_val)} unit(s): {', '.join(no_val)} "

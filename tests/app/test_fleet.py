@@ -179,6 +179,14 @@ def test_fleet_command_fails_only_the_unit_of_another_format(tmp_path, robot):
     assert status == {"unit00": "fitted", "unit01": "failed", "unit02": "fitted", "unit03": "fitted"}
     bad = next(r for r in res.rows if r["unit"] == "unit01")
     assert "unit01.csv" in bad["reason"] and "approach directions" in bad["reason"]
+    assert not any("model.backlash" in w for w in res.warnings)
+    for k in (0, 2, 3):  # a fleet without directions at all: fitted, and told its backlash is not identifiable
+        f = tmp_path / "ident" / f"unit{k:02d}.csv"
+        d = pd.read_csv(f)
+        d.drop(columns=[c for c in d.columns if c.startswith("dir")]).to_csv(f, index=False)
+    res = run_fleet(cfg, out=tmp_path / "fleet-run-2")
+    assert all(r["status"] == "fitted" for r in res.rows)
+    assert any("model.backlash is on" in w for w in res.warnings)
 
 
 def test_fleet_command_stops_at_fleet_ftol(tmp_path, robot):

@@ -260,7 +260,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if not loaded:
             raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
         loaded = _same_format(loaded, rows, robot)
-        cfg = _fleet_backlash(cfg, robot, loaded)
+        cfg = _fleet_backlash(cfg, robot, loaded, warn)
         determined = _data_checks(cfg, robot, T, loaded, warn)
         size = int(cfg.fleet.cell)
         cells = [[(n, i) for n, i, _ in loaded[c:c + size]] for c in range(0, len(loaded), size)]
@@ -353,7 +353,7 @@ def _same_format(loaded: list, rows: dict, robot) -> list:
     return keep
 
 
-def _fleet_backlash(cfg, robot, loaded: list):
+def _fleet_backlash(cfg, robot, loaded: list, warn):
     """cfg with ``model.backlash: true`` resolved once for the whole fleet: the orders
     :func:`~torchcal.identify.backlash.default_backlash_orders` chooses on every unit's identification rows
     together. Each cell deciding on its own first unit would give units of one fleet different structures
@@ -362,7 +362,13 @@ def _fleet_backlash(cfg, robot, loaded: list):
     from .config import updated
     from ..identify.backlash import default_backlash_orders
 
-    if cfg.model.backlash is not True or not loaded[0][1].has_direction:
+    b = cfg.model.backlash
+    on = b is True or (isinstance(b, int) and not isinstance(b, bool) and b >= 0) or (
+        not isinstance(b, (bool, int)) and any(int(x) >= 0 for x in b))
+    if on and not loaded[0][1].has_direction:  # as torchcal fit warns it
+        warn(f"model.backlash is on but the units' files have no dir1..dir{robot.joint_map.n} columns: the backlash "
+             "terms cannot be identified (set model.backlash=false, or give the approach directions)")
+    if b is not True or not loaded[0][1].has_direction:
         return cfg
     n = robot.joint_map.n
     order = cfg.model.order

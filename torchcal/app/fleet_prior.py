@@ -19,9 +19,9 @@ class FleetRunPrior:
     """A fleet run's parameter distribution as a prior (:func:`prior_from_fleet_run`): ``block`` (a
     :class:`~torchcal.identify.blocks.GaussianPrior` for :func:`torchcal.fit`'s ``blocks``), ``mean`` (P,) in the
     full parameter layout (the unit's start), ``names`` (P,) that layout's entries, the ``units`` used and the ones
-    ``left_out`` (failed, flagged or under-determined), the covariance ``method``, ``free`` (P,) bool: the entries the fleet fitted
-    (the others its gauge pinned), ``unit_model``: the first used unit's fitted model (the type's structure and
-    tools)."""
+    ``left_out`` (failed, flagged or under-determined), the covariance ``method``, ``free`` (P,) bool: the
+    entries the fleet fitted (the others its gauge pinned), ``unit_model``: the first used unit's fitted model
+    (the type's structure and tools)."""
 
     block: object
     mean: torch.Tensor
@@ -42,9 +42,10 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=Non
     """The fitted units of a ``torchcal fleet`` run directory as a Gaussian prior for one more unit of the type.
 
     Units whose fit failed, that the fleet flagged (a damaged gearbox, a bad measurement) or whose data could not
-    determine their parameters (fewer equations than parameters) are left out; at least 3 must remain. Entries that are zero in every unit are the ones the fleet's gauge fixing pinned: they
-    are held at zero by a tight prior (``pin_gauge``), so a unit fitted without its own gauge fixing stays in
-    the coordinates the fleet's covariance was estimated in. method: as
+    determine their parameters (fewer equations than parameters) are left out; at least 3 must remain. Entries
+    that are zero in every unit are the ones the fleet's gauge fixing pinned: they are held at zero by a tight
+    prior (``pin_gauge``), so a unit fitted without its own gauge fixing stays in the coordinates the fleet's
+    covariance was estimated in. method: as
     :func:`torchcal.identify.fleet_prior.fleet_covariance`; robot: the unit's robot, refused (ConfigError) when
     the fleet's units are another type (name or joint limits). -> :class:`FleetRunPrior`.
     """

@@ -296,6 +296,13 @@ def test_fleet_command_chooses_one_backlash_structure(tmp_path, robot):
         assert model.joint_errors.backlash_orders.tolist() == pooled, r["unit"]
         unit_cfg = load_config(res.run_dir / "units" / r["unit"] / "config.yaml")
         assert list(unit_cfg.model.backlash) == pooled
+    # a new unit with backlash: true and the fleet's prior takes the fleet's orders, not its own data's (unit00's
+    # file alone would choose others, and the prior would not fit its model)
+    from torchcal.app.fit import run_fit
+
+    run = run_fit(load_config(cfg, ["model.order=3", f"prior.fleet={res.run_dir}", f"data.identification={tmp_path / 'ident' / 'unit00.csv'}",
+                                    "plots=false", "report=false", f"out={tmp_path / 'new'}"]))
+    assert run.model.joint_errors.backlash_orders.tolist() == pooled != alone
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray not installed (pip install 'torchcal[ray]')")
@@ -366,10 +373,18 @@ def test_fit_with_the_prior_of_a_fleet_run(tmp_path, robot):
 
     rec = json.loads((helped.run_dir / "fit.json").read_text())["fleet_prior"]
     assert rec["units"] == 6 and rec["left_out"] == ["unit03"]
+    # the run reports the same unit fitted alone beside it: what the plain run of the same config computes
+    cmp = json.loads((helped.run_dir / "metrics.json").read_text())["fleet_prior"]
+    plain = json.loads((alone.run_dir / "metrics.json").read_text())["sets"]["identification"]["modeled"]
+    mine = json.loads((helped.run_dir / "metrics.json").read_text())["sets"]["identification"]["modeled"]
+    for k in ("mean", "max", "gamma99"):
+        assert cmp["alone"]["identification"][k] == pytest.approx(plain[k], rel=1e-9)
+        assert cmp["with_prior"]["identification"][k] == pytest.approx(mine[k], rel=1e-12)
+    assert "validation" not in cmp["alone"]
     from torchcal.report import render_report
 
     page = render_report(helped.run_dir)  # the calibration report names the fleet the prior came from
-    assert "Prior from a fleet" in page and "left out: unit03" in page
+    assert "Prior from a fleet" in page and "left out: unit03" in page and "fitted alone" in page
     with pytest.raises(ConfigError, match="prior.fleet"):
         run_fit(load_config(tmp_path / "new.yaml", common + [f"prior.fleet={fleet_run}", "model.order=1"]))
 

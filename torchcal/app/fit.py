@@ -384,7 +384,13 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: Progress, 
     order = cfg.model.order
     if not isinstance(order, str):
         orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
-        if make.backlash is True and inp.ident.has_direction:
+        if make.backlash is True and cfg.prior.fleet is not None:
+            # the prior describes the fleet's structure: a few poses' own choice could differ from it
+            from .fleet_prior import fleet_backlash_orders
+
+            make.backlash = fleet_backlash_orders(cfg.prior.fleet)
+            progress.info(f"backlash orders {make.backlash}: the fleet's (prior.fleet)")
+        elif make.backlash is True and inp.ident.has_direction:
             # backlash on without an order: its order follows the data (identifiable where directions do not
             # follow positions), never eps_z's order blindly
             from ..identify.backlash import default_backlash_orders
@@ -461,7 +467,7 @@ def fleet_prior_for(cfg, model, progress: Progress):
         diff = sorted(mine ^ theirs)[:3]
         raise ConfigError(f"{cfg.config_file or 'config'}: key 'prior.fleet': the fleet's units have another model "
                           f"structure ({len(theirs)} entries, this model {len(mine)}; e.g. {diff}): give model.order "
-                          f"and model.backlash as in the fleet's config.yaml")
+                          f"and model.backlash as in a unit's config.yaml there (units/<name>/config.yaml)")
     layout.set(fleet.mean.to(model.dtype))
     progress.info(f"prior: the fleet {cfg.prior.fleet} ({len(fleet.units)} units, {fleet.method} covariance; left out: "
                   f"{', '.join(fleet.left_out) or 'none'})")
@@ -771,6 +777,11 @@ def _run_stages(cfg, console, plotter) -> RunResult:
             if plotter is not None:
                 _submit_plots(plotter, plot_folder, evaluations=evaluations)
             metrics = fit_metrics(orders, selection, result, alignment, sets, evaluations, table)
+            if cfg.prior.fleet is not None:  # what the prior brought: the same data fitted without it
+                from .fleet_prior import compare_with_alone
+
+                with progress.step("fitting the unit alone, without the fleet's prior", quiet=True):
+                    metrics["fleet_prior"] = compare_with_alone(inp, make, orders, evaluations, progress)
             metrics["data_checks"] = None
             metrics["constraint"] = constraint
             metrics["warnings"] = progress.warnings

@@ -141,7 +141,7 @@ def solver(run: RunFiles) -> str:
              ("Parameters / pinned by the gauge", f"{f.get('parameters')} / {f.get('pinned')}" if f else None),
              ("Joint errors eliminated per row", f.get("joint_errors")),
              ("Order selection", get(run.metrics, "order_selection") or "fixed orders (config)"),
-             ("Prior from a fleet", _fleet_prior(f.get("fleet_prior")))]
+             ("Prior from a fleet", _fleet_prior(f.get("fleet_prior"), get(run.metrics, "fleet_prior")))]
     out = kv([(k, v) for k, v in pairs if v is not None])
     if isinstance(run.orders, dict):
         out += (f"<details><summary>Order selection record (orders.json)</summary><pre>"
@@ -149,14 +149,25 @@ def solver(run: RunFiles) -> str:
     return out
 
 
-def _fleet_prior(rec) -> str | None:
+def _fleet_prior(rec, comparison=None) -> str | None:
     """fit.json's ``fleet_prior`` (``prior.fleet``) as one line: a unit fitted with few poses owes part of its
-    model to the fleet, and the report says which fleet."""
+    model to the fleet, and the report says which fleet, and (metrics.json's ``fleet_prior``) what the same data
+    gave fitted alone."""
     if not isinstance(rec, dict):
         return None
     left = rec.get("left_out") or []
-    return (f"{rec.get('fleet')}: {rec.get('units')} units ({rec.get('method')} covariance, {rec.get('entries')} "
+    line = (f"{rec.get('fleet')}: {rec.get('units')} units ({rec.get('method')} covariance, {rec.get('entries')} "
             f"entries); left out: {', '.join(map(str, left)) if left else 'none'}")
+    if isinstance(comparison, dict):
+        alone, mine = comparison.get("alone") or {}, comparison.get("with_prior") or {}
+        key = "validation" if "validation" in alone else "identification"
+        a, w = alone.get(key) or {}, mine.get(key) or {}
+        if "mean" in a and "mean" in w:
+            line += (f". The same data fitted alone, without the fleet: {key} mean {a['mean']:.4f} mm, max "
+                     f"{a['max']:.4f} mm; with the fleet's prior {w['mean']:.4f} mm, max {w['max']:.4f} mm")
+            if key == "identification":
+                line += " (on the identification poses: no validation set)"
+    return line
 
 
 def _g(value):

@@ -453,6 +453,33 @@ def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: 
     return result
 
 
+def compare_with_alone(inp, make, orders, evaluations: dict, progress) -> dict:
+    """The unit fitted alone on the same data (no fleet prior: the config's prior and solver, its own gauge
+    fixing, from zero), against its fit with the fleet's prior (``evaluations``: that fit's, from
+    :func:`evaluate_sets`). -> {'alone': {set: {mean, max, gamma99}}, 'with_prior': likewise (mm),
+    'alone_converged'}, for metrics.json; one line of it to ``progress``.
+
+    The validation set says which models the robot better; the identification set, where there is no other,
+    mixes accuracy with how closely each fit follows those few poses (said so)."""
+    alone = make(orders)
+    result = fit(alone, inp.ident, inp.noise, inp.prior, **inp.opts)
+    sets = {"identification": inp.ident} | ({"validation": inp.val} if inp.val is not None else {})
+
+    def stats(ev):
+        return {k: float(getattr(ev, k)) for k in ("mean", "max", "gamma99")}
+
+    out = {"alone": {name: stats(evaluate(alone, d)["modeled_stats"]) for name, d in sets.items()},
+           "with_prior": {name.lower(): stats(ev["modeled_stats"]) for name, ev in evaluations.items()},
+           "alone_converged": bool(result.success)}
+    key = "validation" if inp.val is not None else "identification"
+    a, w = out["alone"][key], out["with_prior"][key]
+    progress.info(f"the same unit fitted alone (no fleet prior): {key} mean {a['mean']:.4f} mm, max {a['max']:.4f} mm; "
+                  f"with the fleet's prior {w['mean']:.4f} mm, max {w['max']:.4f} mm"
+                  + ("" if inp.val is not None else " (on the identification poses; give data.validation to "
+                                                    "compare on poses neither fit saw)"))
+    return out
+
+
 def fleet_prior_for(cfg, model, progress: Progress):
     """``prior.fleet``: the fleet run's prior (:func:`torchcal.app.fleet_prior.prior_from_fleet_run`) for ``model``, whose
     parameters are set to the fleet's mean (the fit's start). Raises ConfigError when the model's structure is
@@ -778,8 +805,6 @@ def _run_stages(cfg, console, plotter) -> RunResult:
                 _submit_plots(plotter, plot_folder, evaluations=evaluations)
             metrics = fit_metrics(orders, selection, result, alignment, sets, evaluations, table)
             if cfg.prior.fleet is not None:  # what the prior brought: the same data fitted without it
-                from .fleet_prior import compare_with_alone
-
                 with progress.step("fitting the unit alone, without the fleet's prior", quiet=True):
                     metrics["fleet_prior"] = compare_with_alone(inp, make, orders, evaluations, progress)
             metrics["data_checks"] = None
@@ -859,6 +884,7 @@ __all__ = [
     "check_compensation",
     "check_data",
     "choose_orders",
+    "compare_with_alone",
     "config_backlash",
     "config_error_variable",
     "evaluate_sets",

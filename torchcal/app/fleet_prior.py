@@ -106,34 +106,4 @@ def fleet_backlash_orders(run_dir) -> list[int]:
     return [int(b) for b in load_model(run_dir / "units" / fitted[0]).joint_errors.backlash_orders.tolist()]
 
 
-def compare_with_alone(inp, make, orders, evaluations: dict, progress) -> dict:
-    """The unit fitted alone on the same data (no fleet prior: the config's prior and solver, its own gauge
-    fixing, from zero), against its fit with the fleet's prior (``evaluations``: that fit's, from
-    :func:`torchcal.app.fit.evaluate_sets`). -> {'alone': {set: {mean, max, gamma99}}, 'with_prior': likewise (mm),
-    'alone_converged'}, for metrics.json; one line of it to ``progress``.
-
-    The validation set says which models the robot better; the identification set, where there is no other,
-    mixes accuracy with how closely each fit follows those few poses (said so)."""
-    from ..identify import fit
-    from .fit import evaluate
-
-    alone = make(orders)
-    result = fit(alone, inp.ident, inp.noise, inp.prior, **inp.opts)
-    sets = {"identification": inp.ident} | ({"validation": inp.val} if inp.val is not None else {})
-
-    def stats(ev):
-        return {k: float(getattr(ev, k)) for k in ("mean", "max", "gamma99")}
-
-    out = {"alone": {name: stats(evaluate(alone, d)["modeled_stats"]) for name, d in sets.items()},
-           "with_prior": {name.lower(): stats(ev["modeled_stats"]) for name, ev in evaluations.items()},
-           "alone_converged": bool(result.success)}
-    key = "validation" if inp.val is not None else "identification"
-    a, w = out["alone"][key], out["with_prior"][key]
-    progress.info(f"the same unit fitted alone (no fleet prior): {key} mean {a['mean']:.4f} mm, max {a['max']:.4f} mm; "
-                  f"with the fleet's prior {w['mean']:.4f} mm, max {w['max']:.4f} mm"
-                  + ("" if inp.val is not None else " (on the identification poses; give data.validation to "
-                                                    "compare on poses neither fit saw)"))
-    return out
-
-
-__all__ = ["FleetRunPrior", "compare_with_alone", "fleet_backlash_orders", "prior_from_fleet_run"]
+__all__ = ["FleetRunPrior", "fleet_backlash_orders", "prior_from_fleet_run"]

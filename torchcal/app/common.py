@@ -110,6 +110,13 @@ def config_prior(cfg) -> Prior | None:
                  backlash=None if backlash is None else units.deg_to_rad(backlash), **extra)
 
 
+def config_orders(cfg, n: int) -> list[int]:
+    """model.order as n per-joint Chebyshev orders (one int for every joint, or the list); not for 'auto', which
+    the order search resolves."""
+    order = cfg.model.order
+    return [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+
+
 def config_backlash(cfg):
     """model.backlash as RobotModel takes it: None (off), True, an int order or a per-joint list."""
     b = cfg.model.backlash
@@ -279,6 +286,7 @@ __all__ = [
     "config_compliance",
     "config_error_variable",
     "config_noise",
+    "config_orders",
     "config_prior",
     "joint_variance_source",
     "solver_options",

@@ -68,6 +68,7 @@ from .common import (  # shared with app.sensor; re-exported here under the old 
     config_compliance,
     config_error_variable,
     config_noise,
+    config_orders,
     config_prior,
     joint_variance_source,
     solver_options,
@@ -383,7 +384,7 @@ def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: Progress, 
     """
     order = cfg.model.order
     if not isinstance(order, str):
-        orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
+        orders = config_orders(cfg, inp.robot.joint_map.n)
         if make.backlash is True and cfg.prior.fleet is not None:
             # the prior describes the fleet's structure: a few poses' own choice could differ from it
             from .fleet_prior import fleet_backlash_orders

@@ -35,7 +35,8 @@ import torch
 from ..core import units
 from ..core.exceptions import ConfigError
 from ..io.atomic import atomic_path, atomic_write_text
-from .config import config_from_text, load_config, to_yaml, updated
+from .common import config_backlash, config_orders
+from .config import SolverConfig, config_from_text, load_config, to_yaml, updated
 
 log = logging.getLogger("torchcal")
 
@@ -82,7 +83,7 @@ def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
     return out
 
 
-def validation_gaps(cfg, files: list) -> tuple[list[str], list[Path]]:
+def _validation_gaps(cfg, files: list) -> tuple[list[str], list[Path]]:
     """With ``data.validation``: the units without a validation file of their name, and the validation files
     that name no unit (neither is used; both are worth a word, not silence)."""
     if not cfg.data.validation:
@@ -134,22 +135,15 @@ def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -
     from ..identify.fleet import fit_fleet
     from ..kinematics import load_robot
     from .fit import config_noise, config_prior
-    from .common import config_backlash, solver_options
+    from .common import solver_options
     from ..core import threads
 
     cfg = config_from_text(config_yaml, "the fleet's config")
     robot = load_robot(cfg.robot)
     device = torch.device(cfg.device)
     make = _factory(cfg, robot, device, config_backlash(cfg))
-    n = robot.joint_map.n
-    order = cfg.model.order
-    orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
-    data = [d.to(device) for _, d in cell]
-    if make.backlash is True and data[0].has_direction:  # as torchcal fit: the backlash order follows the data
-        from ..identify.backlash import default_backlash_orders
-
-        make.backlash, _ = default_backlash_orders(orders, data[0].q, data[0].direction,
-                                                   robot.joint_map.limits.to(data[0].q))
+    orders = config_orders(cfg, robot.joint_map.n)
+    data = [d.to(device) for _, d in cell]  # model.backlash: true is resolved already (run_fleet, for every cell)
     noise = config_noise(cfg, robot, cfg.config_file or "config")
     prior = config_prior(cfg)
     opts = {k: v for k, v in solver_options(cfg).items() if k == "max_iter"}
@@ -231,12 +225,10 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
 
     with run_log(run_dir):
         log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}")
-        from .config import SolverConfig
-
         if float(cfg.solver.ftol) != SolverConfig.ftol:
             warn(f"solver.ftol ({cfg.solver.ftol:g}) is a single fit's; the fleet's units stop at fleet.ftol "
                  f"({float(cfg.fleet.ftol):g}): set that one")
-        no_val, orphans = validation_gaps(cfg, files)
+        no_val, orphans = _validation_gaps(cfg, files)
         if no_val:
             warn(f"data.validation: no file in {cfg.data.validation} for {len(no_val)} unit(s): {', '.join(no_val)} "
                  "(their validation columns stay empty)")
@@ -261,7 +253,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
         loaded = _same_format(loaded, rows, robot)
         cfg = _fleet_backlash(cfg, robot, loaded, warn)
-        determined = _data_checks(cfg, robot, T, loaded, warn)
+        thin = _data_checks(cfg, robot, T, loaded, warn)  # {unit: why}: fewer equations than parameters
         size = int(cfg.fleet.cell)
         cells = [[(n, i) for n, i, _ in loaded[c:c + size]] for c in range(0, len(loaded), size)]
         config_yaml = to_yaml(cfg)
@@ -286,15 +278,14 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
                 _evaluate(u, model, idents, vals, rows, device)
-        for u, _ in fitted:
-            rows[u["name"]]["determined"] = u["name"] not in determined
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
-        scored = [(u, m) for u, m in fitted if u["name"] not in determined]
         for u, _ in fitted:
-            if u["name"] in determined:
-                rows[u["name"]].update(outlier_score=float("nan"), flagged=False,
-                                       findings=f"not scored: {determined[u['name']]}")
+            name = u["name"]
+            rows[name]["determined"] = name not in thin
+            if name in thin:
+                rows[name].update(outlier_score=float("nan"), flagged=False, findings=f"not scored: {thin[name]}")
+        scored = [(u, m) for u, m in fitted if u["name"] not in thin]
         if len(scored) >= 3:
             fake = FleetFit([m for _, m in scored], None)
             score, findings = parameter_outliers(fake, float(cfg.fleet.threshold))
@@ -359,20 +350,16 @@ def _fleet_backlash(cfg, robot, loaded: list, warn):
     together. Each cell deciding on its own first unit would give units of one fleet different structures
     (and the outlier test and the fleet prior compare like with like); the resolved list goes into the run's and
     every unit's config, so a unit refitted alone keeps the fleet's structure."""
-    from .config import updated
     from ..identify.backlash import default_backlash_orders
 
-    b = cfg.model.backlash
-    on = b is True or (isinstance(b, int) and not isinstance(b, bool) and b >= 0) or (
-        not isinstance(b, (bool, int)) and any(int(x) >= 0 for x in b))
+    b = config_backlash(cfg)  # None (off), True, an order or one per joint (-1: off)
+    on = b is True or any(x >= 0 for x in ([b] if isinstance(b, int) else b or []))
     if on and not loaded[0][1].has_direction:  # as torchcal fit warns it
         warn(f"model.backlash is on but the units' files have no dir1..dir{robot.joint_map.n} columns: the backlash "
              "terms cannot be identified (set model.backlash=false, or give the approach directions)")
     if b is not True or not loaded[0][1].has_direction:
         return cfg
-    n = robot.joint_map.n
-    order = cfg.model.order
-    orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+    orders = config_orders(cfg, robot.joint_map.n)
     q = torch.cat([d.q for _, d, _ in loaded])
     direction = torch.cat([d.direction for _, d, _ in loaded])
     chosen, _ = default_backlash_orders(orders, q, direction, robot.joint_map.limits.to(q))
@@ -386,11 +373,8 @@ def _data_checks(cfg, robot, T: int, loaded: list, warn) -> dict:
     name: why} for the units with fewer equations (3 per row) than the model's parameters: they are fitted (the
     prior holds what the data leave open) but neither judged for outliers nor part of the fleet prior."""
     from ..identify.layout import ParameterLayout
-    from .common import config_backlash
 
-    n = robot.joint_map.n
-    order = cfg.model.order
-    orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+    orders = config_orders(cfg, robot.joint_map.n)
     P = ParameterLayout(_factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(orders)).size
     out = {}
     for name, ident, _ in loaded:

@@ -276,6 +276,7 @@ def run_sensor_fit(cfg, console=None):
         config_backlash,
         config_compliance,
         config_error_variable,
+        config_orders,
         write_preamble_files,
     )
 
@@ -313,7 +314,7 @@ def run_sensor_fit(cfg, console=None):
             if isinstance(order, str):
                 orders = choose_sensor_orders(cfg, inp, make, ident, instrument, fixed, run_dir, progress, files)
             else:
-                orders = [int(order)] * inp.robot.joint_map.n if isinstance(order, int) else [int(o) for o in order]
+                orders = config_orders(cfg, inp.robot.joint_map.n)
             rig = make(orders)
             blocks = []
             if fine is not None:

@@ -175,6 +175,7 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
     from ..identify.backlash import default_backlash_orders
     from ..identify.batched import fit_batch
     from ..io.rundir import save_model
+    from .common import config_orders
     from .fit import align_inputs, config_backlash, config_noise, first_poses, load_inputs, model_factory
 
     from .config import updated
@@ -189,8 +190,7 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
     models, rows, noises, structures = [], [], [], []
     for cfg in cfgs:
         data = inp.ident if cfg.data.n_poses is None else first_poses(inp.ident, int(cfg.data.n_poses), inp.label)
-        order = cfg.model.order
-        orders = [int(order)] * n if isinstance(order, int) else [int(o) for o in order]
+        orders = config_orders(cfg, n)
         make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal, _compliance(cfg),
                              None if cfg.model.error_variable is None else cfg.model.error_variable, cfg.model.kind)
         if make.backlash is True and data.has_direction:  # as torchcal fit: the backlash order follows the data

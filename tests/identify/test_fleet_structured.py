@@ -183,6 +183,54 @@ def test_compiled_rows_are_the_torch_rows(problems):
     assert _rel(a.S, b.S) < 1e-10 and torch.equal(a.S, a.S.transpose(1, 2))
 
 
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_one_program_fleet_shares_its_first_linearization_and_normal_matrix(problems, compiled, monkeypatch):
+    """Units that ran one program (same commands, tools, directions; their own truths and noise) and stand at one
+    point share the linearization but for their residuals, and one normal matrix serves all their steps: the
+    shared linearization and steps equal each unit's own (to rounding), in the torch form and the compiled one.
+    Units of different programs, or one program at different points, are not shared."""
+    from torchcal.identify import structured
+
+    dense, fact, X, g = problems
+    if compiled and not fleet_kernel.available("cpu"):
+        pytest.skip("numba not importable")
+    if not compiled:
+        monkeypatch.setattr(fleet_kernel, "available", lambda device: False)
+    assert not fact.one_program  # the fixture's units have their own programs
+    robot = fact.superset.robot
+    noise = torchcal.NoiseModel.from_robot(robot)
+    fleet = fleet_truths(robot, TOOLS, 3, 1, [2])
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 20, 4)
+    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+    units = [torchcal.simulate(t, q, [0, 1, 2], noise, 30 + k, directions=dirs) for k, t in enumerate(fleet.truths)]
+    same = FleetProblem(lambda: torchcal.RobotModel(robot, TOOLS, orders=3, backlash=2), units, noise)
+    assert same.one_program
+    M, w = same.M, torch.arange(same.M)
+    X0 = same.start().expand(M, -1).clone()
+    V = torch.zeros(M, same.R, same.n, dtype=torch.float64)
+    assert same._common(X0, V) and not same._common(X0 + 1e-6 * torch.rand(X0.shape, generator=g), V)
+    shared_lin = same.linearize(X0, V, w)
+    own = same._factored(X0, V, w, same.stack["q"], same.stack["tool"], same.stack["xyz"])
+    assert _rel(shared_lin[0], own[0]) < 1e-12 and float(shared_lin[0].std(0).max()) > 0  # residuals differ
+    for a, b in zip(shared_lin[1:], own[1:]):
+        assert torch.equal(a, b)
+    mu = torch.full((M,), 1e-3, dtype=torch.float64)
+    args = (same.structure, same.slots, same.w_v, V, same.lam, X0 - same.mean, mu, same.keep)
+    own_steps = structured.structured_steps(list(own), *args, pp=same.pp)
+    shared_steps = structured.structured_steps([t.contiguous() for t in shared_lin], *args, pp=same.pp, shared=True)
+    for a, b in zip(shared_steps, own_steps):
+        assert _rel(a, b) < 1e-9
+    assert float(own_steps[0].std(0).max()) > 0  # the units' steps differ: their right-hand sides were used
+    # FleetProblem.step takes the shared path at the common point only
+    calls = []
+    real = structured.structured_steps
+    monkeypatch.setattr("torchcal.identify.fleet.structured_steps",
+                        lambda *a, **k: calls.append(k["shared"]) or real(*a, **k))
+    same.step([t.contiguous() for t in shared_lin], V, X0 - same.mean, mu, w)
+    same.step(list(own), V, X0 - same.mean, mu * torch.tensor([1.0, 2.0, 1.0], dtype=torch.float64), w)
+    assert calls == [True, False]
+
+
 @pytest.mark.parametrize("P", [1, 2, 5, 64])
 def test_compiled_cholesky_is_torch_cholesky(P):
     """fleet_kernel.cholesky_rows / cholesky_solve_rows against torch.linalg.cholesky_ex / cholesky_solve on a batch of

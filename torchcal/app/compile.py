@@ -67,7 +67,10 @@ def _warm_fleet():
     qr, tool = q.repeat(T, 1), torch.arange(T).repeat_interleave(q.shape[0])
     with torch.no_grad():
         xyz = model(qr, tool)
-    units = [Measurements.from_tensors(qr, tool, xyz + 1e-4 * k, direction=torch.ones_like(qr)) for k in range(2)]
+    # opposite approach directions: two programs, so the step is each unit's own (one program's first step is
+    # shared and factors by torch: cholesky_rows would stay cold)
+    units = [Measurements.from_tensors(qr, tool, xyz + 1e-4 * k, direction=torch.ones_like(qr) * (1 - 2 * k))
+             for k in range(2)]
     fit_fleet(lambda: _model()[2], units, max_iter=1, structured=True)
 
 

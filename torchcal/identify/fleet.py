@@ -148,6 +148,25 @@ class FleetProblem(BatchedProblem):
                 self.slots = pose_slots([u.q for u in units], [u.direction if st["has_direction"] else None
                                                                for u in units], R)
                 self.phi_p, self.pp = self._pose_basis()
+            self.one_program = self._one_program()
+
+    def _one_program(self) -> bool:
+        """Whether every unit ran the same program: the same commands, tools, directions, rows, weights and kept
+        entries. At a common start (a fresh fleet: every unit at zero error) such units share one linearization
+        but for their residuals, so one normal matrix serves their first step (:meth:`step`)."""
+        st = self.stack
+
+        def same(t):
+            return bool((t == t[:1]).all())
+
+        slots = getattr(self, "slots", st["rows"])
+        return all(same(t) for t in (st["q"], st["tool"], st["direction"], st["rows"], self.scale, self.w_v,
+                                     self.keep, slots))
+
+    def _common(self, X: torch.Tensor, V: torch.Tensor) -> bool:
+        """Whether units of one program stand at one point (X (m, P), V (m, R, n)): then their linearizations
+        and normal matrices are one unit's, their residuals apart."""
+        return self.one_program and X.shape[0] > 1 and bool((X == X[:1]).all()) and bool((V == V[:1]).all())
 
     def _pins(self, keep, noise, prior, fixed, gauge_units) -> torch.Tensor:
         """(M, P) the gauge pins judged at the zero-error model on the pooled rows of the first units.
@@ -202,6 +221,12 @@ class FleetProblem(BatchedProblem):
         w = which.to(st["q"].device)
         q, tool, obs = st["q"][w], st["tool"][w], st["xyz"][w]
         if self.structure is not None:
+            if slot is None and self._common(X, V):  # a fresh fleet's start: one unit's, each its own residual
+                one = self._factored(X[:1], V[:1], w[:1], q[:1], tool[:1], obs[:1])
+                s = (self.scale[w] / self.instrument.weight.sigma)[..., None]
+                f = one[0] + (obs[:1] - obs) * s  # the residual is (prediction - observation), whitened
+                rest = [t.expand(len(w), *t.shape[1:]) for t in one[1:4]]
+                return (f, *rest) if self.dense_normal else (f, *rest, self.phi_p[w])
             return self._factored(X, V, w, q, tool, obs, slot)
         wrapper = _Predict(self.superset, self.instrument)
 
@@ -246,8 +271,10 @@ class FleetProblem(BatchedProblem):
             f, C, E, Phi = lin
             A = dense_jacobian(E, Phi, self.structure) * self.keep[which].to(E)[:, None, None, :]
             return schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
+        # one program at a common point (the first step of a fresh fleet): one normal matrix for every unit
+        shared = self._common(dX, V) and bool((mu == mu[:1]).all())
         return structured_steps(lin, self.structure, self.slots[which], self.w_v[which], V, self.lam, dX, mu,
-                                self.keep[which], pp=self.pp, ws=self.workspace)
+                                self.keep[which], pp=self.pp, ws=self.workspace, shared=shared)
 
 
 @dataclass

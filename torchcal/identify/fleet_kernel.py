@@ -533,9 +533,10 @@ def _eliminate_row(f, C, E, V, w_v, mu, Dinv, gv, Mr, Y, h, hh):
 
 
 @njit(parallel=True, cache=True, fastmath=True)
-def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, Dinv_o, gv_o, M_o, Gs, Gsd, Gdd_b, gx_b, dg_b):
+def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, gram, Dinv_o, gv_o, M_o, Gs, Gsd, Gdd_b, gx_b, dg_b):
     """The per-row half of a factored Gauss-Newton step and the per-pose Gram matrices, one task per block of
-    poses (:func:`pose_blocks`), every unit's.
+    poses (:func:`pose_blocks`), every unit's. gram=False: the rows' terms alone (Gs, Gsd, Gdd_b untouched): the
+    units whose normal matrix is another unit's (:func:`torchcal.identify.structured.structured_steps`' shared).
 
     Each row's joint errors eliminated (:func:`_eliminate_row`): Dinv_o, gv_o (m, R, n), M_o (m, R, d, d).
     Each pose's G_p = sum over its rows of E_r^T M_r E_r, formed in
@@ -564,10 +565,11 @@ def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, Dinv_o, gv_o, M_o, G
         for u in range(m):
             gx_b[u, b] = 0.0
             dg_b[u, b] = 0.0
-            Gdd_b[u, b] = 0.0
+            if gram:
+                Gdd_b[u, b] = 0.0
         for p in range(b * _POSES, min(Pp, (b + 1) * _POSES)):
             for u in range(m):
-                gxl, dgl, Gl = gx_b[u, b], dg_b[u, b], Gdd_b[u, b]
+                gxl, dgl = gx_b[u, b], dg_b[u, b]
                 nr = 0
                 for t in range(T):
                     r = slots[u, p, t]
@@ -601,6 +603,8 @@ def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, Dinv_o, gv_o, M_o, G
                     for t in range(nr):
                         gxl[ns + q - ne] += Hp[t, q]
                         dgl[ns + q - ne] += HHp[t, q]
+                if not gram:
+                    continue
                 # upper blocks only: a structured row from its joint's first column on (pairs i <= j, the joint's
                 # own block whole, as the contraction reads it), a dense row from the diagonal. Row views from
                 # column q0, so that the inner loop runs from 0 (no negative-index wraparound: it vectorizes), and
@@ -643,10 +647,11 @@ def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, Dinv_o, gv_o, M_o, G
                         g = (i * A + a) * Q + ne
                         for c in range(Nd):
                             Gsd[o + a * Nd + c] = Gf[g + c]
+                Gl = Gdd_b[u, b]
                 for c1 in range(Nd):
                     for c2 in range(c1, Nd):
                         Gl[c1, c2] += G[ne + c1, ne + c2]
-        for u in range(m):
+        for u in range(m if gram else 0):
             Gl = Gdd_b[u, b]
             for c1 in range(Nd):
                 for c2 in range(c1 + 1, Nd):

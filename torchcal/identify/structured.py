@@ -328,7 +328,8 @@ def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | 
 
 
 def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, refine: int = 0,
-                     tol: float = 1e-6, pp: torch.Tensor | None = None, ws: Workspace | None = None):
+                     tol: float = 1e-6, pp: torch.Tensor | None = None, ws: Workspace | None = None,
+                     shared: bool = False):
     """Damped Gauss-Newton steps of m units from factored linearizations (the factored
     :func:`~torchcal.identify.schur.schur_steps`).
 
@@ -343,27 +344,35 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     gradient is exact, so the optimum is the same, and the near-exact step costs a few iterations
     (100 FANUCs: 771 unit iterations instead of 737) but no products (9.2 -> 6.4 s; every unit's
     validation residual unchanged to the printed digit, experiments/fleet/run.py).
+    shared: every unit's damped normal matrix is the first unit's (the caller vouches: the same rows, joint
+    errors, parameters, damping and kept entries, as at a one-program fleet's common start): it is formed and
+    factored once, and the units differ only in their right-hand sides.
     -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d).
     The per-row work is compiled (:mod:`.fleet_kernel`) on the CPU, batched torch elsewhere.
     """
     from . import fleet_kernel
 
-    rows = _RowsFused(lin, slots, w_v, V, mu, st, pp, ws) if fleet_kernel.available(lin[0].device) else \
-        _RowsTorch(lin, slots, w_v, V, mu, st, pp)
+    rows = _RowsFused(lin, slots, w_v, V, mu, st, pp, ws, shared) if fleet_kernel.available(lin[0].device) else \
+        _RowsTorch(lin, slots, w_v, V, mu, st, pp, shared)
     E = lin[2]
     m = E.shape[0]
     kf = keep.to(E)
     idx = st.index
     lam_m = lam * kf
-    S = rows.S  # symmetric by construction (contract)
-    ub, uj = (~keep).nonzero(as_tuple=True)  # entries a unit lacks or pins: unit diagonal, zero right-hand side
-    S[ub, uj, :] = 0.0
+    S = rows.S  # symmetric by construction (contract); (1, P, P) where shared
+    ub, uj = (~keep[:S.shape[0]]).nonzero(as_tuple=True)  # entries a unit lacks or pins: unit diagonal, zero
+    S[ub, uj, :] = 0.0  # right-hand side
     S[ub, :, uj] = 0.0
     diag_bb = rows.diag_x[:, idx] * kf + lam_m
     damp = lam_m + mu[:, None] * diag_bb + (1.0 - kf)
-    S.diagonal(dim1=1, dim2=2).add_(damp)
+    S.diagonal(dim1=1, dim2=2).add_(damp[:S.shape[0]])
     rhs = -(rows.gx[:, idx] + lam_m * dx) * kf
-    if isinstance(rows, _RowsFused):
+    if shared:  # one factor, every unit's right-hand side a column of one solve
+        Ls, info = torch.linalg.cholesky_ex(S[0])
+        solve = lambda r: torch.cholesky_solve(r.T, Ls).T  # noqa: E731
+        if int(info) != 0:
+            solve = lambda r: torch.linalg.lstsq(S[0], r.T).solution.T  # noqa: E731
+    elif isinstance(rows, _RowsFused):
         Ls, info = rows.ws.take("L", S.shape, S), torch.empty(m, dtype=torch.int64)
         with fleet_kernel.dynamic():
             fleet_kernel.cholesky_rows(S.numpy(), Ls.numpy(), info.numpy())
@@ -376,7 +385,7 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     else:
         Ls, info = torch.linalg.cholesky_ex(S)
         solve = lambda r: torch.cholesky_solve(r[..., None], Ls)[..., 0]  # noqa: E731
-    if bool((info != 0).any()):  # not positive definite: the least-squares solution
+    if not shared and bool((info != 0).any()):  # not positive definite: the least-squares solution
         solve = lambda r: torch.linalg.lstsq(S, r[..., None]).solution[..., 0]  # noqa: E731
     dbx = E.new_zeros(m, st.size)
 
@@ -416,7 +425,7 @@ class _RowsTorch:
     """The per-row half of :func:`structured_steps` in batched torch ops: joint errors eliminated, the normal
     matrix S (m, P, P) in layout order, the extended gradient gx and diagonal diag_x (m, size)."""
 
-    def __init__(self, lin, slots, w_v, V, mu, st, pp=None):
+    def __init__(self, lin, slots, w_v, V, mu, st, pp=None, shared: bool = False):
         f, C, E, Phi, Phi_p = lin
         m, R, d, Q = E.shape
         n = C.shape[-1]
@@ -434,7 +443,8 @@ class _RowsTorch:
         y = f - (self.W.transpose(-1, -2) @ self.z)[..., 0]  # the residual with the joint errors' response out
         self.gx = to_extended((E * y[..., None]).sum(2), Phi, st)
         self.diag_x = to_extended((E * E).sum(2), Phi * Phi, st)
-        self.S = contract(gram_parts(E, self.Mm @ E, slots, st), Phi_p, st, pp)
+        g = 1 if shared else m
+        self.S = contract(gram_parts(E[:g], self.Mm[:g] @ E[:g], slots[:g], st), Phi_p[:g], st, pp)
 
     def product(self, dbx):
         """(m, size) the extended A^T M A dbx, every row with its own basis values."""
@@ -452,7 +462,7 @@ class _RowsTorch:
 class _RowsFused(_RowsTorch):
     """:class:`_RowsTorch` by the compiled kernels of :mod:`.fleet_kernel` (CPU)."""
 
-    def __init__(self, lin, slots, w_v, V, mu, st, pp=None, ws: Workspace | None = None):
+    def __init__(self, lin, slots, w_v, V, mu, st, pp=None, ws: Workspace | None = None, shared: bool = False):
         from .fleet_kernel import dynamic, pose_blocks, schur_rows
 
         f, C, E, Phi, Phi_p = lin
@@ -470,18 +480,25 @@ class _RowsFused(_RowsTorch):
         pair = torch.zeros(n, n, dtype=torch.long)
         pair[pi, pj] = torch.arange(pi.numel())
         self.ws = ws = Workspace() if ws is None else ws
-        Gs, Gsd = ws.take("Gs", (pi.numel(), Pp, m, A, A), E), ws.take("Gsd", (n, Pp, m, A, Nd), E)
-        Gdd, gx, dg = torch.empty(m, NB, Nd, Nd, **like), torch.empty(m, NB, st.size, **like), \
+        mg = 1 if shared else m  # the units whose Gram blocks are formed
+        Gs, Gsd = ws.take("Gs", (pi.numel(), Pp, mg, A, A), E), ws.take("Gsd", (n, Pp, mg, A, Nd), E)
+        Gdd, gx, dg = torch.empty(mg, NB, Nd, Nd, **like), torch.empty(m, NB, st.size, **like), \
             torch.empty(m, NB, st.size, **like)
         self.c = [t.contiguous() for t in (f, C, E, Phi)]
-        f_, C_, E_, Phi_ = (t.numpy() for t in self.c)
+        args = [t.numpy() for t in self.c] + [V.contiguous().numpy(), w_v.contiguous().numpy(),
+                                              mu.contiguous().numpy(), self.slots.numpy()]
+        outs = [self.Dinv.numpy(), self.gv.numpy(), self.Mm.numpy()]
         with dynamic():
-            schur_rows(f_, C_, E_, Phi_, V.contiguous().numpy(), w_v.contiguous().numpy(), mu.contiguous().numpy(),
-                       self.slots.numpy(), n, A, pair.numpy(), self.Dinv.numpy(), self.gv.numpy(),
-                       self.Mm.numpy(), Gs.view(-1).numpy(), Gsd.view(-1).numpy(), Gdd.numpy(), gx.numpy(), dg.numpy())
+            schur_rows(*args, n, A, pair.numpy(), not shared, *outs, Gs.view(-1).numpy(), Gsd.view(-1).numpy(),
+                       Gdd.numpy(), gx.numpy(), dg.numpy())
+            if shared:  # the first unit's Gram blocks (its rows' terms again, into scratch)
+                one = [a[:1] for a in args]
+                scratch = [torch.empty_like(t[:1]).numpy() for t in (self.Dinv, self.gv, self.Mm, gx, dg)]
+                schur_rows(*one, n, A, pair.numpy(), True, *scratch[:3], Gs.view(-1).numpy(), Gsd.view(-1).numpy(),
+                           Gdd.numpy(), *scratch[3:])
         self.gx, self.diag_x = gx.sum(1), dg.sum(1)
-        self.S = contract((Gs.permute(0, 2, 3, 4, 1), Gsd.permute(2, 0, 3, 4, 1), Gdd.sum(1), pi, pj), Phi_p, st, pp,
-                          ws)
+        self.S = contract((Gs.permute(0, 2, 3, 4, 1), Gsd.permute(2, 0, 3, 4, 1), Gdd.sum(1), pi, pj), Phi_p[:mg], st,
+                          pp, ws)
 
     def _apply(self, dbx, final):
         from .fleet_kernel import apply_rows, dynamic, pose_blocks

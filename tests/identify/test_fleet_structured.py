@@ -214,6 +214,11 @@ def test_a_one_program_fleet_shares_its_first_linearization_and_normal_matrix(pr
     assert _rel(shared_lin[0], own[0]) < 1e-12 and float(shared_lin[0].std(0).max()) > 0  # residuals differ
     for a, b in zip(shared_lin[1:], own[1:]):
         assert torch.equal(a, b)
+    # the GPU's form (the dense normal matrix from the expanded Jacobian) shares the linearization alike
+    dn = FleetProblem(lambda: torchcal.RobotModel(robot, TOOLS, orders=3, backlash=2), units, noise, dense_normal=True)
+    assert dn.one_program
+    for a, b in zip(dn.linearize(X0, V, w), own[:4]):
+        assert _rel(a, b) < 1e-12
     mu = torch.full((M,), 1e-3, dtype=torch.float64)
     args = (same.structure, same.slots, same.w_v, V, same.lam, X0 - same.mean, mu, same.keep)
     own_steps = structured.structured_steps(list(own), *args, pp=same.pp)

@@ -54,11 +54,9 @@ def test_import_torchcal_before_torch_makes_openmp_wait_passively():
                 "print(t.configure_openmp())", env) == "False"
 
 
-def test_threads_for_small_work_is_one_and_override_wins(monkeypatch):
+def test_threads_for_small_work_is_one_and_override_wins():
     threads.set_threads(None)
     assert threads.threads_for(1e6) == 1
-    monkeypatch.setattr(threads, "_runnable", lambda: 1)  # nothing runs but the caller
-    monkeypatch.setattr(threads, "_free", (-float("inf"), None))
     assert threads.threads_for(1e12) == threads.usable_cpus()
     threads.set_threads(3)
     try:
@@ -98,45 +96,3 @@ def test_fused_kernel_is_loaded_from_numba_cache_in_a_new_process():
     _run(code)  # compiles (and writes the cache) if no earlier process did
     misses, hits_flange, hits_pass = map(int, _run(code).split())
     assert misses == 0 and hits_flange >= 1 and hits_pass >= 1
-
-
-@pytest.mark.parametrize("runnable, others", [(1, 0), (2, 1), (3, 2), (1000, 999), (None, None)])
-def test_large_work_leaves_the_cpus_other_processes_keep_busy(monkeypatch, runnable, others):
-    """threads_for gives large work the usable CPUs less the busy ones (the runnable tasks but the caller), at
-    least one; where the kernel does not say, the usable CPUs. The reading is reused for a second."""
-    monkeypatch.setattr(threads, "_runnable", lambda: runnable)
-    monkeypatch.setattr(threads, "_free", (-float("inf"), None))
-    monkeypatch.setattr(threads, "usable_cpus", lambda: 2)
-    monkeypatch.setattr(threads.os, "cpu_count", lambda: 2)
-    threads.set_threads(None)
-    expect = 2 if others is None else max(1, min(2, 2 - others))
-    assert threads.threads_for(1e12) == expect
-    monkeypatch.setattr(threads, "_runnable", lambda: 1)  # the neighbour left: within the second, the same count
-    assert threads.threads_for(1e12) == expect
-    monkeypatch.setattr(threads, "_free", (-float("inf"), None))
-    assert threads.threads_for(1e12) == 2
-
-
-def test_a_task_seen_in_one_read_only_is_not_counted(monkeypatch):
-    reads = iter([5, 1, 5])
-    monkeypatch.setattr(threads, "_runnable", lambda: next(reads))
-    monkeypatch.setattr(threads, "_free", (-float("inf"), None))
-    monkeypatch.setattr(threads.os, "cpu_count", lambda: 2)
-    assert threads.free_cpus() == 2
-
-
-def test_a_real_cpu_bound_neighbour_is_seen():
-    """A busy-looping child process is one runnable task in every read: free_cpus counts one CPU fewer."""
-    if (os.cpu_count() or 1) < 2 or not os.path.exists("/proc/loadavg"):
-        pytest.skip("needs 2 CPUs and /proc/loadavg")
-    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-    try:
-        import time
-
-        time.sleep(0.3)
-        threads._free = (-float("inf"), None)
-        assert threads.free_cpus() <= os.cpu_count() - 1
-    finally:
-        hog.kill()
-        hog.wait()
-        threads._free = (-float("inf"), None)

@@ -25,19 +25,8 @@ So torchcal does two things:
    they run on one thread whatever the wait policy; large batches (10^5
    compensated poses) spread over the CPUs this process may use
    (:func:`usable_cpus`: its affinity mask and its cgroup CPU quota, which
-   ``os.cpu_count()`` and torch's default both ignore), less the CPUs that
-   other processes keep busy (:func:`free_cpus`). ``threads:`` in a
+   ``os.cpu_count()`` and torch's default both ignore). ``threads:`` in a
    config, or :func:`set_threads`, overrides the choice.
-
-Why the busy CPUs count. With one CPU-bound neighbour on 2 cores, Linux lets a
-2-thread process have one core, not the 4/3 a fair share of threads would
-give (both threads end up queued on the core the neighbour does not hold),
-and the second thread only adds switches and barriers: 100 FANUC units fitted
-in one batch took 5.6 s on two threads and 4.6 s on one, a single fit 0.46
-and 0.39 s (side by side, same machine); quiet, two threads stay faster
-(3.7 s). This is OpenMP's own ``OMP_DYNAMIC`` idea (GNU OpenMP sizes a team
-by the CPUs less the load average), on the instantaneous count of runnable
-tasks, which follows a neighbour that started a second ago.
 
 torch and numba never run at the same time here (the compensation kernel is
 called between torch ops), and both get the same count from
@@ -49,7 +38,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import time
 from contextlib import contextmanager
 
 WAIT_POLICY = "OMP_WAIT_POLICY"
@@ -109,42 +97,6 @@ def usable_cpus() -> int:
     return max(1, n)
 
 
-def _runnable() -> int | None:
-    """Runnable tasks on this kernel now, this caller's thread included (/proc/loadavg's fourth field), or None
-    where the kernel does not say."""
-    try:
-        with open("/proc/loadavg") as f:
-            return int(f.read().split()[3].split("/")[0])
-    except (OSError, ValueError, IndexError):
-        return None
-
-
-_FREE_TTL = 1.0  # seconds a reading of the busy CPUs is reused: a fit calls threads_for at every solve
-_free: tuple[float, int | None] = (-math.inf, None)
-
-
-def free_cpus() -> int | None:
-    """CPUs that no other process keeps busy: the online CPUs less the tasks other than the caller that were
-    runnable in each of three reads 0.5 ms apart (a task that merely passes by is not counted), at least 1;
-    None where unknown. The count is the kernel's, so in a container without its own /proc it is the host's
-    tasks over the host's CPUs: many busy host CPUs do not lower a container's count below its quota unless
-    nearly all of them are busy."""
-    global _free
-    now = time.monotonic()
-    if now - _free[0] < _FREE_TTL:
-        return _free[1]
-    reads = []
-    for k in range(3):
-        reads.append(_runnable())
-        if reads[-1] is None:
-            break
-        if k < 2:
-            time.sleep(5e-4)
-    value = None if None in reads else max(1, (os.cpu_count() or 1) - max(0, min(reads) - 1))
-    _free = (now, value)
-    return value
-
-
 def set_threads(n: int | None) -> None:
     """Fix the thread count of every torchcal call from now on (None: choose by work size again)."""
     global _override
@@ -162,15 +114,13 @@ def threads_for(work: float) -> int:
     """Threads for a call doing about ``work`` floating-point operations per parallel step.
 
     The override (:func:`set_threads`) wins; else 1 below :data:`SERIAL_WORK`,
-    and above it :func:`usable_cpus`, at most :func:`free_cpus` (the CPUs other processes leave).
+    and :func:`usable_cpus` above it.
     """
     if _override is not None:
         return _override
     if work < SERIAL_WORK:
         return 1
-    n = usable_cpus()
-    free = free_cpus() if n > 1 else None
-    return n if free is None else max(1, min(n, free))
+    return usable_cpus()
 
 
 @contextmanager

@@ -357,7 +357,7 @@ def predict_cmd(
 # ---------------------------------------------------------------------- update
 @app.command("update")
 def update_cmd(
-    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`.")],
+    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`; a `torchcal fleet` run gets the fleet report.")],
     new_data: Annotated[Path, typer.Argument(help="CSV of new measurements in the run's contract (mm, deg).")],
     out: Annotated[Path, typer.Option("--out", help="New run directory (the parent is never modified).")],
     strategy: Annotated[Optional[str], typer.Option(
@@ -564,7 +564,7 @@ def _check_table_outputs(run_dir: Path, out: Path, fmt: str, force: bool) -> Non
 # ---------------------------------------------------------------------- report
 @app.command("report")
 def report_cmd(
-    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`.")],
+    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`; a `torchcal fleet` run gets the fleet report.")],
     out: Annotated[Optional[Path], typer.Option("--out", help="HTML file to write (default: RUN_DIR/report.html).")] = None,
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):

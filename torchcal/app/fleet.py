@@ -197,7 +197,7 @@ def _run_cells(cfg, cells: list[list], config_yaml: str) -> list:
 
 def run_fleet(config, overrides: list[str] | None = None, out=None, console=None) -> FleetRunResult:
     """Fit every unit of the fleet ``config`` (see the module docstring) into one run directory."""
-    from ..identify.fleet import FleetFit, parameter_outliers
+    from ..identify.fleet import FleetFit, feature_scores, parameter_outliers
     from ..io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
     from ..kinematics import load_robot
     from .fit import config_tool_count, read_sets
@@ -288,7 +288,9 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         scored = [(u, m) for u, m in fitted if u["name"] not in thin]
         if len(scored) >= 3:
             fake = FleetFit([m for _, m in scored], None)
-            score, findings = parameter_outliers(fake, float(cfg.fleet.threshold))
+            scores = feature_scores(fake.models)
+            score, findings = parameter_outliers(fake, float(cfg.fleet.threshold), scores=scores)
+            _write_features(run_dir, [u["name"] for u, _ in scored], scores, robot, float(cfg.fleet.threshold))
             for f in findings:  # the unit by its name, not its place among the scored units
                 f.unit = scored[f.unit][0]["name"]
             result.findings = findings
@@ -318,7 +320,42 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         log.info(f"fleet done in {result.time:.1f} s (solve {result.solve_time:.1f} s): {len(fitted)} fitted, "
                  f"{len(failed)} failed{' ' + str(failed) if failed else ''}, "
                  f"{len({f.unit for f in result.findings})} flagged; {run_dir / 'summary.csv'}")
+    if cfg.report:  # after run_log: the log is whole
+        from ..report import write_report
+
+        try:
+            write_report(run_dir)
+        except Exception as exc:  # the fits are on disk: a report that fails is said, not the run's failure
+            log.warning("fleet report not written: %s: %s", type(exc).__name__, exc)
+            result.warnings.append(f"fleet report not written: {type(exc).__name__}: {exc}")
     return result
+
+
+def _write_features(run_dir: Path, names: list[str], scores, robot, threshold: float) -> None:
+    """features.csv: per scored unit, joint and feature (transmission error, backlash) its value in deg (mm for a
+    prismatic joint), the fleet median, its ratio to it, its robust z, the level above which it is flagged, and
+    whether it is: the fleet's distribution behind every finding, for the report and the engineer."""
+    import pandas as pd
+
+    from ..identify.fleet import OUTLIER_MIN_RATIO
+
+    prismatic = robot.joint_map.prismatic.cpu()
+    unit_names = units.joint_unit_names(prismatic)
+    rows = []
+    for key in scores.value:
+        value = units.joints_from_si(scores.value[key], prismatic)
+        median = units.joints_from_si(scores.median[key][None], prismatic)[0]
+        level = units.joints_from_si(scores.flag_level(key, threshold)[None], prismatic)[0]
+        z, ratio = scores.z[key], scores.ratio[key]
+        for m, name in enumerate(names):
+            for j, joint in enumerate(scores.joints):
+                flagged = bool(z[m, j] > threshold) and bool(ratio[m, j] >= OUTLIER_MIN_RATIO)
+                rows.append({"unit": name, "joint": joint, "feature": key, "value": float(value[m, j]),
+                             "value_unit": unit_names[j], "fleet_median": float(median[j]),
+                             "ratio": float(ratio[m, j]), "robust_z": float(z[m, j]),
+                             "flag_level": float(level[j]), "flagged": flagged})
+    with atomic_path(run_dir / "features.csv") as tmp:
+        pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.9g")
 
 
 def _same_format(loaded: list, rows: dict, robot) -> list:
@@ -417,6 +454,7 @@ def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device) -> N
 def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
     import pandas as pd
 
+    from ..identify.fleet import OUTLIER_MIN_RATIO
     from ..io.rundir import write_json
 
     df = pd.DataFrame(result.rows)
@@ -425,6 +463,7 @@ def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
     write_json(run_dir / "fleet.json", {"time_s": result.time, "solve_time_s": result.solve_time,
                                         "engine": cfg.fleet.engine, "cell": int(cfg.fleet.cell),
                                         "model_backlash": cfg.model.backlash,  # as resolved for the whole fleet
+                                        "threshold": float(cfg.fleet.threshold), "min_ratio": OUTLIER_MIN_RATIO,
                                         "units": result.rows, "findings": [str(f) for f in result.findings]})
 
 

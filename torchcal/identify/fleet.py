@@ -426,7 +426,44 @@ def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:
     return {"angle error": ang, "backlash": back}
 
 
-def parameter_outliers(fit: FleetFit, threshold: float = 5.0, min_ratio: float = 3.0) -> tuple[torch.Tensor, list[Outlier]]:
+OUTLIER_MIN_RATIO = 3.0
+"""How many times the fleet median a flagged unit's feature must be, beside its robust z (:func:`parameter_outliers`)."""
+
+
+@dataclass
+class FeatureScores:
+    """The fleet's joint features and how far each unit lies from the fleet: per feature name (M, n) tensors
+    ``value`` (rad or m, as :func:`joint_features` gives them), ``z`` (the modified z-score) and ``ratio`` (to
+    the fleet median), and per feature (n,) ``median`` and ``mad``; ``joints`` the joints' names."""
+
+    joints: list
+    value: dict
+    z: dict
+    ratio: dict
+    median: dict
+    mad: dict
+
+    def flag_level(self, key: str, threshold: float, min_ratio: float = OUTLIER_MIN_RATIO) -> torch.Tensor:
+        """(n,) the value above which a unit's joint is flagged: z > threshold and at least min_ratio x the median."""
+        return torch.maximum(self.median[key] + threshold * self.mad[key] / 0.6745, min_ratio * self.median[key])
+
+
+def feature_scores(models) -> FeatureScores:
+    """:func:`joint_features` of every model, each feature standardized by the fleet's median and MAD."""
+    feats = [joint_features(m) for m in models]
+    out = FeatureScores(list(models[0].joint_errors.joint_names), {}, {}, {}, {}, {})
+    for key in feats[0]:
+        F = torch.stack([f[key] for f in feats]).cpu().clamp(min=1e-15)  # (M, n)
+        med = F.median(0).values
+        mad = (F - med).abs().median(0).values.clamp(min=1e-15)
+        out.value[key], out.median[key], out.mad[key] = F, med, mad
+        out.z[key] = 0.6745 * (F - med) / mad
+        out.ratio[key] = F / med
+    return out
+
+
+def parameter_outliers(fit: FleetFit, threshold: float = 5.0, min_ratio: float = OUTLIER_MIN_RATIO,
+                       scores: FeatureScores | None = None) -> tuple[torch.Tensor, list[Outlier]]:
     """Units whose joints lie far from the fleet's: a damaged gearbox, a bad measurement.
 
     For every joint, two features of each unit's fitted model
@@ -440,25 +477,21 @@ def parameter_outliers(fit: FleetFit, threshold: float = 5.0, min_ratio: float =
     spans 4x from unit to unit; a worn gear adds several times the type's
     clearance). One-sided, since damage and bad measurements add error (a
     unit whose joint is better than the fleet's is not a finding).
+    scores: :func:`feature_scores` of ``fit.models`` where already computed.
     -> (score (M,): the largest z of each unit, the findings, largest first).
     """
-    feats = [joint_features(m) for m in fit.models]
-    names = list(fit.models[0].joint_errors.joint_names)
-    M = len(feats)
+    sc = feature_scores(fit.models) if scores is None else scores
+    M = next(iter(sc.value.values())).shape[0]
     score = torch.zeros(M, dtype=torch.float64)
     found: list[Outlier] = []
-    for key in feats[0]:
-        F = torch.stack([f[key] for f in feats]).cpu().clamp(min=1e-15)  # (M, n)
-        med = F.median(0).values
-        mad = (F - med).abs().median(0).values.clamp(min=1e-15)
-        z = 0.6745 * (F - med) / mad
-        ratio = F / med
+    for key in sc.value:
+        z, ratio = sc.z[key], sc.ratio[key]
         score = torch.maximum(score, z.max(1).values)
         for m, j in ((z > threshold) & (ratio >= min_ratio)).nonzero().tolist():
-            found.append(Outlier(m, names[j], key, float(ratio[m, j]), float(z[m, j])))
+            found.append(Outlier(m, sc.joints[j], key, float(ratio[m, j]), float(z[m, j])))
     found.sort(key=lambda o: -o.z)
     return score, found
 
 
-__all__ = ["FLEET_FTOL", "FleetFit", "FleetProblem", "Outlier", "fit_fleet", "fleet_prior", "joint_features", "parameter_outliers",
-           "stack_units"]
+__all__ = ["FLEET_FTOL", "FeatureScores", "FleetFit", "FleetProblem", "OUTLIER_MIN_RATIO", "Outlier", "feature_scores",
+           "fit_fleet", "fleet_prior", "joint_features", "parameter_outliers", "stack_units"]

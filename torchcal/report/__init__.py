@@ -27,11 +27,15 @@ MAX_REPORT_BYTES = 5 * 1024 * 1024
 
 
 def render_report(run_dir) -> str:
-    """The report of ``run_dir`` as an HTML string (see :func:`write_report`)."""
+    """The report of ``run_dir`` as an HTML string (see :func:`write_report`); a ``torchcal fleet`` run directory
+    gets the fleet report (:mod:`torchcal.report.fleet`)."""
     from . import model_sections as ms
     from . import sections as s
+    from .fleet import is_fleet_run, render_fleet_report
     from .html import esc, page, section
 
+    if Path(run_dir).is_dir() and is_fleet_run(run_dir):
+        return render_fleet_report(run_dir)
     run: RunFiles = read_run(run_dir)
     robot = get(run.config, "robot", default=run.folder.name)
     parts = [
@@ -55,7 +59,7 @@ def render_report(run_dir) -> str:
 def write_report(run_dir, out=None) -> Path:
     """Write the calibration report of a run directory; returns its path.
 
-    run_dir: a folder written by ``torchcal fit`` or ``torchcal update``;
+    run_dir: a folder written by ``torchcal fit``, ``torchcal update`` or ``torchcal fleet`` (the fleet report);
     out: the HTML file to write (default ``<run_dir>/report.html``), replaced
     atomically (a failed write leaves an earlier report intact).
 

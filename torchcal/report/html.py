@@ -159,8 +159,9 @@ def _nice_ticks(hi: float, count: int = 5) -> list[float]:
 
 
 def histogram_svg(values, title: str, marks=(), bins: int = 40, width: int = 496, height: int = 220,
-                  color: str = "#1f5f99") -> str:
-    """An inline SVG histogram of ``values`` (mm); ``marks``: (label, x) vertical lines (e.g. Gamma 99 %)."""
+                  color: str = "#1f5f99", xlabel: str = "residual (mm)", counted: str = "rows") -> str:
+    """An inline SVG histogram of ``values`` (mm); ``marks``: (label, x) vertical lines (e.g. Gamma 99 %);
+    the axis reads ``xlabel, N counted``."""
     vals = [float(v) for v in values if math.isfinite(float(v))]
     if not vals:
         return ""
@@ -197,8 +198,63 @@ def histogram_svg(values, title: str, marks=(), bins: int = 40, width: int = 496
             f'<text x="{left - 4}" y="{top + 8}" font-size="10" text-anchor="end">{cmax}</text>'
             f'<text x="{left - 4}" y="{top + ph}" font-size="10" text-anchor="end">0</text>'
             f'{"".join(bars)}{"".join(lines)}{ticks}'
-            f'<text x="{left + pw / 2}" y="{height - 4}" font-size="10" text-anchor="middle">residual (mm), '
-            f'{len(vals)} rows</text></svg>')
+            f'<text x="{left + pw / 2}" y="{height - 4}" font-size="10" text-anchor="middle">{esc(xlabel)}, '
+            f'{len(vals)} {esc(counted)}</text></svg>')
+
+
+def strip_svg(groups, title: str, ylabel: str, width: int = 1000, height: int = 260) -> str:
+    """An inline SVG strip chart: one column per group, a dot per value, highlighted ones in red and labelled.
+
+    groups: (label, [(name, value, highlighted)], median or None, level or None) per column; the median is drawn
+    as a short grey bar, the level (e.g. where a unit is flagged) as a dashed red one. Every dot carries its
+    name and exact value (``data-name``, ``data-value``) so the figure can be read back."""
+    vals = [float(v) for _, pts, _, _ in groups for _, v, _ in pts if math.isfinite(float(v))]
+    extra = [float(x) for _, _, med, lvl in groups for x in (med, lvl) if x is not None and math.isfinite(float(x))]
+    if not vals:
+        return ""
+    hi = max(vals + extra + [1e-12]) * 1.08
+    left, right, top, bottom = 56, 16, 26, 34
+    pw, ph = width - left - right, height - top - bottom
+    col = pw / max(1, len(groups))
+
+    def y(v):
+        return top + ph - ph * v / hi
+
+    parts = []
+    for g, (label, pts, med, lvl) in enumerate(groups):
+        cx = left + col * (g + 0.5)
+        parts.append(f'<text x="{cx:.1f}" y="{top + ph + 14}" font-size="10" text-anchor="middle">{esc(label)}</text>')
+        if med is not None and math.isfinite(float(med)):
+            parts.append(f'<line x1="{cx - col * 0.3:.1f}" y1="{y(med):.1f}" x2="{cx + col * 0.3:.1f}" y2="{y(med):.1f}" '
+                         f'stroke="#5b6776" stroke-width="2"/>')
+        if lvl is not None and math.isfinite(float(lvl)):
+            parts.append(f'<line x1="{cx - col * 0.35:.1f}" y1="{y(lvl):.1f}" x2="{cx + col * 0.35:.1f}" '
+                         f'y2="{y(lvl):.1f}" stroke="#a32121" stroke-dasharray="4 3"/>')
+        side = 0  # flagged dots' names alternate right and left of their dots: near values would overprint
+        for k, (name, v, hot) in enumerate(pts):
+            if not math.isfinite(float(v)):
+                continue
+            dx = col * 0.5 * ((k * 0.618034) % 1.0 - 0.5)  # spread the dots over the column (golden-ratio jitter)
+            fill = "#a32121" if hot else "#1f5f99"
+            r = 3.2 if hot else 2.2
+            parts.append(f'<circle cx="{cx + dx:.1f}" cy="{y(float(v)):.1f}" r="{r}" fill="{fill}" '
+                         f'fill-opacity="{1.0 if hot else 0.55}" data-name="{esc(name)}" '
+                         f'data-value="{esc(repr(float(v)))}"><title>{esc(name)}: {float(v):.4g}</title></circle>')
+            if hot:
+                tx, anchor = (cx + dx + 5, "start") if side % 2 == 0 else (cx + dx - 5, "end")
+                side += 1
+                parts.append(f'<text x="{tx:.1f}" y="{y(float(v)) + 3:.1f}" font-size="9" fill="#a32121" '
+                             f'text-anchor="{anchor}">{esc(name)}</text>')
+    ticks = "".join(f'<line x1="{left - 3}" y1="{y(t):.1f}" x2="{left}" y2="{y(t):.1f}" stroke="#5b6776"/>'
+                    f'<text x="{left - 5}" y="{y(t) + 3:.1f}" font-size="10" text-anchor="end">{t:g}</text>'
+                    for t in _nice_ticks(hi))
+    return (f'<svg class="hist" width="{width}" height="{height}" viewBox="0 0 {width} {height}" role="img" '
+            f'aria-label="{esc(title)}"><text x="{width / 2}" y="15" font-size="12" text-anchor="middle" '
+            f'font-weight="600">{esc(title)}</text>'
+            f'<line x1="{left}" y1="{top + ph}" x2="{left + pw}" y2="{top + ph}" stroke="#5b6776"/>'
+            f'<line x1="{left}" y1="{top}" x2="{left}" y2="{top + ph}" stroke="#5b6776"/>{ticks}{"".join(parts)}'
+            f'<text x="12" y="{top + ph / 2:.1f}" font-size="10" text-anchor="middle" '
+            f'transform="rotate(-90 12 {top + ph / 2:.1f})">{esc(ylabel)}</text></svg>')
 
 
 def section(anchor: str, title: str, body: str, major: bool = False, first: bool = False) -> str:
@@ -215,4 +271,4 @@ def page(title: str, header: str, sections: list[str], footer: str) -> str:
 
 
 __all__ = ["CSS", "MAX_IMAGE_BYTES", "esc", "histogram_svg", "image", "kv", "not_available", "num", "page", "section",
-           "table"]
+           "strip_svg", "table"]

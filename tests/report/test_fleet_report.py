@@ -1,0 +1,141 @@
+"""The fleet report of a real (small) `torchcal fleet` run: the run's own numbers, the fleet's features behind each
+finding (against the unit models themselves), honest gaps, self-contained."""
+
+import csv
+import html
+import json
+import math
+import re
+import shutil
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+import torchcal
+import torchcal.sim
+from torchcal.cli import app
+from torchcal.identify.fleet import joint_features
+from torchcal.io.rundir import load_model
+from torchcal.report import render_report
+from torchcal.sim.fleet import fleet_truths
+
+TOOLS = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]], dtype=torch.float64)
+DAMAGED = 3
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def fleet_run(tmp_path_factory, one_thread):
+    """10 simulated FANUCs (unit 3 with a damaged J3 gearbox), validation files for all but unit 9, and one unit
+    whose file has a cell that is no number -> the run directory of `torchcal fleet`."""
+    from torchcal.app.fleet import run_fleet
+    from torchcal.io.csv import write_measurements
+
+    root = tmp_path_factory.mktemp("fleet_report")
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    noise = torchcal.NoiseModel.from_robot(robot)
+    fleet = fleet_truths(robot, TOOLS, 10, 0, [DAMAGED])
+    lim = robot.joint_map.limits
+    q = torchcal.sim.quasi_random_commands(lim, 70, 0)
+    qv = torchcal.sim.quasi_random_commands(lim, 20, 5)
+    (root / "ident").mkdir()
+    (root / "val").mkdir()
+    for k, t in enumerate(fleet.truths):
+        write_measurements(root / "ident" / f"unit{k:02d}.csv", torchcal.simulate(t, q, [0, 1, 2], noise, 10 + k), robot)
+        if k != 9:
+            write_measurements(root / "val" / f"unit{k:02d}.csv", torchcal.simulate(t, qv, [0], noise, 50 + k), robot)
+    lines = (root / "ident" / "unit00.csv").read_text().splitlines()
+    cells = lines[4].split(",")
+    cells[-1] = "n/a<b>"
+    lines[4] = ",".join(cells)
+    (root / "ident" / "broken.csv").write_text("\n".join(lines) + "\n")
+    tools = ", ".join(f"[{x * 1000:.2f}, {y * 1000:.2f}, {z * 1000:.2f}]" for x, y, z in TOOLS.tolist())
+    cfg = root / "fleet.yaml"
+    cfg.write_text(f"robot: fanuc_lrmate200i\ntools: [{tools}]\ndata: {{identification: ident, validation: val}}\n"
+                   f"model: {{order: 3, backlash: true}}\nout: runs\n")
+    res = run_fleet(cfg, out=root / "fleet-run")
+    return res
+
+
+def _values(text):
+    return {m.group(1): float(m.group(2)) for m in re.finditer(r'data-key="([^"]+)" data-value="([^"]+)"', text)}
+
+
+def _features(run_dir):
+    with (run_dir / "features.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_the_fleet_writes_its_report_self_contained(fleet_run):
+    text = (fleet_run.run_dir / "report.html").read_text(encoding="utf-8")
+    assert "Fleet calibration report" in text and "fanuc_lrmate200i" in text
+    assert "<script" not in text and "http://" not in text and "https://" not in text
+    fleet = json.loads((fleet_run.run_dir / "fleet.json").read_text())
+    for u in fleet["units"]:
+        assert f"<td>{u['unit']}</td>" in text
+    bad = next(u for u in fleet["units"] if u["unit"] == "broken")
+    assert bad["status"] == "failed" and html.escape(bad["reason"], quote=True) in text  # escaped, not markup
+    assert "<b>" not in text.split("Every unit")[1].split("</table>")[0]
+    assert "for 2 unit(s): broken, unit09 (their validation columns stay empty)" in html.unescape(text)  # the warning
+
+
+def test_the_reports_numbers_are_the_runs(fleet_run):
+    text = (fleet_run.run_dir / "report.html").read_text(encoding="utf-8")
+    shown = _values(text)
+    fleet = json.loads((fleet_run.run_dir / "fleet.json").read_text())
+    fitted = [u for u in fleet["units"] if u["status"] == "fitted"]
+    assert len(fitted) == 10
+    for u in fitted:
+        assert shown[f"{u['unit']}/identification_mean_mm"] == u["identification_mean_mm"]
+        assert shown[f"{u['unit']}/identification_max_mm"] == u["identification_max_mm"]
+        if u["unit"] != "unit09":
+            assert shown[f"{u['unit']}/validation_mean_mm"] == u["validation_mean_mm"]
+    assert "unit09/validation_mean_mm" not in shown
+
+
+def test_flagged_units_show_the_features_of_their_models(fleet_run):
+    """The damaged unit is flagged on joint 3; every feature value in features.csv (and in the report's table and
+    figure) is joint_features of that unit's saved model, rad -> deg; a row is flagged exactly where its value
+    exceeds its flag level."""
+    run = fleet_run.run_dir
+    text = (run / "report.html").read_text(encoding="utf-8")
+    rows = _features(run)
+    flagged = {r["unit"] for r in rows if r["flagged"] == "True"}
+    assert flagged == {f"unit{DAMAGED:02d}"}
+    assert {r["joint"] for r in rows if r["flagged"] == "True"} == {"joint3"}
+    models = {}
+    for r in rows:
+        if r["unit"] not in models:
+            models[r["unit"]] = joint_features(load_model(run / "units" / r["unit"]))
+        j = int(r["joint"].removeprefix("joint")) - 1
+        assert r["value_unit"] == "deg"
+        assert float(r["value"]) == pytest.approx(math.degrees(float(models[r["unit"]][r["feature"]][j])), rel=1e-8)
+        assert (r["flagged"] == "True") == (float(r["value"]) > float(r["flag_level"]))
+    shown = _values(text)
+    for r in rows:
+        if r["flagged"] == "True":
+            assert shown[f"{r['unit']}/{r['joint']}/{r['feature']}"] == pytest.approx(float(r["value"]), rel=1e-8)
+    dots = re.findall(r'<circle [^>]*data-name="([^"]+)" data-value="([^"]+)"', text)
+    assert len(dots) == len(rows)
+    assert sorted((n, round(float(v), 6)) for n, v in dots) == sorted((r["unit"], round(float(r["value"]), 6))
+                                                                      for r in rows)
+
+
+def test_a_fleet_run_missing_files_says_so(fleet_run, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(fleet_run.run_dir, copy)
+    (copy / "features.csv").unlink()
+    (copy / "versions.json").unlink()
+    text = render_report(copy)
+    assert "the fleet&#x27;s joint features: not available (features.csv not in the run directory" in text
+    assert "versions: not available" in text
+    assert f"unit{DAMAGED:02d}: joint3" in text  # the findings fleet.json keeps are still listed
+
+
+def test_report_command_on_a_fleet_run(fleet_run, tmp_path):
+    out = tmp_path / "again.html"
+    res = CliRunner().invoke(app, ["report", str(fleet_run.run_dir), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "Fleet calibration report" in out.read_text(encoding="utf-8")

@@ -139,3 +139,27 @@ def test_report_command_on_a_fleet_run(fleet_run, tmp_path):
     res = CliRunner().invoke(app, ["report", str(fleet_run.run_dir), "--out", str(out)])
     assert res.exit_code == 0, res.output
     assert "Fleet calibration report" in out.read_text(encoding="utf-8")
+
+
+@pytest.mark.skipif((shutil.which("chromium") or shutil.which("chromium-browser")) is None,
+                    reason="no chromium / chromium-browser on PATH (Debian package 'chromium')")
+def test_chromium_renders_the_fleet_report(fleet_run, tmp_path):
+    """Headless Chromium loads the page with no console error, the strip charts' dots are in its DOM, and its
+    screenshot is not blank."""
+    import subprocess
+
+    import numpy as np
+    from PIL import Image
+
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    path = fleet_run.run_dir / "report.html"
+    shot = tmp_path / "fleet.png"
+    base = [exe, "--headless", "--disable-gpu", "--no-sandbox", "--hide-scrollbars", f"--user-data-dir={tmp_path / 'p'}"]
+    proc = subprocess.run(base + ["--enable-logging=stderr", "--v=0", f"--screenshot={shot}", "--window-size=1280,1600",
+                                  path.as_uri()], capture_output=True, text=True, timeout=120)
+    assert shot.is_file(), proc.stderr[-2000:]
+    assert not [line for line in proc.stderr.splitlines() if "CONSOLE" in line or "Uncaught" in line]
+    dom = subprocess.run(base + ["--dump-dom", path.as_uri()], capture_output=True, text=True, timeout=120)
+    assert dom.returncode == 0 and dom.stdout.count("<circle") == len(_features(fleet_run.run_dir))
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=np.float64)
+    assert pixels.std() > 10.0 and (pixels < 128).mean() > 0.005

@@ -331,6 +331,8 @@ def fleet_cmd(
     if failed:
         _console().print(f"warning: {len(failed)} unit(s) not fitted: {', '.join(failed)} (summary.csv: reason)", markup=False)
     typer.echo(f"run directory: {result.run_dir}")
+    if (result.run_dir / "report.html").is_file():
+        typer.echo(f"fleet report: {result.run_dir / 'report.html'}")
 
 
 # --------------------------------------------------------------------- predict

@@ -300,6 +300,10 @@ def sweep_cmd(
 
 
 # ----------------------------------------------------------------------- fleet
+FLEET_TABLE_ROWS = 30
+"""Above this many units, `torchcal fleet`'s console table lists only the units that need a look."""
+
+
 @app.command("fleet")
 def fleet_cmd(
     config: Annotated[Path, typer.Argument(help="YAML config of one robot type whose data.identification is a folder "
@@ -316,13 +320,21 @@ def fleet_cmd(
         console = None if quiet else _console(stderr=True)
         with _progress(console):
             result = run_fleet(config, overrides or [], out=out, console=console)
-    t = Table(title=f"Fleet: {len(result.rows)} units ({result.time:.1f} s, solve {result.solve_time:.1f} s)")
+    rows = result.rows
+    if len(rows) > FLEET_TABLE_ROWS:  # a plant's fleet: the units that need a look; every unit is in the files
+        rows = [r for r in rows if r.get("status") != "fitted" or r.get("flagged") or not r.get("converged", True)
+                or r.get("determined") is False]
+    caption = None if rows is result.rows else (
+        f"{len(rows)} of {len(result.rows)} units shown: failed, flagged, not converged or undetermined; every "
+        "unit in summary.csv and the fleet report")
+    t = Table(title=f"Fleet: {len(result.rows)} units ({result.time:.1f} s, solve {result.solve_time:.1f} s)",
+              caption=caption)
     cols = ["unit", "status", "converged", "identification_mean_mm", "validation_mean_mm", "validation_max_mm",
             "outlier_score", "findings", "reason"]
     cols = [c for c in cols if any(r.get(c) not in (None, "") for r in result.rows)]
     for c in cols:
         t.add_column(c.replace("_mm", " (mm)").replace("_", " "), justify="left" if c in ("unit", "findings", "reason") else "right")
-    for r in result.rows:
+    for r in rows:
         t.add_row(*[f"{r[c]:.4f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
     _console().print(t)
     for w in result.warnings:

@@ -163,3 +163,25 @@ def test_chromium_renders_the_fleet_report(fleet_run, tmp_path):
     assert dom.returncode == 0 and dom.stdout.count("<circle") == len(_features(fleet_run.run_dir))
     pixels = np.asarray(Image.open(shot).convert("L"), dtype=np.float64)
     assert pixels.std() > 10.0 and (pixels < 128).mean() > 0.005
+
+
+def test_fleet_command_lists_the_units_that_need_a_look(fleet_run, tmp_path, monkeypatch):
+    """`torchcal fleet` on more units than the console table holds lists the failed and flagged ones (every unit
+    stays in summary.csv), and says where the fleet report is."""
+    import torchcal.cli as cli
+
+    root = tmp_path / "f"
+    src = fleet_run.run_dir.parent  # the fixture's unit files and config
+    shutil.copytree(src / "ident", root / "ident")
+    shutil.copy(src / "fleet.yaml", root / "fleet.yaml")
+    monkeypatch.setattr(cli, "FLEET_TABLE_ROWS", 3)
+    res = CliRunner().invoke(app, ["fleet", str(root / "fleet.yaml"), "data.validation=null", "--out",
+                                   str(root / "run"), "-q"])
+    assert res.exit_code == 0, res.output
+    table = res.output.split("Fleet: 11 units")[1].split("run directory")[0]
+    listed = set(re.findall(r"\b(unit\d\d|broken)\b", table))
+    assert listed == {"broken", f"unit{DAMAGED:02d}"}, table
+    assert "2 of 11 units shown" in " ".join(table.split())
+    assert f"fleet report: {root / 'run' / 'report.html'}" in res.output
+    with (root / "run" / "summary.csv").open(newline="") as f:
+        assert len(list(csv.DictReader(f))) == 11

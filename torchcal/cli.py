@@ -371,7 +371,7 @@ def predict_cmd(
 # ---------------------------------------------------------------------- update
 @app.command("update")
 def update_cmd(
-    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`; a `torchcal fleet` run gets the fleet report.")],
+    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`.")],
     new_data: Annotated[Path, typer.Argument(help="CSV of new measurements in the run's contract (mm, deg).")],
     out: Annotated[Path, typer.Option("--out", help="New run directory (the parent is never modified).")],
     strategy: Annotated[Optional[str], typer.Option(

@@ -337,8 +337,6 @@ def _write_features(run_dir: Path, names: list[str], scores, robot, threshold: f
     whether it is: the fleet's distribution behind every finding, for the report and the engineer."""
     import pandas as pd
 
-    from ..identify.fleet import OUTLIER_MIN_RATIO
-
     prismatic = robot.joint_map.prismatic.cpu()
     unit_names = units.joint_unit_names(prismatic)
     rows = []
@@ -346,14 +344,13 @@ def _write_features(run_dir: Path, names: list[str], scores, robot, threshold: f
         value = units.joints_from_si(scores.value[key], prismatic)
         median = units.joints_from_si(scores.median[key][None], prismatic)[0]
         level = units.joints_from_si(scores.flag_level(key, threshold)[None], prismatic)[0]
-        z, ratio = scores.z[key], scores.ratio[key]
+        z, ratio, flagged = scores.z[key], scores.ratio[key], scores.flagged(key, threshold)
         for m, name in enumerate(names):
             for j, joint in enumerate(scores.joints):
-                flagged = bool(z[m, j] > threshold) and bool(ratio[m, j] >= OUTLIER_MIN_RATIO)
                 rows.append({"unit": name, "joint": joint, "feature": key, "value": float(value[m, j]),
                              "value_unit": unit_names[j], "fleet_median": float(median[j]),
                              "ratio": float(ratio[m, j]), "robust_z": float(z[m, j]),
-                             "flag_level": float(level[j]), "flagged": flagged})
+                             "flag_level": float(level[j]), "flagged": bool(flagged[m, j])})
     with atomic_path(run_dir / "features.csv") as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.9g")
 

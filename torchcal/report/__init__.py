@@ -34,7 +34,7 @@ def render_report(run_dir) -> str:
     from .fleet import is_fleet_run, render_fleet_report
     from .html import esc, page, section
 
-    if Path(run_dir).is_dir() and is_fleet_run(run_dir):
+    if is_fleet_run(run_dir):
         return render_fleet_report(run_dir)
     run: RunFiles = read_run(run_dir)
     robot = get(run.config, "robot", default=run.folder.name)

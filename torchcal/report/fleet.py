@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import math
+import statistics
 from pathlib import Path
 
 from .html import esc, histogram_svg, kv, not_available, num, page, section, strip_svg, table
@@ -68,11 +69,9 @@ def _float(x):
 
 
 def _median(xs):
-    xs = sorted(x for x in xs if x is not None)
-    if not xs:
-        return None
-    k = len(xs) // 2
-    return xs[k] if len(xs) % 2 else 0.5 * (xs[k - 1] + xs[k])
+    """The median of the values that are there (None where none is)."""
+    xs = [x for x in xs if x is not None]
+    return statistics.median(xs) if xs else None
 
 
 class FleetFiles:
@@ -205,9 +204,9 @@ def _units(run: FleetFiles) -> str:
 
 
 def _warnings(run: FleetFiles) -> str:
-    found = [w for w in log_warnings(run.log) if not w.startswith("flagged: ")]
     if isinstance(run.log, Missing):
         return not_available("warnings", run.log.reason)
+    found = [w for w in log_warnings(run.log) if not w.startswith("flagged: ")]  # the findings have their section
     if not found:
         return '<p class="ok">No warnings: the run raised none on the data or the config.</p>'
     return '<ul class="warnings">' + "".join(f"<li>{esc(w)}</li>" for w in found) + "</ul>"

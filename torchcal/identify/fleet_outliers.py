@@ -1,0 +1,120 @@
+"""Which units of a fleet lie far from the others: a damaged gearbox, a bad measurement.
+
+Each unit's fitted model is reduced to two features per joint (:func:`joint_features`: the transmission error's
+RMS over the range, the backlash); each feature is standardized by the fleet's median and MAD
+(:func:`feature_scores`), and :func:`parameter_outliers` flags the units' joints that lie far above the fleet.
+``torchcal fleet`` writes the scores to features.csv for the fleet report.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Outlier:
+    """A flagged unit (its index in the fleet, or its name): which joint and feature lie far from the fleet."""
+
+    unit: int | str
+    joint: str
+    feature: str
+    ratio: float
+    z: float
+
+    def __str__(self) -> str:
+        who = self.unit if isinstance(self.unit, str) else f"unit {self.unit}"
+        return f"{who}: {self.joint} {self.feature} {self.ratio:.1f}x the fleet median (robust z {self.z:.1f})"
+
+
+def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:
+    """Per joint (n,): 'angle error' (RMS over the joint's range of its modeled error about its own axis, the
+    transmission error, rad or m) and 'backlash' (mean half difference between the two approach directions)."""
+    je = model.joint_errors
+    with torch.no_grad():
+        lo, hi = je.ranges[:, 0], je.ranges[:, 1]
+        t = torch.linspace(0.0, 1.0, samples, dtype=lo.dtype, device=lo.device)[:, None]
+        u = lo + t * (hi - lo)
+        ones = torch.ones_like(u)
+        fwd, bwd = je.twists(u, ones), je.twists(u, -ones)  # (S, n, 6): rotation, translation
+        axis = torch.where(model.prismatic.to(u.device)[None, :], fwd[..., 5], fwd[..., 2])
+        axis_b = torch.where(model.prismatic.to(u.device)[None, :], bwd[..., 5], bwd[..., 2])
+        ang = (axis - axis.mean(0)).pow(2).mean(0).sqrt()
+        back = (0.5 * (axis - axis_b)).abs().mean(0)
+    return {"angle error": ang, "backlash": back}
+
+
+OUTLIER_MIN_RATIO = 3.0
+"""How many times the fleet median a flagged unit's feature must be, beside its robust z (:func:`parameter_outliers`)."""
+
+
+@dataclass
+class FeatureScores:
+    """The fleet's joint features and how far each unit lies from the fleet: per feature name (M, n) tensors
+    ``value`` (rad or m, as :func:`joint_features` gives them), ``z`` (the modified z-score) and ``ratio`` (to
+    the fleet median), and per feature (n,) ``median`` and ``mad``; ``joints`` the joints' names."""
+
+    joints: list
+    value: dict
+    z: dict
+    ratio: dict
+    median: dict
+    mad: dict
+
+    def flagged(self, key: str, threshold: float, min_ratio: float = OUTLIER_MIN_RATIO) -> torch.Tensor:
+        """(M, n) bool: the units' joints that lie far from the fleet (z > threshold, at least min_ratio x the median)."""
+        return (self.z[key] > threshold) & (self.ratio[key] >= min_ratio)
+
+    def flag_level(self, key: str, threshold: float, min_ratio: float = OUTLIER_MIN_RATIO) -> torch.Tensor:
+        """(n,) the value above which a unit's joint is flagged: z > threshold and at least min_ratio x the median."""
+        return torch.maximum(self.median[key] + threshold * self.mad[key] / 0.6745, min_ratio * self.median[key])
+
+
+def feature_scores(models) -> FeatureScores:
+    """:func:`joint_features` of every model, each feature standardized by the fleet's median and MAD."""
+    feats = [joint_features(m) for m in models]
+    out = FeatureScores(list(models[0].joint_errors.joint_names), {}, {}, {}, {}, {})
+    for key in feats[0]:
+        F = torch.stack([f[key] for f in feats]).cpu().clamp(min=1e-15)  # (M, n)
+        med = F.median(0).values
+        mad = (F - med).abs().median(0).values.clamp(min=1e-15)
+        out.value[key], out.median[key], out.mad[key] = F, med, mad
+        out.z[key] = 0.6745 * (F - med) / mad
+        out.ratio[key] = F / med
+    return out
+
+
+def parameter_outliers(fit, threshold: float = 5.0, min_ratio: float = OUTLIER_MIN_RATIO,
+                       scores: FeatureScores | None = None) -> tuple[torch.Tensor, list[Outlier]]:
+    """Units whose joints lie far from the fleet's: a damaged gearbox, a bad measurement.
+
+    For every joint, two features of each unit's fitted model
+    (:func:`joint_features`: the transmission error's RMS over the range,
+    the backlash); each feature is standardized by the fleet's median and
+    MAD (robust to the outliers themselves; the modified z-score
+    of Iglewicz and Hoaglin, whose 3.5 flags a healthy fleet's tails here:
+    measured, healthy units reach 3.5, damaged ones 7-14). A unit's joint is
+    flagged where its z exceeds ``threshold`` (5) and its feature is at least ``min_ratio`` times the fleet
+    median: outlying and large enough to matter (a healthy fleet's backlash
+    spans 4x from unit to unit; a worn gear adds several times the type's
+    clearance). One-sided, since damage and bad measurements add error (a
+    unit whose joint is better than the fleet's is not a finding).
+    fit: a :class:`~torchcal.identify.fleet.FleetFit` (anything with ``models``); scores: :func:`feature_scores` of
+    ``fit.models`` where already computed.
+    -> (score (M,): the largest z of each unit, the findings, largest first).
+    """
+    sc = feature_scores(fit.models) if scores is None else scores
+    M = next(iter(sc.value.values())).shape[0]
+    score = torch.zeros(M, dtype=torch.float64)
+    found: list[Outlier] = []
+    for key in sc.value:
+        z, ratio = sc.z[key], sc.ratio[key]
+        score = torch.maximum(score, z.max(1).values)
+        for m, j in sc.flagged(key, threshold, min_ratio).nonzero().tolist():
+            found.append(Outlier(m, sc.joints[j], key, float(ratio[m, j]), float(z[m, j])))
+    found.sort(key=lambda o: -o.z)
+    return score, found
+
+
+__all__ = ["FeatureScores", "OUTLIER_MIN_RATIO", "Outlier", "feature_scores", "joint_features", "parameter_outliers"]

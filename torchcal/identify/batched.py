@@ -21,6 +21,7 @@ rejected step costs an iteration instead of an inner loop).
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -29,7 +30,7 @@ from torch.func import functional_call, vmap
 
 from ..core.measurements import Measurements
 from ..core.progress import task
-from ..core.threads import threads_for_work
+from ..core.threads import limit_threads, threads_for_work
 from .candidates import structure_mask
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
@@ -302,7 +303,8 @@ def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, n
 
 
 def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-10, mu0: float = MU0,
-                  chunk: int = 8, label: str = "fitting models together", t0: float | None = None) -> BatchedFitResult:
+                  chunk: int = 8, label: str = "fitting models together", t0: float | None = None,
+                  threads: int | None = None, bar=None) -> BatchedFitResult:
     """Levenberg-Marquardt on every model of ``bp`` at once, each with its own damping and convergence; writes
     the solutions into ``bp.models``. -> :class:`BatchedFitResult`.
 
@@ -310,6 +312,8 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
     (``M, R, n, d, layout, models, keep, w_v, lam, mean``, ``start()``, ``write(X)``,
     ``linearize(X, V, which)``, ``cost_from(f, X, V, which)``), e.g. a fleet's units each with
     their own data (:class:`torchcal.identify.fleet.FleetProblem`).
+    threads: the solve's CPU threads (None: by the work's size, :func:`~torchcal.core.threads.threads_for`);
+    bar: a progress task to advance by the models finished (None: the solve's own, named ``label``).
     """
     t0 = time.perf_counter() if t0 is None else t0
     models = bp.models
@@ -366,7 +370,8 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
         f, A, C = lin
         return schur_steps(f, A, C, bp.w_v[which], Vw, bp.lam, dX, muw, bp.keep[which])
 
-    with threads_for_work(work), task(label, total=M) as bar:
+    with (limit_threads(threads) if threads else threads_for_work(work)), \
+            (nullcontext(bar) if bar is not None else task(label, total=M)) as bar:
         # f first; the rest is whatever bp's step reads (A, C or factors)
         lin = [torch.cat(t) for t in zip(*(out for _, _, out in lin_chunks(idx_all, X, V)))]
         cost = bp.cost_from(lin[0], X, V, idx_all)

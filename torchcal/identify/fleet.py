@@ -23,7 +23,11 @@ lie far from the fleet's (a damaged gearbox, a bad measurement).
 
 from __future__ import annotations
 
+import contextvars
+import copy
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -32,7 +36,8 @@ from torch.func import functional_call, vmap
 
 from ..core.measurements import Measurements
 from ..core.replicate import replicate
-from ..core.threads import limit_threads
+from ..core.progress import task
+from ..core.threads import limit_threads, threads_for
 from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
@@ -164,6 +169,22 @@ class FleetProblem(BatchedProblem):
         slots = getattr(self, "slots", st["rows"])
         return all(same(t) for t in (st["q"], st["tool"], st["direction"], st["rows"], self.scale, self.w_v,
                                      self.keep, slots))
+
+    def subset(self, idx: Sequence[int]) -> "FleetProblem":
+        """The problem of the units ``idx`` alone: the same structure, gauge, padding and pose basis (so each unit's
+        arithmetic is the one it has in the whole fleet), its own models and workspace. For a solve of its own
+        beside the others' (:func:`fit_fleet`'s streams)."""
+        sub = copy.copy(self)
+        ix = torch.as_tensor(list(idx), dtype=torch.long, device=self.keep.device)
+        sub.models, sub.units = [self.models[i] for i in idx], [self.units[i] for i in idx]
+        sub.stack = {k: (v[ix] if torch.is_tensor(v) else v) for k, v in self.stack.items()}
+        for name in ("rows", "scale", "w_v", "w_v_cost", "keep", "slots", "phi_p"):
+            if getattr(self, name, None) is not None:
+                setattr(sub, name, getattr(self, name)[ix])
+        sub.M = len(idx)
+        if hasattr(self, "workspace"):
+            sub.workspace = Workspace()
+        return sub
 
     def _common(self, X: torch.Tensor, V: torch.Tensor) -> bool:
         """Whether units of one program stand at one point (X (m, P), V (m, R, n)): then their linearizations
@@ -304,7 +325,7 @@ The issue's bound is 1 %."""
 def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
               prior: Prior | None = Prior(), fixed=(), gauge: bool = True, max_iter: int = 100, ftol: float = FLEET_FTOL,
               xtol: float = 1e-10, mu0: float = MU0, chunk: int | None = None, gauge_units: int | None = None,
-              structured: bool | None = None) -> FleetFit:
+              structured: bool | None = None, streams: int | None = None) -> FleetFit:
     """Fit one model per unit, every unit on its own data, in one batched Levenberg-Marquardt solve.
 
     make: () -> a fresh model of the robot type (e.g. ``lambda: RobotModel(robot,
@@ -320,6 +341,11 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     point targets); False: dense A by ``vmap`` of the model's Jacobians; None (default): True on the CPU, and
     on a GPU the factored Jacobian expanded to dense A, whose normal matrix is one large product (what a GPU
     is fast at; the per-pose Gram blocks are many small ones).
+    streams: independent solves run side by side in threads, each over a contiguous share of the units on one
+    thread (None: :func:`fleet_streams`, one per CPU thread the solve may use on the CPU's compiled factored
+    path, else 1). The split depends only on the unit count and ``streams``, so a run is reproducible bit for
+    bit wherever it runs with the same thread count; a different split moves results by rounding (~1e-10)
+    only. While the streams run, torch's intra-op threads are set to 1 (a process-wide setting).
     Each unit's result is its own fit's (the same optimum, up to the stopping
     tolerance ``ftol``). -> :class:`FleetFit` (each unit's model fitted in place).
 
@@ -339,6 +365,7 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     on_cpu = not units or units[0].xyz.device.type == "cpu"
     fp = FleetProblem(make, units, noise, prior, fixed, gauge, gauge_units, structured=structured is not False,
                       dense_normal=not on_cpu if structured is None else False)
+    k = fleet_streams(fp) if streams is None else max(1, min(int(streams), fp.M))
     if chunk is None:
         if fp.structure is not None and not fp.dense_normal:  # factors, per-pose Gram blocks, temporaries
             per_unit = 8 * fp.R * (4 * fp.d * (fp.structure.ne + fp.structure.Nd) + 2 * fp.structure.size)
@@ -350,9 +377,48 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
             budget = max(1e9, 0.25 * torch.cuda.mem_get_info(units[0].xyz.device)[0])  # holds them: fewer launches
         else:
             budget = 1e9
-        chunk = max(1, min(fp.M, int(budget // per_unit)))
-    batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label="fitting the fleet's units together", t0=t0)
+        # streams side by side share the budget (each has its own workspace), down to 8 units a chunk
+        chunk = max(1, min(-(-fp.M // k), max(int(budget / k // per_unit), 8 if k > 1 else 1)))
+    label = "fitting the fleet's units together"
+    if k == 1:
+        batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label=label, t0=t0)
+        return FleetFit(fp.models, batch, fp.layout)
+    # each stream solves its units alone, on one thread: beside a CPU-bound neighbour the scheduler gives
+    # independent threads their share, where one solve's parallel regions wait at every barrier for the thread
+    # it has descheduled (two threads of one solve got 1.03 cores, two streams 1.27-1.31; README, Fleets)
+    bounds = [round(i * fp.M / k) for i in range(k + 1)]
+    fp.layout._flat_index()  # its cache filled once, not by the streams at once
+    subs = [fp.subset(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    with limit_threads(1), task(label, total=fp.M) as bar:
+        shared_bar = _LockedTask(bar)
+        with ThreadPoolExecutor(k, thread_name_prefix="torchcal-fleet") as ex:
+            futures = [ex.submit(contextvars.copy_context().run, solve_batched, s, max_iter, ftol, xtol, mu0, chunk,
+                                 label, t0, 1, shared_bar) for s in subs]
+            parts = [f.result() for f in futures]
+    batch = BatchedFitResult(results=[r for b in parts for r in b.results], x=torch.cat([b.x for b in parts]),
+                             keep=torch.cat([b.keep for b in parts]), iterations=max(b.iterations for b in parts),
+                             time=time.perf_counter() - t0, names=parts[0].names)
     return FleetFit(fp.models, batch, fp.layout)
+
+
+def fleet_streams(fp: FleetProblem) -> int:
+    """Independent solves a fleet runs side by side: on the CPU's factored path, one per thread the solve may
+    use (each on one thread, :func:`~torchcal.core.threads.threads_for` of a large solve), at least 8 units
+    each; else 1."""
+    if fp.structure is None or fp.dense_normal or fp.keep.device.type != "cpu" or not fleet_kernel.available(fp.keep.device):
+        return 1
+    return max(1, min(threads_for(float("inf")), fp.M // 8))
+
+
+class _LockedTask:
+    """A progress task advanced from several threads."""
+
+    def __init__(self, task):
+        self.task, self.lock = task, threading.Lock()
+
+    def advance(self, n: int = 1, note: str | None = None) -> None:
+        with self.lock:
+            self.task.advance(n, note)
 
 
 # ------------------------------------------------------------------ the fleet's distribution

@@ -96,7 +96,7 @@ def _mm(out, x, y):
             out[i, j] = x[i, 0] * y[0, j] + x[i, 1] * y[1, j] + x[i, 2] * y[2, j]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, coupling, offset, ecoup, eoff,
                    lo, width, oR, op, axes, prismatic, tipR, tipp, Kc, Kb, A, obs, scale, p_out, Jv_out, E_out, Phi_out):
     """Residuals p_out (B, 3) (tool point - obs (B, 3)), Jv_out (B, 3, n), factored E_out (B, 3, n A + 6 + 3 T),
@@ -272,7 +272,7 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
 _FAST = {"contract", "arcp", "nsz", "reassoc"}
 
 
-@njit(parallel=True, cache=True, fastmath=_FAST)
+@njit(parallel=True, nogil=True, cache=True, fastmath=_FAST)
 def cholesky_rows(S, L, info):
     """L (m, P, P) lower triangular with L L^T = S (m, P, P) (its lower triangle read), one unit per task;
     info (m,): 0, or the index + 1 of the first pivot that is not positive (torch.linalg.cholesky_ex's
@@ -314,7 +314,7 @@ def cholesky_rows(S, L, info):
                 Li[k] = 0.0
 
 
-@njit(parallel=True, cache=True, fastmath=_FAST)
+@njit(parallel=True, nogil=True, cache=True, fastmath=_FAST)
 def cholesky_solve_rows(L, b, x):
     """x (m, P) with L L^T x = b (m, P), L (m, P, P) from :func:`cholesky_rows`."""
     m, P = b.shape
@@ -383,7 +383,7 @@ def factored_linearization_fused(model, st, params: dict, q, tool, direction, v,
     return p_out.view(m, R, 3), Jv.view(m, R, 3, n), E.view(m, R, 3, -1), Phi.view(m, R, n, st.K)
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, nogil=True, cache=True, fastmath=True)
 def gram_last(ZT, YT, n, A, pair, Gs, Gsd, Gdd):
     """Per-pose Gram matrices G_p = sum over the pose's rows of E_r^T Y_r, the pose axis last and innermost
     (unit stride: the products vectorize over poses, whatever the column count). ZT, YT: (m, S, Q, Pp), the
@@ -463,7 +463,7 @@ def dynamic():
         yield
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, nogil=True, cache=True)
 def gather_rows(src, index, out):
     """out[u, t] = src[u, index[t]]: src (m, F), index (N,), out (m, N)."""
     m, N = out.shape
@@ -532,7 +532,7 @@ def _eliminate_row(f, C, E, V, w_v, mu, Dinv, gv, Mr, Y, h, hh):
         hh[q] = e0 * e0 + e1 * e1 + e2 * e2
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, nogil=True, cache=True, fastmath=True)
 def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, gram, Dinv_o, gv_o, M_o, Gs, Gsd, Gdd_b, gx_b, dg_b):
     """The per-row half of a factored Gauss-Newton step and the per-pose Gram matrices, one task per block of
     poses (:func:`pose_blocks`), every unit's. gram=False: the rows' terms alone (Gs, Gsd, Gdd_b untouched): the
@@ -658,7 +658,7 @@ def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, gram, Dinv_o, gv_o, 
                     Gl[c2, c1] = Gl[c1, c2]
 
 
-@njit(parallel=True, cache=True, fastmath=True)
+@njit(parallel=True, nogil=True, cache=True, fastmath=True)
 def apply_rows(E, Phi, dbx, slots, n, A, final, M, Dinv, gv, f, C, sx_b, dv, lin):
     """A db of every row (E_r times the step's extended values weighted by the row's basis values), one task per
     block of poses (:func:`pose_blocks`), every unit's; final=False: the extended product A^T M A db, each block's

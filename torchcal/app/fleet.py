@@ -121,7 +121,8 @@ def _factory(cfg, robot, device, backlash):
 
 def _solve_threads(cfg) -> int:
     """CPU threads of every cell's solve and of the evaluation: the config's, else this process's usable CPUs
-    (one count for every engine: another count sums in another order)."""
+    (one count for every engine: the count sets how the solve splits its units into streams, and another
+    split sums in another order)."""
     from ..core import threads
 
     return int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()

@@ -28,9 +28,11 @@ So torchcal does two things:
    ``os.cpu_count()`` and torch's default both ignore). ``threads:`` in a
    config, or :func:`set_threads`, overrides the choice.
 
-torch and numba never run at the same time here (the compensation kernel is
-called between torch ops), and both get the same count from
-:func:`limit_threads`, so they do not oversubscribe each other.
+Within one solve torch and numba never run at the same time (the compiled
+kernels are called between torch ops), and both get the same count from
+:func:`limit_threads`, so they do not oversubscribe each other. A fleet's
+streams (:func:`torchcal.identify.fleet.fit_fleet`) run side by side, one per
+usable CPU, each on one thread of both.
 """
 
 from __future__ import annotations

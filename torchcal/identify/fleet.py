@@ -5,8 +5,10 @@ each fit is small and there are many. :func:`fit_fleet` stacks the units along
 the model axis of :func:`~torchcal.identify.batched.solve_batched` (the model
 batch dimension): every unit has its own data rows (padded to the longest
 unit, the padding masked out), its own noise, its own damping and its own
-convergence, and a converged unit stops costing work. Each unit's result is
-its own maximum-likelihood fit (Paper II (26)); nothing is shared between
+convergence, and a converged unit stops costing work. On the CPU the units
+are split into streams, one per usable CPU, each solved alone on one thread
+beside the others (:func:`fit_fleet`). Each unit's result is its own
+maximum-likelihood fit (Paper II (26)); nothing is shared between
 units but the model's structure and the gauge (the redundant constants of
 Paper II (18), which no data set can determine, judged on the pooled rows
 of the first units). For a RobotModel the Jacobian is never formed: its
@@ -327,7 +329,8 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
               prior: Prior | None = Prior(), fixed=(), gauge: bool = True, max_iter: int = 100, ftol: float = FLEET_FTOL,
               xtol: float = 1e-10, mu0: float = MU0, chunk: int | None = None, gauge_units: int | None = None,
               structured: bool | None = None, streams: int | None = None) -> FleetFit:
-    """Fit one model per unit, every unit on its own data, in one batched Levenberg-Marquardt solve.
+    """Fit one model per unit, every unit on its own data, in one batched Levenberg-Marquardt solve (on the CPU,
+    one per stream).
 
     make: () -> a fresh model of the robot type (e.g. ``lambda: RobotModel(robot,
     tools, orders=6, backlash=True)``); units: (M,) :class:`Measurements`, one
@@ -389,7 +392,7 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
         return FleetFit(fp.models, batch, fp.layout)
     # each stream solves its units alone, on one thread: beside a CPU-bound neighbour the scheduler gives
     # independent threads their share, where one solve's parallel regions wait at every barrier for the thread
-    # it has descheduled (two threads of one solve got 1.03 cores, two streams 1.27-1.31; README, Fleets)
+    # it has descheduled (two threads of one solve got 1.03 cores, two streams 1.23-1.31; README, Fleets)
     bounds = [round(i * fp.M / k) for i in range(k + 1)]
     fp.layout._flat_index()  # its cache filled once, not by the streams at once
     subs = [fp.subset(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]

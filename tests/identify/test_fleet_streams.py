@@ -100,20 +100,54 @@ def test_how_many_streams(fleet, monkeypatch):
         threads.set_threads(old)
 
 
-def test_a_failing_stream_is_raised(fleet, monkeypatch):
-    """A stream that fails raises its error from fit_fleet (after the others finished), as one solve would."""
-    make, units, noise = fleet
-    real = fleet_mod.solve_batched
-    finished = []
+def _recording(real, outcomes, before=None):
+    """solve_batched that records how each stream ended ('done' or the exception's type name)."""
 
-    def flaky(bp, *a, **k):
-        if bp.M == 3:
-            raise FloatingPointError("stream broke")
-        out = real(bp, *a, **k)
-        finished.append(bp.M)
+    def run(bp, *a, **k):
+        try:
+            if before is not None:
+                before(bp)
+            out = real(bp, *a, **k)
+        except BaseException as exc:
+            outcomes.append((bp.M, type(exc).__name__))
+            raise
+        outcomes.append((bp.M, "done"))
         return out
 
-    monkeypatch.setattr(fleet_mod, "solve_batched", flaky)
+    return run
+
+
+def test_a_failing_stream_is_raised_and_stops_the_others(fleet, monkeypatch):
+    """A stream that fails raises its error from fit_fleet, as one solve would, and the other streams stop at
+    their next iteration (Cancelled) instead of finishing work whose result is lost."""
+    import time
+
+    make, units, noise = fleet
+    outcomes = []
+    started = threading.Barrier(3)
+
+    def before(bp):
+        started.wait(timeout=30)
+        if bp.M == 3:
+            raise FloatingPointError("stream broke")
+        time.sleep(0.2)  # the failure is surely seen before the healthy streams' first iteration
+
+    monkeypatch.setattr(fleet_mod, "solve_batched", _recording(fleet_mod.solve_batched, outcomes, before))
     with pytest.raises(FloatingPointError, match="stream broke"):
         fit_fleet(make, units, noise, streams=3)
-    assert sorted(finished) == [2, 2]
+    assert sorted(outcomes) == [(2, "Cancelled"), (2, "Cancelled"), (3, "FloatingPointError")]
+
+
+def test_an_interrupt_stops_every_stream(fleet, monkeypatch):
+    """Ctrl-C while the streams run (KeyboardInterrupt in the waiting thread) stops them all and propagates."""
+    make, units, noise = fleet
+    outcomes = []
+    monkeypatch.setattr(fleet_mod, "solve_batched", _recording(fleet_mod.solve_batched, outcomes))
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fleet_mod, "wait", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        fit_fleet(make, units, noise, streams=2)
+    assert outcomes == [(m, "Cancelled") for m in (4, 3)] or sorted(outcomes) == [(3, "Cancelled"), (4, "Cancelled")]

@@ -64,6 +64,10 @@ class BatchedFitResult:
         return torch.tensor([r.fun for r in self.results], dtype=torch.float64)
 
 
+class Cancelled(RuntimeError):
+    """A batched solve stopped by its ``cancel`` event (another part of the work failed or was interrupted)."""
+
+
 class _Predict(torch.nn.Module):
     """instrument.predict_jacobians(model, ...) as a module whose parameters are the model's (functional_call)."""
 
@@ -304,7 +308,7 @@ def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, n
 
 def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-10, mu0: float = MU0,
                   chunk: int = 8, label: str = "fitting models together", t0: float | None = None,
-                  threads: int | None = None, bar=None) -> BatchedFitResult:
+                  threads: int | None = None, bar=None, cancel=None) -> BatchedFitResult:
     """Levenberg-Marquardt on every model of ``bp`` at once, each with its own damping and convergence; writes
     the solutions into ``bp.models``. -> :class:`BatchedFitResult`.
 
@@ -314,6 +318,7 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
     their own data (:class:`torchcal.identify.fleet.FleetProblem`).
     threads: the solve's CPU threads (None: by the work's size, :func:`~torchcal.core.threads.threads_for`);
     bar: a progress task to advance by the models finished (None: the solve's own, named ``label``).
+    cancel: a :class:`threading.Event`; once set, the solve raises :class:`Cancelled` at its next iteration.
     """
     t0 = time.perf_counter() if t0 is None else t0
     models = bp.models
@@ -382,6 +387,8 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
         fresh = torch.ones(M, dtype=torch.bool, device=X.device)  # the last step was accepted
         it = 0
         while bool(active.any()) and it < max_iter:
+            if cancel is not None and cancel.is_set():
+                raise Cancelled(f"{label}: cancelled after {it} iterations")
             it += 1
             wc = active.nonzero()[:, 0]
             w = on(wc)

@@ -29,7 +29,7 @@ import contextvars
 import copy
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -41,7 +41,7 @@ from ..core.measurements import Measurements
 from ..core.replicate import replicate
 from ..core.progress import task
 from ..core.threads import limit_threads, threads_for
-from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
+from .batched import BatchedFitResult, BatchedProblem, Cancelled, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
 from .fleet_outliers import (OUTLIER_MIN_RATIO, FeatureScores, Outlier, feature_scores, joint_features,
@@ -396,11 +396,21 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     bounds = [round(i * fp.M / k) for i in range(k + 1)]
     fp.layout._flat_index()  # its cache filled once, not by the streams at once
     subs = [fp.subset(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
+    cancel = threading.Event()  # a failed stream, or Ctrl-C, stops the others at their next iteration
     with limit_threads(1), task(label, total=fp.M) as bar:
         shared_bar = _LockedTask(bar)
         with ThreadPoolExecutor(k, thread_name_prefix="torchcal-fleet") as ex:
             futures = [ex.submit(contextvars.copy_context().run, solve_batched, s, max_iter, ftol, xtol, mu0, chunk,
-                                 label, t0, 1, shared_bar) for s in subs]
+                                 label, t0, 1, shared_bar, cancel) for s in subs]
+            try:
+                wait(futures, return_when=FIRST_EXCEPTION)
+            finally:
+                if not all(f.done() and f.exception() is None for f in futures):
+                    cancel.set()
+            failed = [f.exception() for f in futures if f.exception() is not None]
+            first = next((e for e in failed if not isinstance(e, Cancelled)), None)
+            if first is not None:
+                raise first
             parts = [f.result() for f in futures]
     batch = BatchedFitResult(results=[r for b in parts for r in b.results], x=torch.cat([b.x for b in parts]),
                              keep=torch.cat([b.keep for b in parts]), iterations=max(b.iterations for b in parts),

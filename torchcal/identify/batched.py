@@ -28,6 +28,7 @@ from typing import Sequence
 import torch
 from torch.func import functional_call, vmap
 
+from ..core.exceptions import TorchcalError
 from ..core.measurements import Measurements
 from ..core.progress import task
 from ..core.threads import limit_threads, threads_for_work
@@ -64,7 +65,7 @@ class BatchedFitResult:
         return torch.tensor([r.fun for r in self.results], dtype=torch.float64)
 
 
-class Cancelled(RuntimeError):
+class Cancelled(TorchcalError, RuntimeError):
     """A batched solve stopped by its ``cancel`` event (another part of the work failed or was interrupted)."""
 
 

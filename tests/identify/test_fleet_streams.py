@@ -67,17 +67,22 @@ def test_streams_land_where_one_solve_lands_and_repeat_bit_for_bit(fleet, monkey
 
 
 def test_the_streams_share_one_progress_task(fleet):
-    """Every unit is counted once on the fleet's task, whichever stream finished it."""
+    """Every unit is counted once on the fleet's task, whichever stream finished it, and each note names its
+    stream."""
     make, units, noise = fleet
-    done = []
+    done, notes = [], set()
 
     class Keep(progress.Reporter):
+        def update(self, task):
+            notes.add(task.note.split(":")[0])
+
         def end(self, task):
             done.append((task.name, task.completed, task.total))
 
     with progress.reporting(Keep()):
         fit_fleet(make, units, noise, streams=2)
     assert ("fitting the fleet's units together", len(units), len(units)) in done
+    assert notes == {"stream 1/2", "stream 2/2"}
 
 
 def test_how_many_streams(fleet, monkeypatch):

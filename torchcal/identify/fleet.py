@@ -398,10 +398,11 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     subs = [fp.subset(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
     cancel = threading.Event()  # a failed stream, or Ctrl-C, stops the others at their next iteration
     with limit_threads(1), task(label, total=fp.M) as bar:
-        shared_bar = _LockedTask(bar)
+        lock = threading.Lock()
         with ThreadPoolExecutor(k, thread_name_prefix="torchcal-fleet") as ex:
             futures = [ex.submit(contextvars.copy_context().run, solve_batched, s, max_iter, ftol, xtol, mu0, chunk,
-                                 label, t0, 1, shared_bar, cancel) for s in subs]
+                                 label, t0, 1, _StreamTask(bar, lock, f"stream {i + 1}/{k}"), cancel)
+                       for i, s in enumerate(subs)]
             try:
                 wait(futures, return_when=FIRST_EXCEPTION)
             finally:
@@ -427,15 +428,16 @@ def fleet_streams(fp: FleetProblem) -> int:
     return max(1, min(threads_for(float("inf")), fp.M // 8))
 
 
-class _LockedTask:
-    """A progress task advanced from several threads."""
+class _StreamTask:
+    """One stream's view of the fleet's progress task: its finished units counted there, its notes prefixed with
+    its name (the streams advance one task from their threads, under one lock)."""
 
-    def __init__(self, task):
-        self.task, self.lock = task, threading.Lock()
+    def __init__(self, task, lock, name: str):
+        self.task, self.lock, self.name = task, lock, name
 
     def advance(self, n: int = 1, note: str | None = None) -> None:
         with self.lock:
-            self.task.advance(n, note)
+            self.task.advance(n, None if note is None else f"{self.name}: {note}")
 
 
 # ------------------------------------------------------------------ the fleet's distribution

@@ -82,14 +82,16 @@ def main(argv=None) -> int:
     one(0)
     for rep in range(a.repeats):
         before = ones[-1]
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fit_fleet(make, ident, noise, **opts)
         tf = time.perf_counter() - t
+        cores = (time.process_time() - c) / tf  # the CPU share the fleet got (two streams beside a busy core: ~1.3)
         one(rep + 1)
         ref = 0.5 * (before + ones[-1])
         ratios.append(tf / ref)
         print(f"run {rep}: fleet of {a.units} {tf:.2f} s, one fit {before:.3f} / {ones[-1]:.3f} s -> ratio {tf / ref:.1f} "
-              f"(batched iterations {out.batch.iterations}, unit iterations {sum(r.nit for r in out.results)})", flush=True)
+              f"(batched iterations {out.batch.iterations}, unit iterations {sum(r.nit for r in out.results)}, "
+              f"fleet CPU time / wall time {cores:.2f})", flush=True)
     print(f"ratio fleet / one fit: median {statistics.median(ratios):.1f} (target <= 10); one fit median "
           f"{statistics.median(ones):.3f} s; threads {torch.get_num_threads()}; fleet ftol "
           f"{a.ftol if a.ftol is not None else FLEET_FTOL:g}")

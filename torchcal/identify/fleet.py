@@ -389,7 +389,14 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     label = "fitting the fleet's units together"
     if k == 1:
         batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label=label, t0=t0)
-        return FleetFit(fp.models, batch, fp.layout)
+    else:
+        batch = _solve_streams(fp, k, max_iter, ftol, xtol, mu0, chunk, label, t0)
+    return FleetFit(fp.models, batch, fp.layout)
+
+
+def _solve_streams(fp: FleetProblem, k: int, max_iter, ftol, xtol, mu0, chunk, label, t0) -> BatchedFitResult:
+    """:func:`solve_batched` on ``k`` contiguous shares of the units, side by side in threads, each on one thread;
+    -> their results merged in the units' order. The first stream's error is raised, the others cancelled."""
     # each stream solves its units alone, on one thread: beside a CPU-bound neighbour the scheduler gives
     # independent threads their share, where one solve's parallel regions wait at every barrier for the thread
     # it has descheduled (two threads of one solve got 1.03 cores, two streams 1.23-1.31; README, Fleets)
@@ -413,10 +420,9 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
             if first is not None:
                 raise first
             parts = [f.result() for f in futures]
-    batch = BatchedFitResult(results=[r for b in parts for r in b.results], x=torch.cat([b.x for b in parts]),
-                             keep=torch.cat([b.keep for b in parts]), iterations=max(b.iterations for b in parts),
-                             time=time.perf_counter() - t0, names=parts[0].names)
-    return FleetFit(fp.models, batch, fp.layout)
+    return BatchedFitResult(results=[r for b in parts for r in b.results], x=torch.cat([b.x for b in parts]),
+                            keep=torch.cat([b.keep for b in parts]), iterations=max(b.iterations for b in parts),
+                            time=time.perf_counter() - t0, names=parts[0].names)
 
 
 def fleet_streams(fp: FleetProblem) -> int:

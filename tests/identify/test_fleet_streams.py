@@ -86,18 +86,20 @@ def test_the_streams_share_one_progress_task(fleet):
 
 
 def test_how_many_streams(fleet, monkeypatch):
-    """One per thread the solve may use, at least 8 units each, on the CPU's compiled factored path only."""
+    """One per thread the solve may use, at least STREAM_MIN_UNITS (4) units each, on the CPU's compiled factored
+    path only."""
     make, units, noise = fleet
     fp = FleetProblem(make, units * 3, noise)  # 21 units
     old = threads.get_override()
     try:
-        threads.set_threads(4)
-        assert fleet_streams(fp) == 2  # 21 // 8
+        threads.set_threads(8)
+        assert fleet_streams(fp) == 5  # 21 // 4
         threads.set_threads(1)
         assert fleet_streams(fp) == 1
         threads.set_threads(2)
         assert fleet_streams(fp) == 2
-        assert fleet_streams(FleetProblem(make, units, noise)) == 1  # 7 units
+        assert fleet_streams(FleetProblem(make, units, noise)) == 1  # 7 units: one share of 4 and 3 would not do
+        assert fleet_streams(FleetProblem(make, units + units[:1], noise)) == 2  # 8 units
         assert fleet_streams(FleetProblem(make, units * 3, noise, dense_normal=True)) == 1
         monkeypatch.setattr(fleet_kernel, "available", lambda device: False)
         assert fleet_streams(fp) == 1

@@ -425,13 +425,19 @@ def _solve_streams(fp: FleetProblem, k: int, max_iter, ftol, xtol, mu0, chunk, l
                             time=time.perf_counter() - t0, names=parts[0].names)
 
 
+STREAM_MIN_UNITS = 4
+"""The fewest units a stream gets. Two streams against one solve on two threads, 2 cores, medians of 5
+(FANUC units of 250 x 3 poses): 8 units 0.36 / 0.34 s quiet, 0.61 / 1.01 s beside a CPU-bound process; 12
+units 0.54 / 0.54 s and 0.69 / 1.43 s; 4 units (two streams of 2) 0.22 / 0.19 s and 0.46 / 0.49 s."""
+
+
 def fleet_streams(fp: FleetProblem) -> int:
     """Independent solves a fleet runs side by side: on the CPU's factored path, one per thread the solve may
-    use (each on one thread, :func:`~torchcal.core.threads.threads_for` of a large solve), at least 8 units
-    each; else 1."""
+    use (each on one thread, :func:`~torchcal.core.threads.threads_for` of a large solve), at least
+    :data:`STREAM_MIN_UNITS` units each; else 1."""
     if fp.structure is None or fp.dense_normal or fp.keep.device.type != "cpu" or not fleet_kernel.available(fp.keep.device):
         return 1
-    return max(1, min(threads_for(float("inf")), fp.M // 8))
+    return max(1, min(threads_for(float("inf")), fp.M // STREAM_MIN_UNITS))
 
 
 class _StreamTask:

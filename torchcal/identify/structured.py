@@ -368,10 +368,8 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     S.diagonal(dim1=1, dim2=2).add_(damp[:S.shape[0]])
     rhs = -(rows.gx[:, idx] + lam_m * dx) * kf
     if shared:  # one factor, every unit's right-hand side a column of one solve
-        Ls, info = torch.linalg.cholesky_ex(S[0])
-        solve = lambda r: torch.cholesky_solve(r.T, Ls).T  # noqa: E731
-        if int(info) != 0:
-            solve = lambda r: torch.linalg.lstsq(S[0], r.T).solution.T  # noqa: E731
+        Ls, info = torch.linalg.cholesky_ex(S)
+        solve = lambda r: torch.cholesky_solve(r.T, Ls[0]).T  # noqa: E731
     elif isinstance(rows, _RowsFused):
         Ls, info = rows.ws.take("L", S.shape, S), torch.empty(m, dtype=torch.int64)
         with fleet_kernel.dynamic():
@@ -385,8 +383,8 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     else:
         Ls, info = torch.linalg.cholesky_ex(S)
         solve = lambda r: torch.cholesky_solve(r[..., None], Ls)[..., 0]  # noqa: E731
-    if not shared and bool((info != 0).any()):  # not positive definite: the least-squares solution
-        solve = lambda r: torch.linalg.lstsq(S, r[..., None]).solution[..., 0]  # noqa: E731
+    if bool((info != 0).any()):  # not positive definite: the least-squares solution (S (1, P, P) where shared)
+        solve = lambda r: torch.linalg.lstsq(S.expand(r.shape[0], -1, -1), r[..., None]).solution[..., 0]  # noqa: E731
     dbx = E.new_zeros(m, st.size)
 
     def exact(x):  # the damped normal matrix times x, every row with its own basis values
@@ -487,15 +485,17 @@ class _RowsFused(_RowsTorch):
         self.c = [t.contiguous() for t in (f, C, E, Phi)]
         args = [t.numpy() for t in self.c] + [V.contiguous().numpy(), w_v.contiguous().numpy(),
                                               mu.contiguous().numpy(), self.slots.numpy()]
-        outs = [self.Dinv.numpy(), self.gv.numpy(), self.Mm.numpy()]
-        with dynamic():
-            schur_rows(*args, n, A, pair.numpy(), not shared, *outs, Gs.view(-1).numpy(), Gsd.view(-1).numpy(),
-                       Gdd.numpy(), gx.numpy(), dg.numpy())
-            if shared:  # the first unit's Gram blocks (its rows' terms again, into scratch)
-                one = [a[:1] for a in args]
-                scratch = [torch.empty_like(t[:1]).numpy() for t in (self.Dinv, self.gv, self.Mm, gx, dg)]
-                schur_rows(*one, n, A, pair.numpy(), True, *scratch[:3], Gs.view(-1).numpy(), Gsd.view(-1).numpy(),
-                           Gdd.numpy(), *scratch[3:])
+        rows_out = [self.Dinv.numpy(), self.gv.numpy(), self.Mm.numpy()]
+        grams = [Gs.view(-1).numpy(), Gsd.view(-1).numpy(), Gdd.numpy()]
+
+        def run(sl, gram):
+            schur_rows(*(a[sl] for a in args), n, A, pair.numpy(), gram, *(o[sl] for o in rows_out), *grams,
+                       gx.numpy()[sl], dg.numpy()[sl])
+
+        with dynamic():  # the units whose Gram blocks are formed (the first one where shared), then the others'
+            run(slice(0, mg), True)
+            if m > mg:
+                run(slice(mg, m), False)
         self.gx, self.diag_x = gx.sum(1), dg.sum(1)
         self.S = contract((Gs.permute(0, 2, 3, 4, 1), Gsd.permute(2, 0, 3, 4, 1), Gdd.sum(1), pi, pj), Phi_p[:mg], st,
                           pp, ws)

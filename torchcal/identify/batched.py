@@ -28,6 +28,7 @@ from typing import Sequence
 import torch
 from torch.func import functional_call, vmap
 
+from ..core import hugepages
 from ..core.exceptions import TorchcalError
 from ..core.measurements import Measurements
 from ..core.progress import task
@@ -379,7 +380,9 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
     with (limit_threads(threads) if threads else threads_for_work(work)), \
             (nullcontext(bar) if bar is not None else task(label, total=M)) as bar:
         # f first; the rest is whatever bp's step reads (A, C or factors)
-        lin = [torch.cat(t) for t in zip(*(out for _, _, out in lin_chunks(idx_all, X, V)))]
+        # the current linearizations, walked by every iteration: on huge pages where the system allows
+        lin = [torch.cat(t, out=hugepages.empty((sum(p.shape[0] for p in t), *t[0].shape[1:]), t[0]))
+               for t in zip(*(out for _, _, out in lin_chunks(idx_all, X, V)))]
         cost = bp.cost_from(lin[0], X, V, idx_all)
         for m, c in enumerate(cost.tolist()):  # one transfer, not one host sync per model (a GPU waits on each)
             history[m].append(c)

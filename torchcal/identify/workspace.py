@@ -6,6 +6,8 @@ import math
 
 import torch
 
+from ..core import hugepages
+
 
 class Workspace:
     """Buffers that outlive one iteration, by name: a batched solve's large temporaries (the trial
@@ -15,7 +17,8 @@ class Workspace:
     the kernel hands out zeroed pages one fault at a time: a 100-FANUC solve took 1.2-2.9e5 page faults and
     0.5-1.4 s of system time, 1.1-1.5e5 and 0.45-0.7 s with this (what remains is the first linearization
     and its concatenation). What is taken under a name is valid until the next take of that name, so it
-    must not outlive the step or iteration that took it.
+    must not outlive the step or iteration that took it. Large buffers are backed by huge pages where the
+    system allows (:mod:`torchcal.core.hugepages`).
     """
 
     def __init__(self):
@@ -27,7 +30,7 @@ class Workspace:
         n = math.prod(shape)
         b = self._buf.get(name)
         if b is None or b.numel() < n or b.dtype != like.dtype or b.device != like.device:
-            b = self._buf[name] = like.new_empty(n)
+            b = self._buf[name] = hugepages.empty(n, like)
         return b[:n].view(shape)
 
 

@@ -294,3 +294,28 @@ def test_a_users_7_axis_robot_fleet_lands_where_each_unit_alone_lands(iiwa):
         alone = torchcal.fit(make(), u, noise)
         assert r.success and alone.success
         assert abs(r.fun - alone.fun) <= 1e-6 * alone.fun
+
+
+def test_a_units_row_order_moves_nothing_but_its_joint_errors():
+    """The fleet walks each unit's rows pose by pose (FleetProblem.row_order); what it reports is in the data's
+    own order: a unit whose rows come shuffled lands on the same parameters, its joint errors shuffled alike,
+    and they are its separate fit's joint errors row for row (fails if the order is not mapped back)."""
+    from torchcal.identify.fleet import fit_fleet
+
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    noise = torchcal.NoiseModel.from_robot(robot)
+    truths = fleet_truths(robot, TOOLS[:2], 2, 4, []).truths
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 30, 4)
+    units = [torchcal.simulate(t, q, [0, 1], noise, 70 + k) for k, t in enumerate(truths)]
+    perm = torch.randperm(len(units[1]), generator=torch.Generator().manual_seed(9))
+
+    def make():
+        return torchcal.RobotModel(robot, TOOLS[:2], orders=2, backlash=True)
+
+    out = fit_fleet(make, units, noise, ftol=1e-10, streams=1)
+    shuffled = fit_fleet(make, [units[0], units[1].subset(perm)], noise, ftol=1e-10, streams=1)
+    assert _rel(shuffled.batch.x, out.batch.x) < 1e-8
+    v, vs = out.results[1].v, shuffled.results[1].v
+    assert _rel(vs, v[perm]) < 1e-6 and _rel(vs, v) > 0.1  # a different order indeed
+    alone = torchcal.fit(make(), units[1], noise)
+    assert _rel(v[:len(units[1])], alone.v) < 1e-4  # (a row mixed up: ~1)

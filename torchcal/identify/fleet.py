@@ -94,12 +94,19 @@ def stack_units(units: Sequence[Measurements]) -> dict:
     }
 
 
-def pose_major(unit: Measurements) -> torch.Tensor:
-    """(R,) the order that groups a unit's rows by pose (the same command and approach directions), poses in
-    :func:`~torchcal.identify.structured.pose_slots`' order, rows in their own order within a pose."""
-    key = unit.q if not unit.has_direction else torch.cat([unit.q, unit.direction], 1)
-    _, inv = torch.unique(key.cpu(), dim=0, return_inverse=True)
-    return torch.argsort(inv, stable=True)
+def pose_major(units: Sequence[Measurements]) -> list[torch.Tensor]:
+    """(R_m,) per unit: the order that groups its rows by pose (the same command and approach directions), poses
+    in :func:`~torchcal.identify.structured.pose_slots`' order, rows in their own order within a pose. Units
+    measured with one program share one sort (1.4 ms each)."""
+    seen, out = [], []
+    for u in units:
+        key = (u.q if not u.has_direction else torch.cat([u.q, u.direction], 1)).cpu()
+        order = next((o for k, o in seen if k.shape == key.shape and torch.equal(k, key)), None)
+        if order is None:
+            order = torch.argsort(torch.unique(key, dim=0, return_inverse=True)[1], stable=True)
+            seen.append((key, order))
+        out.append(order)
+    return out
 
 
 class FleetProblem(BatchedProblem):
@@ -135,7 +142,7 @@ class FleetProblem(BatchedProblem):
         # each unit's rows pose by pose, as the factored kernels walk them (structured.pose_slots): in the data's
         # order (tool-major) a pose's rows lie far apart, and the kernels' reads jumped by a row's 1.4 kB of
         # factors at every row (the final per-row pass ran 3x slower); row_order maps back (FitResult.v)
-        self.row_order = [pose_major(u) for u in units]
+        self.row_order = pose_major(units)
         units = [u.subset(o).to(dev) for u, o in zip(units, self.row_order)]
         noises = list(noise) if isinstance(noise, (list, tuple)) else [noise] * M
         if len(noises) != M:

@@ -236,11 +236,12 @@ def test_a_one_program_fleet_shares_its_first_linearization_and_normal_matrix(pr
     assert calls == [True, False]
 
 
-@pytest.mark.parametrize("P", [1, 2, 5, 64])
+@pytest.mark.parametrize("P", [1, 2, 3, 5, 7, 64, 65])
 def test_compiled_cholesky_is_torch_cholesky(P):
     """fleet_kernel.cholesky_rows / cholesky_solve_rows against torch.linalg.cholesky_ex / cholesky_solve on a batch of
-    positive definite matrices of odd and even sizes (the kernel takes two columns per pass), and the failing pivot
-    of matrices that are not positive definite reported as torch reports it (its index + 1, 0 for the others)."""
+    positive definite matrices of every size modulo 4 (the kernel takes two rows and four columns per pass), and the
+    failing pivot of matrices that are not positive definite (on either row of a pass, and on a last row without a
+    second) reported as torch reports it (its index + 1, 0 for the others)."""
     if not fleet_kernel.available("cpu"):
         pytest.skip("numba not importable")
     g = torch.Generator().manual_seed(P)

@@ -122,6 +122,9 @@ class FleetProblem(BatchedProblem):
     model: zero error; a model loaded with a fleet mean starts there). structured: the factored Jacobian where the model has one (else
     dense A by ``vmap``); dense_normal: with the factored Jacobian, the normal matrix from the dense A it
     expands to (one large product, what a GPU is fast at) instead of per-pose Gram blocks.
+    Each unit's rows are held pose by pose (``units``, ``stack`` and everything per row: :func:`pose_major`);
+    ``row_order[m]`` gives, for each of them, its row in the unit's data (:func:`fit_fleet` maps the joint
+    errors of its results back).
     """
 
     def __init__(self, make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,

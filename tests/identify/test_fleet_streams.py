@@ -10,7 +10,7 @@ import torch
 import torchcal
 import torchcal.sim
 from torchcal.core import progress, threads
-from torchcal.identify import fleet as fleet_mod
+from torchcal.identify import streams as streams_mod
 from torchcal.identify import fleet_kernel
 from torchcal.identify.fleet import FleetProblem, fit_fleet, fleet_streams
 from torchcal.sim.fleet import fleet_truths
@@ -42,13 +42,13 @@ def test_streams_land_where_one_solve_lands_and_repeat_bit_for_bit(fleet, monkey
     make, units, noise = fleet
     one = fit_fleet(make, units, noise, streams=1)
     seen = []
-    real = fleet_mod.solve_batched
+    real = streams_mod.solve_batched
 
     def spy(bp, *a, **k):
         seen.append((bp.M, threading.current_thread().name, torch.get_num_threads()))
         return real(bp, *a, **k)
 
-    monkeypatch.setattr(fleet_mod, "solve_batched", spy)
+    monkeypatch.setattr(streams_mod, "solve_batched", spy)
     three = fit_fleet(make, units, noise, streams=3)
     again = fit_fleet(make, units, noise, streams=3)
     assert sorted(m for m, _, _ in seen[:3]) == [2, 2, 3]
@@ -139,7 +139,7 @@ def test_a_failing_stream_is_raised_and_stops_the_others(fleet, monkeypatch):
             raise FloatingPointError("stream broke")
         time.sleep(0.2)  # the failure is surely seen before the healthy streams' first iteration
 
-    monkeypatch.setattr(fleet_mod, "solve_batched", _recording(fleet_mod.solve_batched, outcomes, before))
+    monkeypatch.setattr(streams_mod, "solve_batched", _recording(streams_mod.solve_batched, outcomes, before))
     with pytest.raises(FloatingPointError, match="stream broke"):
         fit_fleet(make, units, noise, streams=3)
     assert sorted(outcomes) == [(2, "Cancelled"), (2, "Cancelled"), (3, "FloatingPointError")]
@@ -149,12 +149,12 @@ def test_an_interrupt_stops_every_stream(fleet, monkeypatch):
     """Ctrl-C while the streams run (KeyboardInterrupt in the waiting thread) stops them all and propagates."""
     make, units, noise = fleet
     outcomes = []
-    monkeypatch.setattr(fleet_mod, "solve_batched", _recording(fleet_mod.solve_batched, outcomes))
+    monkeypatch.setattr(streams_mod, "solve_batched", _recording(streams_mod.solve_batched, outcomes))
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fleet_mod, "wait", interrupted)
+    monkeypatch.setattr(streams_mod, "wait", interrupted)
     with pytest.raises(KeyboardInterrupt):
         fit_fleet(make, units, noise, streams=2)
     assert sorted(outcomes) == [(3, "Cancelled"), (4, "Cancelled")]

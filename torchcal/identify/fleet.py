@@ -25,11 +25,8 @@ lie far from the fleet's (a damaged gearbox, a bad measurement).
 
 from __future__ import annotations
 
-import contextvars
 import copy
-import threading
 import time
-from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -39,9 +36,8 @@ from torch.func import functional_call, vmap
 
 from ..core.measurements import Measurements
 from ..core.replicate import replicate
-from ..core.progress import task
-from ..core.threads import limit_threads, threads_for
-from .batched import BatchedFitResult, BatchedProblem, Cancelled, _Predict, solve_batched
+from ..core.threads import limit_threads
+from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
 from .fleet_outliers import (OUTLIER_MIN_RATIO, FeatureScores, Outlier, feature_scores, joint_features,
@@ -51,7 +47,8 @@ from .schur import schur_steps
 from . import fleet_kernel
 from .fleet_kernel import factored_linearization_fused
 from ..models.jacobian import chebyshev_design
-from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_slots,
+from .streams import STREAM_MIN_UNITS, fleet_streams, solve_streams
+from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_major, pose_slots,
                          structured_steps)
 from .workspace import Workspace
 
@@ -92,21 +89,6 @@ def stack_units(units: Sequence[Measurements]) -> dict:
         "rows": torch.stack([torch.arange(R, device=u.q.device) < len(u) for u in units]),
         "has_direction": bool(units[0].has_direction),
     }
-
-
-def pose_major(units: Sequence[Measurements]) -> list[torch.Tensor]:
-    """(R_m,) per unit: the order that groups its rows by pose (the same command and approach directions), poses
-    in :func:`~torchcal.identify.structured.pose_slots`' order, rows in their own order within a pose. Units
-    measured with one program share one sort (1.4 ms each)."""
-    seen, out = [], []
-    for u in units:
-        key = (u.q if not u.has_direction else torch.cat([u.q, u.direction], 1)).cpu()
-        order = next((o for k, o in seen if k.shape == key.shape and torch.equal(k, key)), None)
-        if order is None:
-            order = torch.argsort(torch.unique(key, dim=0, return_inverse=True)[1], stable=True)
-            seen.append((key, order))
-        out.append(order)
-    return out
 
 
 class FleetProblem(BatchedProblem):
@@ -412,70 +394,12 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     if k == 1:
         batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label=label, t0=t0)
     else:
-        batch = _solve_streams(fp, k, max_iter, ftol, xtol, mu0, chunk, label, t0)
+        batch = solve_streams(fp, k, max_iter, ftol, xtol, mu0, chunk, label, t0)
     for r, order in zip(batch.results, fp.row_order):  # joint errors in each unit's own row order
         v = r.v.clone()
         v[order.to(v.device)] = r.v[:order.numel()]
         r.v = v
     return FleetFit(fp.models, batch, fp.layout)
-
-
-def _solve_streams(fp: FleetProblem, k: int, max_iter, ftol, xtol, mu0, chunk, label, t0) -> BatchedFitResult:
-    """:func:`solve_batched` on ``k`` contiguous shares of the units, side by side in threads, each on one thread;
-    -> their results merged in the units' order. The first stream's error is raised, the others cancelled."""
-    # each stream solves its units alone, on one thread: beside a CPU-bound neighbour the scheduler gives
-    # independent threads their share, where one solve's parallel regions wait at every barrier for the thread
-    # it has descheduled (two threads of one solve got 1.03 cores, two streams 1.23-1.31; README, Fleets)
-    bounds = [round(i * fp.M / k) for i in range(k + 1)]
-    fp.layout._flat_index()  # its cache filled once, not by the streams at once
-    subs = [fp.subset(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:])]
-    cancel = threading.Event()  # a failed stream, or Ctrl-C, stops the others at their next iteration
-    with limit_threads(1), task(label, total=fp.M) as bar:
-        lock = threading.Lock()
-        with ThreadPoolExecutor(k, thread_name_prefix="torchcal-fleet") as ex:
-            futures = [ex.submit(contextvars.copy_context().run, solve_batched, s, max_iter, ftol, xtol, mu0, chunk,
-                                 label, t0, 1, _StreamTask(bar, lock, f"stream {i + 1}/{k}"), cancel)
-                       for i, s in enumerate(subs)]
-            try:
-                wait(futures, return_when=FIRST_EXCEPTION)
-            finally:
-                if not all(f.done() and f.exception() is None for f in futures):
-                    cancel.set()
-            failed = [f.exception() for f in futures if f.exception() is not None]
-            first = next((e for e in failed if not isinstance(e, Cancelled)), None)
-            if first is not None:
-                raise first
-            parts = [f.result() for f in futures]
-    return BatchedFitResult(results=[r for b in parts for r in b.results], x=torch.cat([b.x for b in parts]),
-                            keep=torch.cat([b.keep for b in parts]), iterations=max(b.iterations for b in parts),
-                            time=time.perf_counter() - t0, names=parts[0].names)
-
-
-STREAM_MIN_UNITS = 4
-"""The fewest units a stream gets. Two streams against one solve on two threads, 2 cores, medians of 5
-(FANUC units of 250 x 3 poses): 8 units 0.36 / 0.34 s quiet, 0.61 / 1.01 s beside a CPU-bound process; 12
-units 0.54 / 0.54 s and 0.69 / 1.43 s; 4 units (two streams of 2) 0.22 / 0.19 s and 0.46 / 0.49 s."""
-
-
-def fleet_streams(fp: FleetProblem) -> int:
-    """Independent solves a fleet runs side by side: on the CPU's factored path, one per thread the solve may
-    use (each on one thread, :func:`~torchcal.core.threads.threads_for` of a large solve), at least
-    :data:`STREAM_MIN_UNITS` units each; else 1."""
-    if fp.structure is None or fp.dense_normal or fp.keep.device.type != "cpu" or not fleet_kernel.available(fp.keep.device):
-        return 1
-    return max(1, min(threads_for(float("inf")), fp.M // STREAM_MIN_UNITS))
-
-
-class _StreamTask:
-    """One stream's view of the fleet's progress task: its finished units counted there, its notes prefixed with
-    its name (the streams advance one task from their threads, under one lock)."""
-
-    def __init__(self, task, lock, name: str):
-        self.task, self.lock, self.name = task, lock, name
-
-    def advance(self, n: int = 1, note: str | None = None) -> None:
-        with self.lock:
-            self.task.advance(n, None if note is None else f"{self.name}: {note}")
 
 
 # ------------------------------------------------------------------ the fleet's distribution
@@ -519,5 +443,6 @@ def fleet_prior(fit: FleetFit, exclude: Sequence[int] = (), inflate: float = 1.0
     return GaussianPrior(parts.names, parts.mean.cpu(), parts.cov.cpu()), mean
 
 
-__all__ = ["FLEET_FTOL", "FeatureScores", "FleetFit", "FleetProblem", "OUTLIER_MIN_RATIO", "Outlier", "feature_scores",
-           "fit_fleet", "fleet_prior", "joint_features", "parameter_outliers", "stack_units"]
+__all__ = ["FLEET_FTOL", "FeatureScores", "FleetFit", "FleetProblem", "OUTLIER_MIN_RATIO", "Outlier", "STREAM_MIN_UNITS",
+           "feature_scores", "fit_fleet", "fleet_prior", "fleet_streams", "joint_features", "parameter_outliers",
+           "stack_units"]

@@ -178,6 +178,21 @@ def pose_slots(units_q: list, units_dir: list, R: int) -> torch.Tensor:
     return out
 
 
+def pose_major(units) -> list[torch.Tensor]:
+    """(R_m,) per unit: the order that groups its rows by pose (the same command and approach directions), poses
+    in :func:`pose_slots`' order, rows in their own order within a pose. Units
+    measured with one program share one sort (1.4 ms each)."""
+    seen, out = [], []
+    for u in units:
+        key = (u.q if not u.has_direction else torch.cat([u.q, u.direction], 1)).cpu()
+        order = next((o for k, o in seen if k.shape == key.shape and torch.equal(k, key)), None)
+        if order is None:
+            order = torch.argsort(torch.unique(key, dim=0, return_inverse=True)[1], stable=True)
+            seen.append((key, order))
+        out.append(order)
+    return out
+
+
 @torch.no_grad()
 def factored_linearization(model, st: RobotStructure, params: dict, q, tool, direction, v, obs):
     """Residual and factored Jacobians of m units at once (the closed form of ``RobotModel.point_jacobians``).
@@ -532,4 +547,4 @@ def dense_jacobian(E: torch.Tensor, Phi: torch.Tensor, st: RobotStructure) -> to
 
 
 __all__ = ["GROUPS", "RobotStructure", "contract", "dense_jacobian", "factored_linearization", "gram_parts", "pair_basis",
-           "pose_gram", "pose_slots", "structured_steps"]
+           "pose_gram", "pose_major", "pose_slots", "structured_steps"]

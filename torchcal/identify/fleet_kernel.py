@@ -272,6 +272,28 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
 _FAST = {"contract", "arcp", "nsz", "reassoc"}
 
 
+@njit(cache=True, fastmath=_FAST)
+def _finish_row(L, S, r, j0):
+    """Row r of the factor L (P, P) of S from column j0 on (its earlier columns done, rows above r finished):
+    its entries, its pivot and zeros right of it. -> False where the pivot is not positive (also NaN)."""
+    Lr = L[r]
+    for jj in range(j0, r):
+        Lj = L[jj]
+        y = S[r, jj]
+        for k in range(jj):
+            y -= Lr[k] * Lj[k]
+        Lr[jj] = y / Lj[jj]
+    x = S[r, r]
+    for k in range(r):
+        x -= Lr[k] * Lr[k]
+    if not x > 0.0:
+        return False
+    Lr[r] = math.sqrt(x)
+    for k in range(r + 1, L.shape[0]):
+        Lr[k] = 0.0
+    return True
+
+
 @njit(parallel=True, nogil=True, cache=True, fastmath=_FAST)
 def cholesky_rows(S, L, info):
     """L (m, P, P) lower triangular with L L^T = S (m, P, P) (its lower triangle read), one unit per task;
@@ -318,39 +340,15 @@ def cholesky_rows(S, L, info):
                     zd = (zd - za * Ld[j] - zb * Ld[j + 1] - zc * Ld[j + 2]) / Ld[j + 3]
                     Lk[j], Lk[j + 1], Lk[j + 2], Lk[j + 3] = za, zb, zc, zd
                 j += 4
-            j0 = j
-            for jj in range(j0, i):  # row i: its last columns, then its pivot
-                Lj = Lu[jj]
-                y = Su[i, jj]
-                for k in range(jj):
-                    y -= Li[k] * Lj[k]
-                Li[jj] = y / Lj[jj]
-            x = Su[i, i]
-            for k in range(i):
-                x -= Li[k] * Li[k]
-            if not x > 0.0:  # also NaN
+            # row i's last columns and pivot, then row i + 1's (row i finished)
+            if not _finish_row(Lu, Su, i, j):
                 info[u] = i + 1
                 break
-            Li[i] = math.sqrt(x)
-            for k in range(i + 1, P):
-                Li[k] = 0.0
             if not two:
                 break
-            for jj in range(j0, i + 1):  # row i + 1 likewise, row i now finished
-                Lj = Lu[jj]
-                y = Su[i2, jj]
-                for k in range(jj):
-                    y -= Lk[k] * Lj[k]
-                Lk[jj] = y / Lj[jj]
-            x = Su[i2, i2]
-            for k in range(i2):
-                x -= Lk[k] * Lk[k]
-            if not x > 0.0:
+            if not _finish_row(Lu, Su, i2, j):
                 info[u] = i2 + 1
                 break
-            Lk[i2] = math.sqrt(x)
-            for k in range(i2 + 1, P):
-                Lk[k] = 0.0
             i += 2
 
 

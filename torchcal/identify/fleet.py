@@ -184,6 +184,7 @@ class FleetProblem(BatchedProblem):
         sub = copy.copy(self)
         ix = torch.as_tensor(list(idx), dtype=torch.long, device=self.keep.device)
         sub.models, sub.units = [self.models[i] for i in idx], [self.units[i] for i in idx]
+        sub.row_order = [self.row_order[i] for i in idx]
         sub.stack = {k: (v[ix] if torch.is_tensor(v) else v) for k, v in self.stack.items()}
         for name in ("rows", "scale", "w_v", "w_v_cost", "keep", "slots", "phi_p"):
             if getattr(self, name, None) is not None:
@@ -192,6 +193,14 @@ class FleetProblem(BatchedProblem):
         if hasattr(self, "workspace"):
             sub.workspace = Workspace()
         return sub
+
+    def in_data_order(self, results) -> None:
+        """Put the joint errors ``v`` of the units' :class:`FitResult` s (held pose by pose) back in each unit's
+        data order, in place (padding rows stay last)."""
+        for r, order in zip(results, self.row_order):
+            v = r.v.clone()
+            v[order.to(v.device)] = r.v[:order.numel()]
+            r.v = v
 
     def _common(self, X: torch.Tensor, V: torch.Tensor) -> bool:
         """Whether units of one program stand at one point (X (m, P), V (m, R, n)): then their linearizations
@@ -395,10 +404,7 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
         batch = solve_batched(fp, max_iter, ftol, xtol, mu0, chunk, label=label, t0=t0)
     else:
         batch = solve_streams(fp, k, max_iter, ftol, xtol, mu0, chunk, label, t0)
-    for r, order in zip(batch.results, fp.row_order):  # joint errors in each unit's own row order
-        v = r.v.clone()
-        v[order.to(v.device)] = r.v[:order.numel()]
-        r.v = v
+    fp.in_data_order(batch.results)
     return FleetFit(fp.models, batch, fp.layout)
 
 

@@ -151,22 +151,32 @@ class RobotStructure:
         return all(name in GROUPS for name, _, _ in layout.entries)
 
 
-def pose_slots(units_q: list, units_dir: list, R: int) -> torch.Tensor:
-    """(M, Pp, T) row of each (pose, slot) of every unit, R where empty: rows with the same command and approach
-    directions form one pose (their basis values are the same up to their joint errors).
+def pose_groups(units_q: list, units_dir: list) -> list:
+    """Per unit (inv (R_m,) its rows' pose, order (R_m,) its rows pose by pose (stable), counts (Pp_m,) rows a
+    pose): rows with the same command and approach directions form one pose (their basis values are the same up
+    to their joint errors), poses in sorted order.
 
     units_q: M tensors (R_m, n); units_dir: M tensors (R_m, n) or None.
     """
     groups, seen = [], []
     for q, s in zip(units_q, units_dir):
         key = q if s is None else torch.cat([q, s], 1)
-        # a unit measured with an earlier unit's program shares its grouping (a sort per unit: 3 ms each)
+        # a unit measured with an earlier unit's program shares its grouping (a sort per unit: 1.4-3 ms each)
         same = next((g for k, g in seen if k.shape == key.shape and torch.equal(k, key)), None)
         if same is None:
             _, inv = torch.unique(key, dim=0, return_inverse=True)
             same = (inv, torch.argsort(inv, stable=True), torch.bincount(inv))
             seen.append((key, same))
         groups.append(same)
+    return groups
+
+
+def pose_slots(units_q: list, units_dir: list, R: int) -> torch.Tensor:
+    """(M, Pp, T) row of each (pose, slot) of every unit, R where empty (:func:`pose_groups`' poses).
+
+    units_q: M tensors (R_m, n); units_dir: M tensors (R_m, n) or None.
+    """
+    groups = pose_groups(units_q, units_dir)
     Pp = max(int(c.numel()) for _, _, c in groups)
     T = max(int(c.max()) for _, _, c in groups)
     dev = units_q[0].device
@@ -179,18 +189,10 @@ def pose_slots(units_q: list, units_dir: list, R: int) -> torch.Tensor:
 
 
 def pose_major(units) -> list[torch.Tensor]:
-    """(R_m,) per unit: the order that groups its rows by pose (the same command and approach directions), poses
-    in :func:`pose_slots`' order, rows in their own order within a pose. Units
-    measured with one program share one sort (1.4 ms each)."""
-    seen, out = [], []
-    for u in units:
-        key = (u.q if not u.has_direction else torch.cat([u.q, u.direction], 1)).cpu()
-        order = next((o for k, o in seen if k.shape == key.shape and torch.equal(k, key)), None)
-        if order is None:
-            order = torch.argsort(torch.unique(key, dim=0, return_inverse=True)[1], stable=True)
-            seen.append((key, order))
-        out.append(order)
-    return out
+    """(R_m,) per unit (:class:`Measurements`): the order that groups its rows by pose, poses in
+    :func:`pose_slots`' order, rows in their own order within a pose (:func:`pose_groups`)."""
+    return [order for _, order, _ in pose_groups([u.q for u in units],
+                                                 [u.direction if u.has_direction else None for u in units])]
 
 
 @torch.no_grad()
@@ -547,4 +549,4 @@ def dense_jacobian(E: torch.Tensor, Phi: torch.Tensor, st: RobotStructure) -> to
 
 
 __all__ = ["GROUPS", "RobotStructure", "contract", "dense_jacobian", "factored_linearization", "gram_parts", "pair_basis",
-           "pose_gram", "pose_major", "pose_slots", "structured_steps"]
+           "pose_gram", "pose_groups", "pose_major", "pose_slots", "structured_steps"]

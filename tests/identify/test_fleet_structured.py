@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as hst
 
 import torchcal
 import torchcal.sim
@@ -11,7 +13,7 @@ from torchcal.identify import fleet_kernel
 from torchcal.identify.schur import schur_steps
 from torchcal.identify.fleet import FleetProblem
 from torchcal.identify.structured import (RobotStructure, contract, dense_jacobian, factored_linearization,
-                                          gram_parts, pair_basis, structured_steps)
+                                          gram_parts, pair_basis, pose_groups, pose_slots, structured_steps)
 from torchcal.sim.fleet import fleet_truths
 
 TOOLS = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]], dtype=torch.float64)
@@ -320,3 +322,46 @@ def test_a_units_row_order_moves_nothing_but_its_joint_errors():
     assert _rel(vs, v[perm]) < 1e-6 and _rel(vs, v) > 0.1  # a different order indeed
     alone = torchcal.fit(make(), units[1], noise)
     assert _rel(v[:len(units[1])], alone.v) < 1e-4  # (a row mixed up: ~1)
+
+
+def test_each_units_pair_products_serve_whichever_units_a_step_takes(problems):
+    """Units of their own programs: the pair products formed once for the whole fleet (FleetProblem's
+    _pair_products) give, for any units a step takes (a run of them, or units apart), the steps of products
+    formed from those units' basis values in the step itself (fails if a step is handed other units' products)."""
+    dense, fact, X, g = problems
+    assert fact.pp is None  # the units' own programs
+    V = 2e-5 * torch.randn(fact.M, fact.R, fact.n, generator=g, dtype=torch.float64) * fact.rows[..., None]
+    for which in ([0, 1, 2], [1, 2], [0, 2], [2]):
+        w = torch.tensor(which)
+        lin = fact.linearize(X[w], V[w], w)
+        mu = torch.full((len(which),), 1e-4, dtype=torch.float64)
+        got = fact.step(lin, V[w], X[w] - fact.mean, mu, w)
+        ref = structured_steps(lin, fact.structure, fact.slots[w], fact.w_v[w], V[w], fact.lam, X[w] - fact.mean, mu,
+                               fact.keep[w])
+        for x, y in zip(got, ref):
+            assert _rel(x, y) < 1e-12
+
+
+@settings(max_examples=40, deadline=None)
+@given(rows=hst.integers(1, 40), poses=hst.integers(1, 12), cols=hst.integers(1, 5), seed=hst.integers(0, 2**31 - 1),
+       directions=hst.booleans())
+def test_pose_groups_are_torch_uniques_rows(rows, poses, cols, seed, directions):
+    """A unit's poses (pose_groups) against torch.unique over the rows of (command, directions): the same pose of
+    each row, the same counts, and the order a stable sort of the rows by pose (so each pose's rows keep theirs)."""
+    g = torch.Generator().manual_seed(seed)
+    distinct = torch.randn(poses, cols, generator=g, dtype=torch.float64)
+    distinct[:, 0] = torch.randint(0, 2, (poses,), generator=g).to(distinct)  # ties in the first column
+    pick = torch.randint(0, poses, (rows,), generator=g)
+    q = distinct[pick]
+    s = torch.where(torch.rand(rows, cols, generator=g) > 0.5, 1.0, -1.0).double() if directions else None
+    (inv, order, counts), = pose_groups([q], [s])
+    key = q if s is None else torch.cat([q, s], 1)
+    _, inv_ref, counts_ref = torch.unique(key, dim=0, return_inverse=True, return_counts=True)
+    assert torch.equal(inv, inv_ref) and torch.equal(counts, counts_ref)
+    assert torch.equal(order, torch.argsort(inv_ref, stable=True))
+    # a second unit with the same program shares the grouping; one with another program does not
+    again, other = pose_groups([q, q.clone(), q + 1.0], [s, s, s])[1:]
+    assert all(torch.equal(a, b) for a, b in zip(again, (inv, order, counts)))
+    slots = pose_slots([q], [s], rows)
+    assert torch.equal(torch.sort(slots[slots < rows]).values, torch.arange(rows))  # every row in one slot
+    assert bool((inv[slots.clamp(max=rows - 1)][slots < rows] == torch.arange(inv_ref.max() + 1)[:, None].expand_as(slots)[slots < rows]).all())

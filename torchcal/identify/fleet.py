@@ -48,9 +48,11 @@ from . import fleet_kernel
 from .fleet_kernel import factored_linearization_fused
 from ..models.jacobian import chebyshev_design
 from .streams import STREAM_MIN_UNITS, fleet_streams, solve_streams
-from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_major, pose_slots,
-                         structured_steps)
+from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_groups, pose_slots,
+                         regrouped, structured_steps)
 from .workspace import Workspace
+
+UNIT_PAIRS_BYTES = 2 << 30  # the most memory each unit's own pair products may hold between steps
 
 
 def stack_units(units: Sequence[Measurements]) -> dict:
@@ -104,7 +106,7 @@ class FleetProblem(BatchedProblem):
     model: zero error; a model loaded with a fleet mean starts there). structured: the factored Jacobian where the model has one (else
     dense A by ``vmap``); dense_normal: with the factored Jacobian, the normal matrix from the dense A it
     expands to (one large product, what a GPU is fast at) instead of per-pose Gram blocks.
-    Each unit's rows are held pose by pose (``units``, ``stack`` and everything per row: :func:`pose_major`);
+    Each unit's rows are held pose by pose (``units``, ``stack`` and everything per row: :func:`pose_groups`);
     ``row_order[m]`` gives, for each of them, its row in the unit's data (:func:`fit_fleet` maps the joint
     errors of its results back).
     """
@@ -127,7 +129,8 @@ class FleetProblem(BatchedProblem):
         # each unit's rows pose by pose, as the factored kernels walk them (structured.pose_slots): in the data's
         # order (tool-major) a pose's rows lie far apart, and the kernels' reads jumped by a row's 1.4 kB of
         # factors at every row (the final per-row pass ran 3x slower); row_order maps back (FitResult.v)
-        self.row_order = pose_major(units)
+        groups = pose_groups([u.q for u in units], [u.direction if u.has_direction else None for u in units])
+        self.row_order = [order for _, order, _ in groups]
         units = [u.subset(o).to(dev) for u, o in zip(units, self.row_order)]
         noises = list(noise) if isinstance(noise, (list, tuple)) else [noise] * M
         if len(noises) != M:
@@ -159,9 +162,9 @@ class FleetProblem(BatchedProblem):
             self.dense_normal = bool(dense_normal)
             self.workspace = Workspace()  # the solver's large temporaries, reused from one iteration to the next
             if not self.dense_normal:  # the per-pose Gram blocks' poses and basis values
-                self.slots = pose_slots([u.q for u in units], [u.direction if st["has_direction"] else None
-                                                               for u in units], R)
+                self.slots = pose_slots(None, None, R, [tuple(t.to(dev) for t in g) for g in regrouped(groups)])
                 self.phi_p, self.pp = self._pose_basis()
+                self.unit_pp = None  # each unit's own pair products, formed at the first step (_pair_products)
             self.one_program = self._one_program()
 
     def _one_program(self) -> bool:
@@ -186,6 +189,7 @@ class FleetProblem(BatchedProblem):
         sub.models, sub.units = [self.models[i] for i in idx], [self.units[i] for i in idx]
         sub.row_order = [self.row_order[i] for i in idx]
         sub.stack = {k: (v[ix] if torch.is_tensor(v) else v) for k, v in self.stack.items()}
+        sub.unit_pp = None  # formed for its own units at its first step
         for name in ("rows", "scale", "w_v", "w_v_cost", "keep", "slots", "phi_p"):
             if getattr(self, name, None) is not None:
                 setattr(sub, name, getattr(self, name)[ix])
@@ -313,7 +317,26 @@ class FleetProblem(BatchedProblem):
         # one program at a common point (the first step of a fresh fleet): one normal matrix for every unit
         shared = self._common(dX, V) and bool((mu == mu[:1]).all())
         return structured_steps(lin, self.structure, self.slots[which], self.w_v[which], V, self.lam, dX, mu,
-                                self.keep[which], pp=self.pp, ws=self.workspace, shared=shared)
+                                self.keep[which], pp=self._pair_products(which), ws=self.workspace, shared=shared)
+
+    def _pair_products(self, which: torch.Tensor) -> torch.Tensor | None:
+        """The pair products (:func:`pair_basis`) for a step of the units ``which``: the shared ones where every
+        unit has the same poses, else the units' own (npair, m, Pp, K K), formed once (they hang on the commands
+        alone; 2 MB a FANUC unit) while all of them take at most UNIT_PAIRS_BYTES, else None (each step forms
+        its units')."""
+        if self.pp is not None:
+            return self.pp
+        if self.unit_pp is None:
+            Pp, K = self.phi_p.shape[1], self.structure.K
+            size = self.n * (self.n + 1) // 2 * self.M * Pp * K * K * self.phi_p.element_size()
+            self.unit_pp = pair_basis(self.phi_p, self.n) if size <= UNIT_PAIRS_BYTES else False
+        if self.unit_pp is False:
+            return None
+        wc = which.cpu()
+        if int(wc[-1]) - int(wc[0]) + 1 == wc.numel():  # a run of consecutive units: a view
+            return self.unit_pp[:, int(wc[0]):int(wc[-1]) + 1]
+        return torch.index_select(self.unit_pp, 1, which, out=self.workspace.take(
+            "unit_pp", (self.unit_pp.shape[0], which.numel(), *self.unit_pp.shape[2:]), self.unit_pp))
 
 
 @dataclass

@@ -13,7 +13,7 @@ default stopping tolerance: the fleet at FLEET_FTOL (1e-4, every unit within
 the issue's 1 %), the fit at 1e-8; ``--ftol 1e-8`` times the fleet at the
 fit's.
 
-    python experiments/fleet/ratio.py [--units 100] [--repeats 2] [--dense] [--threads N] [--ftol F]
+    python experiments/fleet/ratio.py [--units 100] [--repeats 2] [--dense] [--threads N] [--ftol F] [--own-programs]
 """
 
 from __future__ import annotations
@@ -35,17 +35,24 @@ from torchcal.sim.fleet import fleet_truths
 TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]  # Paper II Table 4
 
 
-def fleet_data(units: int, seed: int = 0, damaged=(7, 23, 42, 61, 88)):
-    """(make, identification data per unit, noise) of experiments/fleet/run.py's fleet."""
+def fleet_data(units: int, seed: int = 0, damaged=(7, 23, 42, 61, 88), own_programs: bool = False):
+    """(make, identification data per unit, noise) of experiments/fleet/run.py's fleet. own_programs: each unit
+    measured with its own program (its own commands and approach directions) instead of one for all."""
     robot = torchcal.load_robot("fanuc_lrmate200i")
     tools = U.mm_to_m(torch.tensor(TOOLS_MM, dtype=torch.float64))
     noise = torchcal.NoiseModel.from_robot(robot)
     fleet = fleet_truths(robot, tools, units, seed, [d for d in damaged if d < units])
     lim = robot.joint_map.limits
-    q = torchcal.sim.quasi_random_commands(lim, 250, seed)
-    g = torch.Generator().manual_seed(seed)
-    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
-    ident = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * seed + k, directions=dirs) for k, t in enumerate(fleet.truths)]
+
+    def program(k):
+        s = seed if not own_programs else 1000 * seed + 1 + k
+        q = torchcal.sim.quasi_random_commands(lim, 250, s)
+        g = torch.Generator().manual_seed(s)
+        return q, torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+
+    programs = [program(k) for k in range(units)] if own_programs else [program(0)] * units
+    ident = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * seed + k, directions=d)
+             for k, (t, (q, d)) in enumerate(zip(fleet.truths, programs))]
 
     def make():
         return torchcal.RobotModel(robot, tools, orders=6, backlash=True)
@@ -60,12 +67,14 @@ def main(argv=None) -> int:
     ap.add_argument("--dense", action="store_true", help="the dense batched path (before the factored one)")
     ap.add_argument("--threads", type=int, default=None, help="fix the thread count of both (default: by work)")
     ap.add_argument("--ftol", type=float, default=None, help="the fleet's stopping tolerance (default FLEET_FTOL)")
+    ap.add_argument("--own-programs", action="store_true",
+                    help="each unit measured with its own program (commands and approach directions)")
     a = ap.parse_args(argv)
     if a.threads:
         from torchcal.core.threads import set_threads
 
         set_threads(a.threads)
-    make, ident, noise = fleet_data(a.units)
+    make, ident, noise = fleet_data(a.units, own_programs=a.own_programs)
     opts = {"structured": False} if a.dense else {}
     if a.ftol is not None:
         opts["ftol"] = a.ftol
@@ -94,7 +103,7 @@ def main(argv=None) -> int:
               f"fleet CPU time / wall time {cores:.2f})", flush=True)
     print(f"ratio fleet / one fit: median {statistics.median(ratios):.1f} (target <= 10); one fit median "
           f"{statistics.median(ones):.3f} s; threads {torch.get_num_threads()}; fleet ftol "
-          f"{a.ftol if a.ftol is not None else FLEET_FTOL:g}")
+          f"{a.ftol if a.ftol is not None else FLEET_FTOL:g}; {'each unit its own program' if a.own_programs else 'one program'}")
     return 0
 
 

@@ -5,7 +5,7 @@ its own joint-dependent draws, a unit-to-unit spread of the constants, the
 unmodelled ripple and cross-coupling), a few units a damaged gearbox. All
 units are measured with one program (the same 250 quasi-random commands and
 approach directions, three reflectors, Paper II's noise), as a plant
-measures every unit of a type.
+measures every unit of a type; --own-programs gives each unit its own.
 
 Printed: the batched fleet solve against ONE separate fit (time ratio), each
 unit's validation residual against its separately fitted one, the flagged
@@ -13,7 +13,7 @@ units against the damaged ones, and the fleet prior for a unit measured
 with 30 poses.
 
     python experiments/fleet/run.py [--units 100] [--damaged 7,23,42,61,88] [--seed 0] [--device cpu]
-        [--threads N] [--reference K]
+        [--threads N] [--reference K] [--own-programs]
 """
 
 from __future__ import annotations
@@ -58,6 +58,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--own-programs", action="store_true", help="each unit measured with its own program (commands "
+                                                                     "and approach directions)")
     ap.add_argument("--reference", type=int, default=None, help="units fitted separately for the 1 %% check "
                                                                    "(default: all)")
     args = ap.parse_args(argv)
@@ -78,11 +80,18 @@ def main(argv=None) -> int:
     qv = torchcal.sim.quasi_random_commands(lim, 300, args.seed + 1)[100:]  # disjoint validation commands
     dv = torch.where(torch.rand(qv.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
     t0 = time.perf_counter()
-    ident = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * args.seed + k, directions=dirs) for k, t in enumerate(fleet.truths)]
+    programs = [(q, dirs)] * args.units
+    if args.own_programs:  # each unit its own commands and approach directions
+        programs = [(torchcal.sim.quasi_random_commands(lim, 250, 1000 * args.seed + 1 + k),
+                     torch.where(torch.rand(q.shape, generator=torch.Generator().manual_seed(1000 * args.seed + 1 + k),
+                                            dtype=torch.float64) > 0.5, 1.0, -1.0)) for k in range(args.units)]
+    ident = [torchcal.simulate(t, qk, [0, 1, 2], noise, 1000 * args.seed + k, directions=dk)
+             for k, (t, (qk, dk)) in enumerate(zip(fleet.truths, programs))]
     val = [torchcal.simulate(t, qv, [2], noise, 1000 * args.seed + 500 + k, directions=dv) for k, t in enumerate(fleet.truths)]
     if dev.type != "cpu":
         ident, val = [d.to(dev) for d in ident], [d.to(dev) for d in val]
-    print(f"fleet: {args.units} simulated FANUC LR Mate 200i, 250 poses x 3 tools each (one program), "
+    print(f"fleet: {args.units} simulated FANUC LR Mate 200i, 250 poses x 3 tools each "
+          f"({'each unit its own program' if args.own_programs else 'one program'}), "
           f"damaged J3 gearbox on units {damaged}; simulated in {time.perf_counter() - t0:.1f} s; device {dev}, "
           f"{torch.get_num_threads()} threads")
 

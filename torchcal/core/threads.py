@@ -127,8 +127,11 @@ def threads_for(work: float) -> int:
 
 @contextmanager
 def limit_threads(n: int):
-    """Run a block with ``n`` intra-op threads in torch (and its BLAS) and in numba; restore afterwards."""
+    """Run a block with ``n`` intra-op threads in torch (and its BLAS), in numba, and in numpy's BLAS where
+    torchcal's products use it (:mod:`torchcal.core.blas`); restore afterwards."""
     import torch
+
+    from . import blas
 
     n = max(1, int(n))
     old = torch.get_num_threads()
@@ -143,7 +146,8 @@ def limit_threads(n: int):
         except Exception:  # numba without a threading layer: nothing to limit
             old_nb = None
     try:
-        yield n
+        with blas.limit(n):
+            yield n
     finally:
         if old != n:
             torch.set_num_threads(old)

@@ -61,7 +61,7 @@ import hashlib
 import numpy as np
 import torch
 
-from ..core import hugepages
+from ..core import blas, hugepages
 from ..kinematics.fk import chain_frames
 from ..kinematics.transforms import small_matmul, twist_to_transform
 from ..models.jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
@@ -343,11 +343,12 @@ def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | 
     if pp is not None and pp.dim() == 3:
         # products with the poses' basis values on the left and the Gram blocks on the right, pose-major as the
         # compiled kernel writes them (read as they lie; 20-30 % faster than their transposed views on the left)
-        blk = torch.bmm(pp.transpose(1, 2).contiguous(), Gs.permute(0, 4, 1, 2, 3).reshape(npair, Pp, m * A * A),
-                        out=ws.take("blk", (npair, K * K, m * A * A), Gs))
+        blk = blas.bmm(pp.transpose(1, 2).contiguous(), Gs.permute(0, 4, 1, 2, 3).reshape(npair, Pp, m * A * A),
+                       ws.take("blk", (npair, K * K, m * A * A), Gs))
         flat[:, :nb].view(m, npair, A * A, K * K).copy_(blk.view(npair, K * K, m, A * A).permute(2, 0, 3, 1))
         # the same poses: (n, K, Pp) @ (n, Pp, m A Nd) -> (m, n, A, Nd, K)
-        sd = torch.bmm(Phi_p[0].permute(1, 2, 0).contiguous(), Gsd.permute(1, 4, 0, 2, 3).reshape(n, Pp, m * A * Nd))
+        sd = blas.bmm(Phi_p[0].permute(1, 2, 0).contiguous(), Gsd.permute(1, 4, 0, 2, 3).reshape(n, Pp, m * A * Nd),
+                      ws.take("sd", (n, K, m * A * Nd), Gs))
         flat[:, nb:nb + nsd].view(m, n, A * Nd, K).copy_(sd.view(n, K, m, A * Nd).permute(2, 0, 3, 1))
     else:
         # each unit its own poses: a product per pair (per joint), batched over the units, reading the Gram
@@ -357,10 +358,10 @@ def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | 
         pp = pair_basis(Phi_p, n) if pp is None else pp
         fv = flat[:, :nb].view(m, npair, A * A, K * K)
         for p in range(npair):  # (m, A A, Pp) @ (m, Pp, K K)
-            torch.bmm(Gs[p].reshape(m, A * A, Pp), pp[p], out=fv[:, p])
+            blas.bmm(Gs[p].reshape(m, A * A, Pp), pp[p], fv[:, p])
         fv = flat[:, nb:nb + nsd].view(m, n, A * Nd, K)
         for i in range(n):  # (m, A Nd, Pp) @ (m, Pp, K)
-            torch.bmm(Gsd[:, i].reshape(m, A * Nd, Pp), Phi_p[:, :, i], out=fv[:, i])
+            blas.bmm(Gsd[:, i].reshape(m, A * Nd, Pp), Phi_p[:, :, i], fv[:, i])
     flat[:, nb + nsd:] = Gdd.reshape(m, -1)
     P = st.index.numel()
     from . import fleet_kernel

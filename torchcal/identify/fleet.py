@@ -48,8 +48,8 @@ from . import fleet_kernel
 from .fleet_kernel import factored_linearization_fused
 from ..models.jacobian import chebyshev_design
 from .streams import STREAM_MIN_UNITS, fleet_streams, solve_streams
-from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_groups, pose_slots,
-                         regrouped, structured_steps)
+from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_groups, regrouped,
+                         slots_of, structured_steps)
 from .workspace import Workspace
 
 UNIT_PAIRS_BYTES = 2 << 30  # the most memory each unit's own pair products may hold between steps
@@ -162,7 +162,7 @@ class FleetProblem(BatchedProblem):
             self.dense_normal = bool(dense_normal)
             self.workspace = Workspace()  # the solver's large temporaries, reused from one iteration to the next
             if not self.dense_normal:  # the per-pose Gram blocks' poses and basis values
-                self.slots = pose_slots(None, None, R, [tuple(t.to(dev) for t in g) for g in regrouped(groups)])
+                self.slots = slots_of([tuple(t.to(dev) for t in g) for g in regrouped(groups)], R)
                 self.phi_p, self.pp = self._pose_basis()
                 self.unit_pp = None  # each unit's own pair products, formed at the first step (_pair_products)
             self.one_program = self._one_program()

@@ -74,9 +74,17 @@ def _dense_normal(dense, f, A, C, w_v):
     return Af.transpose(1, 2) @ (M @ A).reshape(m, R * d, P)
 
 
-def test_khatri_rao_normal_matrix_is_the_dense_one(problems):
+@pytest.mark.parametrize("products", ["numpy", "torch"])
+def test_khatri_rao_normal_matrix_is_the_dense_one(problems, products, monkeypatch, request):
     """At v = 0 (the rows of a pose share their basis values) the per-pose Gram matrices contracted with the
-    Chebyshev basis give the dense J^T M J to 1e-10 relative, by the torch route and the compiled one."""
+    Chebyshev basis give the dense J^T M J to 1e-10 relative, by the torch route and the compiled one, with the
+    products through numpy's BLAS and torch's (torchcal.core.blas: whichever this machine would not choose too),
+    for units of their own programs and of one."""
+    from torchcal.core import blas
+
+    monkeypatch.setenv(blas.ENV, products)
+    blas.numpy_blas.cache_clear()
+    request.addfinalizer(blas.numpy_blas.cache_clear)  # the machine's own choice for the tests after
     dense, fact, X, _ = problems
     V = torch.zeros(fact.M, fact.R, fact.n, dtype=torch.float64)
     w = torch.arange(fact.M)
@@ -98,6 +106,10 @@ def test_khatri_rao_normal_matrix_is_the_dense_one(problems):
         S0 = contract(parts(E[:1], (M @ E)[:1], fact.slots[:1], fact.structure), Phi_p[:1], fact.structure,
                       pp=pair_basis(Phi_p[0], fact.n)) * kf[:1, :, None] * kf[:1, None, :]
         assert _rel(S0, ref[:1]) < 1e-10
+        # each unit's own pair products handed in, as FleetProblem's step does
+        S1 = contract(parts(E, M @ E, fact.slots, fact.structure), Phi_p, fact.structure,
+                      pp=pair_basis(Phi_p, fact.n)) * kf[:, :, None] * kf[:, None, :]
+        assert _rel(S1, ref) < 1e-10
 
 
 def test_structured_steps_are_the_dense_steps(problems):

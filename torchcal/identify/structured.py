@@ -166,7 +166,7 @@ def pose_groups(units_q: list, units_dir: list) -> list:
     for q, s in zip(units_q, units_dir):
         key = (q if s is None else torch.cat([q, s], 1)).detach().cpu().numpy()
         # a unit measured with an earlier unit's program shares its grouping
-        digest = (key.shape, hashlib.sha1(np.ascontiguousarray(key).tobytes()).digest())
+        digest = (key.shape, hashlib.sha1(np.ascontiguousarray(key).tobytes(), usedforsecurity=False).digest())
         same = seen.get(digest)
         if same is None:
             same = seen[digest] = tuple(torch.from_numpy(t).to(q.device) for t in _group_rows(key))

@@ -39,6 +39,7 @@ from .lm import MU0
 from .problem import CalibrationProblem, NoiseModel, Prior, _prefixed
 from .result import FitResult
 from .schur import schur_steps
+from .workspace import consecutive, take_entries
 
 
 @dataclass
@@ -355,22 +356,6 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
         """A host index tensor on the models' device."""
         return ic.to(X.device, non_blocking=True)
 
-    def run(ic: torch.Tensor) -> slice | None:
-        """The slice where the host index ic is a run of consecutive models, else None."""
-        if ic.numel() and int(ic[-1]) - int(ic[0]) + 1 == ic.numel():
-            return slice(int(ic[0]), int(ic[-1]) + 1)
-        return None
-
-    def rows(t, ic, name=None):
-        """t[ic] (ic: host index), a view where ic is a run of consecutive models (no copy of the
-        linearizations); else a copy, into the workspace's buffer ``name`` where given."""
-        sl = run(ic)
-        if sl is not None:
-            return t[sl]
-        if name is not None and ws is not None:
-            return torch.index_select(t, 0, on(ic), out=ws.take(name, (ic.numel(), *t.shape[1:]), t))
-        return t[on(ic)]
-
     def step(lin, Vw, dX, muw, which):
         if hasattr(bp, "step"):
             return bp.step(lin, Vw, dX, muw, which)
@@ -396,8 +381,10 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             it += 1
             wc = active.nonzero()[:, 0]
             w = on(wc)
-            # steps of the active models, in chunks (memory)
-            steps = [step([rows(t, wc[c:c + chunk], f"step{k}") for k, t in enumerate(lin)], V[w[c:c + chunk]],
+            # steps of the active models, in chunks (memory); a chunk's linearizations are views where its models
+            # are consecutive, else copies into the workspace
+            steps = [step([take_entries(t, wc[c:c + chunk], 0, ws, f"step{k}") for k, t in enumerate(lin)],
+                          V[w[c:c + chunk]],
                           X[w[c:c + chunk]] - bp.mean,
                           mu[w[c:c + chunk]], w[c:c + chunk]) for c in range(0, w.numel(), chunk)]
             db, dv, lres = (torch.cat(t) for t in zip(*steps))
@@ -443,7 +430,7 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             for a, b, out in lin_n:
                 sel = okl[a:b]
                 if bool(sel.all()):
-                    dst = run(wlc[a:b])
+                    dst = consecutive(wlc[a:b])
                     for t, tn in zip(lin, out):
                         t[dst].copy_(tn) if dst is not None else t.index_copy_(0, on(wlc[a:b]), tn)
                 elif bool(sel.any()):

@@ -50,7 +50,7 @@ from ..models.jacobian import chebyshev_design
 from .streams import STREAM_MIN_UNITS, fleet_streams, solve_streams
 from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_groups, regrouped,
                          slots_of, structured_steps)
-from .workspace import Workspace
+from .workspace import Workspace, take_entries
 
 UNIT_PAIRS_BYTES = 2 << 30  # the most memory each unit's own pair products may hold between steps
 
@@ -332,11 +332,7 @@ class FleetProblem(BatchedProblem):
             self.unit_pp = pair_basis(self.phi_p, self.n) if size <= UNIT_PAIRS_BYTES else False
         if self.unit_pp is False:
             return None
-        wc = which.cpu()
-        if int(wc[-1]) - int(wc[0]) + 1 == wc.numel():  # a run of consecutive units: a view
-            return self.unit_pp[:, int(wc[0]):int(wc[-1]) + 1]
-        return torch.index_select(self.unit_pp, 1, which, out=self.workspace.take(
-            "unit_pp", (self.unit_pp.shape[0], which.numel(), *self.unit_pp.shape[2:]), self.unit_pp))
+        return take_entries(self.unit_pp, which.cpu(), 1, self.workspace, "unit_pp")
 
 
 @dataclass

@@ -34,4 +34,25 @@ class Workspace:
         return b[:n].view(shape)
 
 
-__all__ = ["Workspace"]
+def consecutive(ic: torch.Tensor) -> slice | None:
+    """The slice where the host index ic (k,) is a run of consecutive entries, else None."""
+    if ic.numel() and int(ic[-1]) - int(ic[0]) + 1 == ic.numel():
+        return slice(int(ic[0]), int(ic[-1]) + 1)
+    return None
+
+
+def take_entries(t: torch.Tensor, ic: torch.Tensor, dim: int = 0, ws: Workspace | None = None,
+                 name: str | None = None) -> torch.Tensor:
+    """t's entries ic (a host index) along ``dim``: a view where ic is a run of consecutive entries (no copy of a
+    solve's large per-model tensors), else a copy, into ``ws``'s buffer ``name`` where both are given."""
+    sl = consecutive(ic)
+    if sl is not None:
+        return t[(slice(None),) * dim + (sl,)]
+    idx = ic.to(t.device, non_blocking=True)
+    if ws is None or name is None:
+        return torch.index_select(t, dim, idx)
+    shape = (*t.shape[:dim], ic.numel(), *t.shape[dim + 1:])
+    return torch.index_select(t, dim, idx, out=ws.take(name, shape, t))
+
+
+__all__ = ["Workspace", "consecutive", "take_entries"]

@@ -35,6 +35,18 @@ from torchcal.sim.fleet import fleet_truths
 TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]  # Paper II Table 4
 
 
+def program(lim, seed: int):
+    """(commands (250, n), approach directions (250, n) of +-1) of one measuring program, from its seed."""
+    q = torchcal.sim.quasi_random_commands(lim, 250, seed)
+    g = torch.Generator().manual_seed(seed)
+    return q, torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+
+
+def unit_program(lim, seed: int, k: int):
+    """Unit k's own program (``--own-programs``), apart from the fleet's one program of the same seed."""
+    return program(lim, 1000 * seed + 1 + k)
+
+
 def fleet_data(units: int, seed: int = 0, damaged=(7, 23, 42, 61, 88), own_programs: bool = False):
     """(make, identification data per unit, noise) of experiments/fleet/run.py's fleet. own_programs: each unit
     measured with its own program (its own commands and approach directions) instead of one for all."""
@@ -43,14 +55,7 @@ def fleet_data(units: int, seed: int = 0, damaged=(7, 23, 42, 61, 88), own_progr
     noise = torchcal.NoiseModel.from_robot(robot)
     fleet = fleet_truths(robot, tools, units, seed, [d for d in damaged if d < units])
     lim = robot.joint_map.limits
-
-    def program(k):
-        s = seed if not own_programs else 1000 * seed + 1 + k
-        q = torchcal.sim.quasi_random_commands(lim, 250, s)
-        g = torch.Generator().manual_seed(s)
-        return q, torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
-
-    programs = [program(k) for k in range(units)] if own_programs else [program(0)] * units
+    programs = [unit_program(lim, seed, k) for k in range(units)] if own_programs else [program(lim, seed)] * units
     ident = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * seed + k, directions=d)
              for k, (t, (q, d)) in enumerate(zip(fleet.truths, programs))]
 

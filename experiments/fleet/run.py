@@ -81,10 +81,10 @@ def main(argv=None) -> int:
     dv = torch.where(torch.rand(qv.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
     t0 = time.perf_counter()
     programs = [(q, dirs)] * args.units
-    if args.own_programs:  # each unit its own commands and approach directions
-        programs = [(torchcal.sim.quasi_random_commands(lim, 250, 1000 * args.seed + 1 + k),
-                     torch.where(torch.rand(q.shape, generator=torch.Generator().manual_seed(1000 * args.seed + 1 + k),
-                                            dtype=torch.float64) > 0.5, 1.0, -1.0)) for k in range(args.units)]
+    if args.own_programs:  # each unit its own commands and approach directions (ratio.py's)
+        from ratio import unit_program  # the same folder: run as a script
+
+        programs = [unit_program(lim, args.seed, k) for k in range(args.units)]
     ident = [torchcal.simulate(t, qk, [0, 1, 2], noise, 1000 * args.seed + k, directions=dk)
              for k, (t, (qk, dk)) in enumerate(zip(fleet.truths, programs))]
     val = [torchcal.simulate(t, qv, [2], noise, 1000 * args.seed + 500 + k, directions=dv) for k, t in enumerate(fleet.truths)]

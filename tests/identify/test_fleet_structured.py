@@ -13,7 +13,7 @@ from torchcal.identify import fleet_kernel
 from torchcal.identify.schur import schur_steps
 from torchcal.identify.fleet import FleetProblem
 from torchcal.identify.structured import (RobotStructure, contract, dense_jacobian, factored_linearization,
-                                          gram_parts, pair_basis, pose_groups, pose_slots, structured_steps)
+                                          gram_parts, pair_basis, pose_groups, slots_of, structured_steps)
 from torchcal.sim.fleet import fleet_truths
 
 TOOLS = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]], dtype=torch.float64)
@@ -374,6 +374,6 @@ def test_pose_groups_are_torch_uniques_rows(rows, poses, cols, seed, directions)
     # a second unit with the same program shares the grouping; one with another program does not
     again, other = pose_groups([q, q.clone(), q + 1.0], [s, s, s])[1:]
     assert all(torch.equal(a, b) for a, b in zip(again, (inv, order, counts)))
-    slots = pose_slots([q], [s], rows)
+    slots = slots_of(pose_groups([q], [s]), rows)
     assert torch.equal(torch.sort(slots[slots < rows]).values, torch.arange(rows))  # every row in one slot
     assert bool((inv[slots.clamp(max=rows - 1)][slots < rows] == torch.arange(inv_ref.max() + 1)[:, None].expand_as(slots)[slots < rows]).all())

@@ -126,7 +126,7 @@ class FleetProblem(BatchedProblem):
         if len(models) != M:
             raise ValueError(f"fit_fleet: {len(models)} models for {M} units")
         dev = superset.device
-        # each unit's rows pose by pose, as the factored kernels walk them (structured.pose_slots): in the data's
+        # each unit's rows pose by pose, as the factored kernels walk them (structured.slots_of): in the data's
         # order (tool-major) a pose's rows lie far apart, and the kernels' reads jumped by a row's 1.4 kB of
         # factors at every row (the final per-row pass ran 3x slower); row_order maps back (FitResult.v)
         groups = pose_groups([u.q for u in units], [u.direction if u.has_direction else None for u in units])

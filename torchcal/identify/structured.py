@@ -189,16 +189,8 @@ def _group_rows(key: np.ndarray):
     return inv, order.astype(np.int64), np.diff(np.flatnonzero(np.append(new, True))).astype(np.int64)
 
 
-def pose_slots(units_q: list, units_dir: list, R: int) -> torch.Tensor:
-    """(M, Pp, T) row of each (pose, slot) of every unit, R where empty (:func:`pose_groups`' poses).
-
-    units_q: M tensors (R_m, n); units_dir: M tensors (R_m, n) or None.
-    """
-    return slots_of(pose_groups(units_q, units_dir), R)
-
-
 def slots_of(groups: list, R: int) -> torch.Tensor:
-    """:func:`pose_slots` from the units' :func:`pose_groups`."""
+    """(M, Pp, T) row of each (pose, slot) of every unit, R where empty, from the units' :func:`pose_groups`."""
     Pp = max(int(c.numel()) for _, _, c in groups)
     T = max(int(c.max()) for _, _, c in groups)
     dev = groups[0][0].device
@@ -582,4 +574,4 @@ def dense_jacobian(E: torch.Tensor, Phi: torch.Tensor, st: RobotStructure) -> to
 
 
 __all__ = ["GROUPS", "RobotStructure", "contract", "dense_jacobian", "factored_linearization", "gram_parts", "pair_basis",
-           "pose_gram", "pose_groups", "pose_slots", "regrouped", "slots_of", "structured_steps"]
+           "pose_gram", "pose_groups", "regrouped", "slots_of", "structured_steps"]

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One device session: the CUDA tests and the GPU bench (card named), the CPU side on 2 host cores, quiet and with
 # one CPU-bound competitor on one of those two cores. `bash bench/device_run.sh --fleet` (optionally BASE=dir):
-# the fleet alone. Wheels the image lacks travel in .whl (numba's own llvmlite
+# the fleet alone; `--compensation`: compensation alone. Wheels the image lacks travel in .whl (numba's own llvmlite
 # included: the image's numba does not import with its NumPy).
 set -o pipefail
 # .whl: wheels, or site.tar.xz (the same packages installed here with --target, xz-packed: llvmlite's wheel alone
@@ -11,6 +11,19 @@ else python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir 
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 NUMBA_CACHE_DIR=/tmp/numba-cache
 python3 -c "import torch, numpy, numba; print('torch', torch.__version__, torch.cuda.get_device_name(), 'numpy', numpy.__version__, 'numba', numba.__version__)"
 lscpu | grep -E "Model name|^CPU\(s\)"
+if [ "$1" = "--compensation" ]; then  # compensation alone (~5 min): its CUDA tests, the damped path's graphs on
+  # and off side by side (bench/gpu_compensation_probe.py), then the bench's compensation rows quiet and loaded
+  python3 -m torchcal.cli compile --only targets,damped,flange > $OUT/compile.txt 2>&1 &  # the CPU side's kernels
+  timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/compensate/test_det_sign.py \
+    tests/compensate/test_damped_fixed_shape.py -k "compensation or damped or det" 2>&1 | tail -4
+  timeout 150 python3 bench/gpu_compensation_probe.py 2>&1 | tee $OUT/probe.txt | grep -v "^ *[0-9]" | head -40
+  wait; tail -2 $OUT/compile.txt | head -1
+  timeout 100 taskset -c 0,1 python3 bench/gpu.py --cpu-threads 2 --only compensation 2>&1 | tee $OUT/comp_quiet.txt | tail -4
+  taskset -c 0 python3 -c "while True: pass" & C=$!
+  timeout 100 taskset -c 0,1 python3 bench/gpu.py --cpu-threads 2 --only compensation 2>&1 | tee $OUT/comp_loaded.txt | tail -4
+  kill $C
+  exit 0
+fi
 if [ "$1" = "--fleet" ]; then  # the fleet (~6 min): the CUDA tests, the fleet's ratio quiet and loaded, with
   # BASE=<a source tree carried in> that tree's GPU fleet beside this one's, alternated (the same session: GPU
   # hosts differ by up to 1.7x between sessions), cProfile of the host's time in one GPU solve quiet and

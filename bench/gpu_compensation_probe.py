@@ -1,32 +1,95 @@
-"""Probe (device): where GPU compensation time goes — chunk sizes, float64 / float32, fast vs damped path."""
-import time, sys
-import torch, torchcal, torchcal.sim
+"""Probe (device): GPU compensation with the damped path's CUDA graphs on and off, side by side in one process.
+
+float64 and float32, 4·10^6 poses (the bench's largest batch), alternated after a warm-up; the damped least
+squares' own time and row count per call (a synchronizing wrapper), and the rows' verdicts compared.
+`python bench/gpu_compensation_probe.py [--poses N] [--rounds R]`.
+"""
+import argparse
+import os
+import time
+
+import torch
+
+import torchcal
+import torchcal.sim
+from torchcal.compensate import compensate, newton
 from torchcal.core import units as U
-from torchcal.compensate import compensate
 from torchcal.identify import fit
-TOOLS = U.mm_to_m(torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]], dtype=torch.float64))
-robot = torchcal.load_robot("fanuc_lrmate200i"); noise = torchcal.NoiseModel.from_robot(robot)
+
+ap = argparse.ArgumentParser()
+ap.add_argument("--poses", type=int, default=4_000_000)
+ap.add_argument("--rounds", type=int, default=3)
+args = ap.parse_args()
+TOOLS = U.mm_to_m(torch.tensor([[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]],
+                               dtype=torch.float64))
+robot = torchcal.load_robot("fanuc_lrmate200i")
+noise = torchcal.NoiseModel.from_robot(robot)
 truth = torchcal.TruthRobot.fanuc_paper2(robot, TOOLS, 0)
 q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 250, 0)
 data = torchcal.simulate(truth, q, [0, 1, 2], noise, 0)
-m = torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True); fit(m, data, noise)
-g = torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True).cuda(); g.load_state_dict(m.state_dict())
-N = 10**6
-qp = torchcal.sim.quasi_random_commands(robot.joint_map.limits, N, 3).cuda(); s = torch.ones_like(qp)
-def t(fn, k=3):
-    fn(); torch.cuda.synchronize(); best=1e9
-    for _ in range(k):
-        a=time.perf_counter(); fn(); torch.cuda.synchronize(); best=min(best, time.perf_counter()-a)
-    return best
-for cs in [262144, 1000000]:
-    print("float64 chunk", cs, f"{N / t(lambda: compensate(g, qp, s, chunk_size=cs)):.3g} poses/s")
-g32 = torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True).cuda(); g32.load_state_dict(m.state_dict()); g32 = g32.float()
-print("float32 chunk 1e6", f"{N / t(lambda: compensate(g32, qp.float(), s.float(), chunk_size=N)):.3g} poses/s")
-# fast path only: rows away from singularities (what fraction goes to the damped path?)
-r = compensate(g, qp, s, chunk_size=N)
-print("converged", float(r.converged.float().mean()), "fields", [f for f in vars(r)][:12])
-from torch.profiler import profile, ProfilerActivity
-with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-    compensate(g, qp, s, chunk_size=N); torch.cuda.synchronize()
-print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=12))
-print(prof.key_averages().table(sort_by="cpu_time_total", row_limit=8))
+m = torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True)
+fit(m, data, noise)
+g = torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True).cuda()
+g.load_state_dict(m.state_dict())
+g32 = torchcal.RobotModel(robot, TOOLS, orders=6, backlash=True).cuda()
+g32.load_state_dict(m.state_dict())
+g32 = g32.float()
+N = args.poses
+qp = torchcal.sim.quasi_random_commands(robot.joint_map.limits, N, 11).cuda()
+s = torch.ones_like(qp)
+print(torch.cuda.get_device_name(), "torch", torch.__version__, "poses", N)
+
+damped_log = []
+inner = newton.damped_least_squares
+
+
+def timed_damped(*a, **k):  # the damped path's own time (synchronized) and rows
+    torch.cuda.synchronize()
+    t = time.perf_counter()
+    r = inner(*a, **k)
+    torch.cuda.synchronize()
+    damped_log.append((a[1].shape[0], time.perf_counter() - t, int(r.iterations.max()) if r.iterations.numel() else 0))
+    return r
+
+
+newton.damped_least_squares = timed_damped
+
+
+def one(model, qq, ss, graphs):
+    os.environ["TORCHCAL_CUDA_GRAPHS"] = "1" if graphs else "0"
+    damped_log.clear()
+    torch.cuda.synchronize()
+    t = time.perf_counter()
+    r = compensate(model, qq, ss)
+    torch.cuda.synchronize()
+    return time.perf_counter() - t, r, list(damped_log)
+
+
+for name, model, qq, ss in (("float64", g, qp, s), ("float32", g32, qp.float(), s.float())):
+    res = {}
+    for graphs in (True, False):  # warm-up of both
+        one(model, qq, ss, graphs)
+    times = {True: [], False: []}
+    for _ in range(args.rounds):
+        for graphs in (True, False):
+            t, r, log = one(model, qq, ss, graphs)
+            times[graphs].append(t)
+            res[graphs] = r
+            dl = "; ".join(f"{rows} rows {sec * 1e3:.0f} ms max it {it}" for rows, sec, it in log)
+            print(f"{name} graphs {'on ' if graphs else 'off'} {t:.3f} s  {N / t:.3g} poses/s  damped: {dl}", flush=True)
+    a, b = res[True], res[False]
+    same = float((a.status == b.status).double().mean())
+    ok = a.converged & b.converged
+    dq = (a.q[ok] - b.q[ok]).abs().amax(-1)
+    print(f"{name}: best on {N / min(times[True]):.3g}, off {N / min(times[False]):.3g} poses/s; "
+          f"median on/off {sorted(times[True])[len(times[True]) // 2] / sorted(times[False])[len(times[False]) // 2]:.2f}; "
+          f"status equal {same:.6f}; converged on {float(a.converged.double().mean()):.4f} "
+          f"off {float(b.converged.double().mean()):.4f}; |dq| max {float(dq.max()):.1e}, "
+          f"> 1e-8 rad: {int((dq > 1e-8).sum())} of {int(ok.sum())}", flush=True)
+os.environ["TORCHCAL_CUDA_GRAPHS"] = "1"
+import cProfile, pstats  # noqa: E401,E402
+pr = cProfile.Profile()
+pr.enable()
+one(g, qp, s, True)
+pr.disable()
+pstats.Stats(pr).sort_stats("cumulative").print_stats(18)

@@ -19,11 +19,12 @@ weighted by ``length`` (m) so that both parts of the residual are lengths.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import torch
 
-from ..kinematics.transforms import skew
+from ..kinematics.transforms import skew, small_matmul
 from .kernel import FlangeKernel
 
 
@@ -33,8 +34,8 @@ def pose_residual(Ra: torch.Tensor, pa: torch.Tensor, Rn: torch.Tensor, pn: torc
     Ra, Rn: (M, 3, 3); pa, pn: (M, 3) -> de (M, 6) (m, rad) and Ω_R (M, 3, 3).
     """
     Rt = Ra.transpose(1, 2)
-    OR = Rt @ Rn
-    dp = (Rt @ (pn - pa)[..., None])[..., 0]
+    OR = small_matmul(Rt, Rn)
+    dp = small_matmul(Rt, (pn - pa)[..., None])[..., 0]
     dr = 0.5 * torch.stack([OR[:, 2, 1] - OR[:, 1, 2], OR[:, 0, 2] - OR[:, 2, 0], OR[:, 1, 0] - OR[:, 0, 1]], -1)
     return torch.cat([dp, dr], -1), OR
 
@@ -55,8 +56,8 @@ def residual_jacobian(de: torch.Tensor, OR: torch.Tensor, J: torch.Tensor, lengt
     tr = OR.diagonal(dim1=-2, dim2=-1).sum(-1)
     eye = torch.eye(3, dtype=J.dtype, device=J.device)
     G = 0.5 * (tr[:, None, None] * eye - OR)
-    Jp = -Jv + skew(de[:, :3]) @ Jw
-    Jr = -(G @ Jw)
+    Jp = -Jv + small_matmul(skew(de[:, :3]), Jw)
+    Jr = -small_matmul(G, Jw)
     return torch.cat([Jp, length * Jr], 1)
 
 
@@ -122,6 +123,7 @@ def damped_least_squares(
     max_correction: float | None = None,
     stop_at_bound: bool = False,
     axis=None,
+    fixed_shape: bool | None = None,
 ) -> DampedResult:
     """Solve model.flange(q, direction, base=False) = target for every row by Levenberg-Marquardt.
 
@@ -155,6 +157,10 @@ def damped_least_squares(
     stop_at_bound: a row whose step runs into the box stops there, flagged
     (the optimum lies outside it; creeping along the box's faces costs many
     iterations for nothing a flagged row needs). DampedResult.blocked marks them.
+
+    fixed_shape: finished rows stay in place, frozen, instead of leaving the working set, and the linear
+    solves are Cholesky's (:mod:`.damped_graph`: on a GPU the iterations are then replayed as CUDA graphs).
+    None: on a CUDA device (6-DOF, no gravity compliance) unless TORCHCAL_CUDA_GRAPHS=0.
     """
     M, n = q0.shape
     dtype, device = q0.dtype, q0.device
@@ -178,120 +184,212 @@ def damped_least_squares(
     if max_correction is not None:
         q0 = torch.minimum(torch.maximum(q0, ref - max_correction), ref + max_correction)
 
-    def prior(q, ref):
-        d = q - ref
-        return 0.5 * lam2 * (d * d).sum(-1)
-
-    idx = torch.arange(M, device=device)
     q = q0.clone()
-    s = direction
     Rn, pn = target[:, :3, :3], target[:, :3, 3]
     c = None
     if axis is not None:
         c = axis.point
         pn = axis.shift_rows(Rn, pn, c)
-
-    def evaluate(q, s, c, Rn, pn):
-        """-> de (M, 6), the residual r and its Jacobian (5-DOF: projected), and whether the orientation error
-        is below 90 deg (the residual ½ vee(Ω_R - Ω_R^T) = sin(angle) axis vanishes at 180 deg too: an LM
-        started far away can settle on the pose turned half a turn, which is no solution)."""
-        Ra, pa, J = ev.flange_jacobian(q, s)
-        if c is not None:
-            pa, J = axis.shift_rows(Ra, pa, c), axis.jacobian_rows(J, c)
-        de, OR = pose_residual(Ra, pa, Rn, pn)
-        r, Jr = weighted(de, length), residual_jacobian(de, OR, J, length)
-        if c is not None:
-            r, Jr = axis.project_rows(r), axis.project_rows(Jr)
-        # (5-DOF: the turn about the free axis may be anything; the axis itself is in the residual)
-        near = torch.ones_like(r[:, 0], dtype=torch.bool) if c is not None else OR.diagonal(dim1=-2, dim2=-1).sum(-1) > 1.0
-        return de, r, Jr, near
-
-    de, r, Jr, near = evaluate(q, s, c, Rn, pn)
-    cost = 0.5 * (r * r).sum(-1) + (prior(q, ref) if lam2 else 0.0)
+    C = dict(s=direction, c=c, Rn=Rn, pn=pn, ref=ref)
+    opts = _Options(ev, axis, length, lam2, eye, max_step, max_correction, stop_at_bound, tol, residual_tol, stall_rtol,
+                    window_rtol)
+    de, r, Jr, near = _evaluate(opts, q, C)
+    cost = 0.5 * (r * r).sum(-1) + (_prior(lam2, q, ref) if lam2 else 0.0)
     cost = torch.where(torch.isfinite(cost), cost, torch.full_like(cost, float("inf")))
-    A = Jr.transpose(1, 2) @ Jr
+    A = small_matmul(Jr.transpose(1, 2), Jr)
     mu = damping * A.diagonal(dim1=-2, dim2=-1).amax(-1).clamp_min(1e-12)
-    nu = torch.full_like(mu, 2.0)
-    it = torch.zeros(M, dtype=torch.long, device=device)
-    step = torch.full((M,), float("inf"), dtype=dtype, device=device)
-    cost_ref = cost.clone()
-    hits = torch.zeros(M, dtype=torch.long, device=device)
+    S = dict(q=q, r=r, de=de, Jr=Jr, near=near, cost=cost, mu=mu, nu=torch.full_like(mu, 2.0),
+             it=torch.zeros(M, dtype=torch.long, device=device),
+             step=torch.full((M,), float("inf"), dtype=dtype, device=device), cost_ref=cost.clone(),
+             hits=torch.zeros(M, dtype=torch.long, device=device))
+    if fixed_shape is None:
+        fixed_shape = device.type == "cuda" and axis is None and ev.k.model is None and graphs_enabled()
+    if fixed_shape:
+        from .damped_graph import solve_fixed_shape  # (imported here: CPU runs never need it)
 
+        o = solve_fixed_shape(lambda S, C, check: lm_step(opts, S, C, check, spd_solve), S, C, max_iter, window,
+                              graphs=device.type == "cuda" and graphs_enabled())
+        S, conv_out, blk_out, sta_out = o["state"], o["converged"], o["blocked"], o["stationary"]
+        q_out, it_out, step_out, de_out = S["q"], S["it"], S["step"], S["de"]
+    else:
+        _eager_loop(opts, S, C, max_iter, window, q_out, conv_out, it_out, step_out, de_out, blk_out, sta_out)
+    res = weighted(de_out, length)
+    res = (res if axis is None else axis.project_rows(res)).norm(dim=-1)
+    return DampedResult(q_out, conv_out, it_out, de_out, res, step_out, blk_out, sta_out)
+
+
+def graphs_enabled() -> bool:
+    """On a GPU the iterations run as captured CUDA graphs (:mod:`.damped_graph`) unless TORCHCAL_CUDA_GRAPHS=0."""
+    return os.environ.get("TORCHCAL_CUDA_GRAPHS", "1") != "0"
+
+
+@dataclass(frozen=True)
+class _Options:
+    """What one Levenberg-Marquardt iteration of :func:`damped_least_squares` reads besides its rows."""
+
+    ev: _Eval
+    axis: object
+    length: float
+    lam2: float
+    eye: torch.Tensor
+    max_step: object
+    max_correction: object
+    stop_at_bound: bool
+    tol: float
+    residual_tol: float
+    stall_rtol: float
+    window_rtol: float
+
+
+def _prior(lam2, q, ref):
+    d = q - ref
+    return 0.5 * lam2 * (d * d).sum(-1)
+
+
+def _evaluate(o: _Options, q, C):
+    """-> de (M, 6), the residual r and its Jacobian (5-DOF: projected), and whether the orientation error
+    is below 90 deg (the residual ½ vee(Ω_R - Ω_R^T) = sin(angle) axis vanishes at 180 deg too: an LM
+    started far away can settle on the pose turned half a turn, which is no solution)."""
+    Ra, pa, J = o.ev.flange_jacobian(q, C["s"])
+    c = C["c"]
+    if c is not None:
+        pa, J = o.axis.shift_rows(Ra, pa, c), o.axis.jacobian_rows(J, c)
+    de, OR = pose_residual(Ra, pa, C["Rn"], C["pn"])
+    r, Jr = weighted(de, o.length), residual_jacobian(de, OR, J, o.length)
+    if c is not None:
+        r, Jr = o.axis.project_rows(r), o.axis.project_rows(Jr)
+    # (5-DOF: the turn about the free axis may be anything; the axis itself is in the residual)
+    near = torch.ones_like(r[:, 0], dtype=torch.bool) if c is not None else OR.diagonal(dim1=-2, dim2=-1).sum(-1) > 1.0
+    return de, r, Jr, near
+
+
+def lu_solve(A: torch.Tensor, b: torch.Tensor):
+    """(M, n, n), (M, n) -> x (M, n), ok (M,) bool: LAPACK's / cuSOLVER's LU (the eager loop's solve)."""
+    x, info = torch.linalg.solve_ex(A, b)
+    return x, info == 0
+
+
+def spd_solve(A: torch.Tensor, b: torch.Tensor):
+    """(M, n, n) symmetric positive definite, (M, n) -> x (M, n), ok (M,) bool: Cholesky unrolled over the n
+    columns, elementwise over the rows, with no host synchronization (a CUDA graph can hold it; cuSOLVER's
+    batched solves cannot be captured). A row that is not positive definite gets ok False (and a non-finite x)."""
+    n = A.shape[-1]
+    At = A.permute(1, 2, 0).contiguous()  # (n, n, M): each entry a contiguous run of rows
+    L = [[None] * n for _ in range(n)]
+    inv = [None] * n  # 1 / L_jj
+    ok = torch.ones_like(b[:, 0], dtype=torch.bool)
+    for j in range(n):
+        d = At[j, j]
+        for k in range(j):
+            d = torch.addcmul(d, L[j][k], L[j][k], value=-1.0)
+        ok = ok & (d > 0)
+        inv[j] = torch.rsqrt(d)
+        for i in range(j + 1, n):
+            v = At[i, j]
+            for k in range(j):
+                v = torch.addcmul(v, L[i][k], L[j][k], value=-1.0)
+            L[i][j] = v * inv[j]
+    bt = b.T
+    y = [None] * n
+    for j in range(n):  # L y = b
+        v = bt[j]
+        for k in range(j):
+            v = torch.addcmul(v, L[j][k], y[k], value=-1.0)
+        y[j] = v * inv[j]
+    x = [None] * n
+    for j in reversed(range(n)):  # L^T x = y
+        v = y[j]
+        for k in range(j + 1, n):
+            v = torch.addcmul(v, L[k][j], x[k], value=-1.0)
+        x[j] = v * inv[j]
+    return torch.stack(x, -1), ok
+
+
+def lm_step(o: _Options, S: dict, C: dict, check_window: bool, solve=lu_solve):
+    """One Levenberg-Marquardt iteration of every row of S (the state: q, r, de, Jr, near, cost, mu, nu, it,
+    step, cost_ref, hits; C: the rows' targets, directions, references), as pure tensor functions.
+
+    -> (the new state, conv, stall, blocked (or None)): every (M, ...) row on its own, so that the eager loop may
+    drop finished rows and the fixed-shape loop of a GPU may freeze them instead. check_window: this iteration
+    closes a window of ``window`` iterations (the progress test)."""
+    q, r, Jr, cost, mu, nu, ref = S["q"], S["r"], S["Jr"], S["cost"], S["mu"], S["nu"], C["ref"]
+    lam2, eye = o.lam2, o.eye
+    JrT = Jr.transpose(1, 2)
+    A = small_matmul(JrT, Jr)
+    g = small_matmul(JrT, r[..., None])[..., 0]  # gradient of ½|r|²
+    if lam2:
+        A = A + lam2 * eye
+        g = g + lam2 * (q - ref)
+    dq, solved = solve(A + mu[:, None, None] * eye, -g)
+    dq = torch.where(solved[:, None] & torch.isfinite(dq), dq, torch.zeros_like(dq))
+    if o.max_step is not None:  # trust bound (a number or one per joint): scale the step, keep its direction
+        big = (dq.abs() / o.max_step).amax(-1, keepdim=True)
+        dq = dq * torch.clamp(1.0 / big.clamp_min(1e-300), max=1.0)
+    qt = q + dq
+    blocked, hits = None, S["hits"]
+    if o.max_correction is not None:  # stay in the box around q_ref
+        qb = torch.minimum(torch.maximum(qt, ref - o.max_correction), ref + o.max_correction)
+        if o.stop_at_bound:  # twice: a first, overshooting LM step is no evidence yet
+            hits = hits + (qb != qt).any(-1).long()
+            blocked = hits >= 2
+        qt = qb
+        dq = qt - q
+    # evaluate the trial with its Jacobian: most steps are accepted and need it next
+    de_t, rt, Jr_t, near_t = _evaluate(o, qt, C)
+    cost_t = 0.5 * (rt * rt).sum(-1) + (_prior(lam2, qt, ref) if lam2 else 0.0)
+    cost_t = torch.where(torch.isfinite(cost_t), cost_t, torch.full_like(cost_t, float("inf")))
+    # Nielsen: the decrease the linear model predicts for the step taken (scaled or clipped:
+    # -g·dq - ½ dq·A dq; for the plain LM step this is ½ dq·(mu dq - g))
+    pred = -(dq * (g + 0.5 * small_matmul(A, dq[..., None])[..., 0])).sum(-1)
+    rho = (cost - cost_t) / pred.clamp_min(1e-300)
+    acc = (cost_t < cost) & (rho > 0)
+    # an accepted, nearly undamped step that no longer lowers the cost: stationary point
+    flat = acc & ((cost - cost_t) <= o.stall_rtol * cost) & (mu <= 1e-3 * A.diagonal(dim1=-2, dim2=-1).amax(-1))
+    a1 = acc[:, None]
+    N = dict(q=torch.where(a1, qt, q), cost=torch.where(acc, cost_t, cost), r=torch.where(a1, rt, r),
+             de=torch.where(a1, de_t, S["de"]), near=torch.where(acc, near_t, S["near"]),
+             Jr=torch.where(a1[..., None], Jr_t, Jr),
+             mu=torch.where(acc, mu * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu * nu),
+             nu=torch.where(acc, torch.full_like(nu, 2.0), 2.0 * nu), it=S["it"] + 1, step=dq.norm(dim=-1),
+             cost_ref=S["cost_ref"], hits=hits)
+    small = N["step"] < o.tol
+    conv = small & ((N["r"] * N["r"]).sum(-1).sqrt() <= o.residual_tol) & N["near"]
+    # stalled: a vanishing step far from zero error (least-squares optimum of an
+    # unreachable target, or damping so large that nothing moves any more)
+    stall = ((small | flat) & ~conv) | (N["mu"] > 1e20) | ~torch.isfinite(N["cost"])
+    if check_window:
+        # no real progress over the last `window` iterations: stuck at a stationary
+        # point (or crawling along a singular direction); keep the best, flag it
+        stall = stall | (~conv & (N["cost"] > (1.0 - o.window_rtol) * S["cost_ref"]))
+        N["cost_ref"] = N["cost"]
+    if blocked is not None:
+        stall = stall | (blocked & ~conv)
+    return N, conv, stall, blocked
+
+
+def _eager_loop(o: _Options, S, C, max_iter, window, q_out, conv_out, it_out, step_out, de_out, blk_out, sta_out):
+    """The iterations with finished rows dropped from the working set (CPU, or a GPU without graphs); the rows'
+    results are written into the *_out tensors (M, ...) in place."""
+    idx = torch.arange(q_out.shape[0], device=q_out.device)
     for k_it in range(max_iter):
-        A = Jr.transpose(1, 2) @ Jr
-        g = (Jr.transpose(1, 2) @ r[..., None])[..., 0]  # gradient of ½|r|²
-        if lam2:
-            A = A + lam2 * eye
-            g = g + lam2 * (q - ref)
-        dq, info = torch.linalg.solve_ex(A + mu[:, None, None] * eye, -g)
-        dq = torch.where((info == 0)[:, None] & torch.isfinite(dq), dq, torch.zeros_like(dq))
-        if max_step is not None:  # trust bound (a number or one per joint): scale the step, keep its direction
-            big = (dq.abs() / max_step).amax(-1, keepdim=True)
-            dq = dq * torch.clamp(1.0 / big.clamp_min(1e-300), max=1.0)
-        qt = q + dq
-        blocked = None
-        if max_correction is not None:  # stay in the box around q_ref
-            qb = torch.minimum(torch.maximum(qt, ref - max_correction), ref + max_correction)
-            if stop_at_bound:  # twice: a first, overshooting LM step is no evidence yet
-                hits = hits + (qb != qt).any(-1).long()
-                blocked = hits >= 2
-            qt = qb
-            dq = qt - q
-        # evaluate the trial with its Jacobian: most steps are accepted and need it next
-        de_t, rt, Jr_t, near_t = evaluate(qt, s, c, Rn, pn)
-        cost_t = 0.5 * (rt * rt).sum(-1) + (prior(qt, ref) if lam2 else 0.0)
-        cost_t = torch.where(torch.isfinite(cost_t), cost_t, torch.full_like(cost_t, float("inf")))
-        # Nielsen: the decrease the linear model predicts for the step taken (scaled or clipped:
-        # -g·dq - ½ dq·A dq; for the plain LM step this is ½ dq·(mu dq - g))
-        pred = -(dq * (g + 0.5 * (A @ dq[..., None])[..., 0])).sum(-1)
-        rho = (cost - cost_t) / pred.clamp_min(1e-300)
-        acc = (cost_t < cost) & (rho > 0)
-        # an accepted, nearly undamped step that no longer lowers the cost: stationary point
-        flat = acc & ((cost - cost_t) <= stall_rtol * cost) & (mu <= 1e-3 * A.diagonal(dim1=-2, dim2=-1).amax(-1))
-        a1 = acc[:, None]
-        q = torch.where(a1, qt, q)
-        cost = torch.where(acc, cost_t, cost)
-        r = torch.where(a1, rt, r)
-        de = torch.where(a1, de_t, de)
-        near = torch.where(acc, near_t, near)
-        Jr = torch.where(a1[..., None], Jr_t, Jr)
-        mu = torch.where(acc, mu * torch.clamp(1.0 - (2.0 * rho - 1.0) ** 3, min=1.0 / 3.0), mu * nu)
-        nu = torch.where(acc, torch.full_like(nu, 2.0), 2.0 * nu)
-        it += 1
-        step = dq.norm(dim=-1)
-        small = step < tol
-        conv = small & ((r * r).sum(-1).sqrt() <= residual_tol) & near
-        # stalled: a vanishing step far from zero error (least-squares optimum of an
-        # unreachable target, or damping so large that nothing moves any more)
-        stall = ((small | flat) & ~conv) | (mu > 1e20) | ~torch.isfinite(cost)
-        if (k_it + 1) % window == 0:
-            # no real progress over the last `window` iterations: stuck at a stationary
-            # point (or crawling along a singular direction); keep the best, flag it
-            stall = stall | (~conv & (cost > (1.0 - window_rtol) * cost_ref))
-            cost_ref = cost
-        if blocked is not None:
-            stall = stall | (blocked & ~conv)
+        S, conv, stall, blocked = lm_step(o, S, C, (k_it + 1) % window == 0)
         done = conv | stall
         if bool(done.any()):
             d = done.nonzero()[:, 0]
             rows = idx[d]
-            q_out[rows], conv_out[rows], it_out[rows], step_out[rows], de_out[rows] = q[d], conv[d], it[d], step[d], de[d]
+            q_out[rows], conv_out[rows], it_out[rows] = S["q"][d], conv[d], S["it"][d]
+            step_out[rows], de_out[rows] = S["step"][d], S["de"][d]
             if blocked is not None:
                 blk_out[rows] = blocked[d]
             sta_out[rows] = (stall & ~conv)[d] & ~blk_out[rows]
             keep = (~done).nonzero()[:, 0]
-            idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits, near = (
-                x[keep] for x in (idx, q, r, de, Jr, cost, mu, nu, it, Rn, pn, step, cost_ref, ref, hits, near)
-            )
-            s = None if s is None else s[keep]
-            c = None if c is None else c[keep]
+            idx = idx[keep]
+            S = {k: v[keep] for k, v in S.items()}
+            C = {k: None if v is None else v[keep] for k, v in C.items()}
             if idx.numel() == 0:
                 break
     if idx.numel():  # iteration limit: keep the lowest-error iterate, not converged
-        q_out[idx], it_out[idx], step_out[idx], de_out[idx] = q, it, step, de
-    res = weighted(de_out, length)
-    res = (res if axis is None else axis.project_rows(res)).norm(dim=-1)
-    return DampedResult(q_out, conv_out, it_out, de_out, res, step_out, blk_out, sta_out)
+        q_out[idx], it_out[idx], step_out[idx], de_out[idx] = S["q"], S["it"], S["step"], S["de"]
 
 
 def _compiled(fused, q0, target, direction, q_ref, tol, max_iter, damping, length, residual_tol, stall_rtol, window,

@@ -1,0 +1,104 @@
+"""The damped least squares' fixed-shape loop (torchcal/compensate/damped_graph.py: finished rows frozen in place,
+Cholesky solves; on a GPU replayed as CUDA graphs) against the eager loop that drops finished rows (LU solves),
+run here on the CPU without graphs: the same verdicts and solutions to rounding, and rows that do not see each
+other."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import random_commands, randomize
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from torchcal.compensate.damped import damped_least_squares, spd_solve
+from torchcal.compensate.kernel import FlangeKernel
+from torchcal.compensate.newton import nominal_sigma_min
+from torchcal.models.robot import RobotModel
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10**6), st.integers(1, 7), st.floats(-6, 6))
+def test_spd_solve_matches_lapack(seed, n, log_scale):
+    g = torch.Generator().manual_seed(seed)
+    J = torch.randn(9, n + 2, n, generator=g, dtype=torch.float64) * 10.0 ** log_scale
+    A = J.transpose(1, 2) @ J + 1e-3 * 10.0 ** (2 * log_scale) * torch.eye(n, dtype=torch.float64)
+    b = torch.randn(9, n, generator=g, dtype=torch.float64)
+    x, ok = spd_solve(A, b)
+    assert bool(ok.all())
+    ref = torch.linalg.solve(A, b)
+    assert torch.allclose(x, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
+    A[3] = -A[3]  # negative definite: refused, with a non-finite answer the caller discards
+    x, ok = spd_solve(A, b)
+    assert not bool(ok[3]) and bool(ok[torch.arange(9) != 3].all())
+    assert not bool(torch.isfinite(x[3]).all())
+
+
+@pytest.fixture(scope="module")
+def problem(fanuc, tools_m):
+    model = randomize(RobotModel(fanuc, tools_m, orders=4, backlash=True), 5, rot=3e-3, trans=3e-4)
+    q = random_commands(fanuc, 300, 6)
+    g = torch.Generator().manual_seed(7)
+    s = torch.where(torch.rand(q.shape, generator=g) < 0.5, -1.0, 1.0).double()
+    with torch.no_grad():
+        T = model.nominal_flange(q)
+    far = T.clone()
+    far[:, :3, 3] *= 1.0 + 0.5 * torch.rand(q.shape[0], 1, generator=g, dtype=torch.float64)  # many out of reach
+    return model, q, s, T, far
+
+
+def _both(model, q0, target, s, **kw):
+    k = FlangeKernel(model, fused=False)
+    return (damped_least_squares(model, q0, target, s, kernel=k, fixed_shape=True, **kw),
+            damped_least_squares(model, q0, target, s, kernel=k, fixed_shape=False, **kw))
+
+
+def test_reachable_targets_same_solutions(problem):
+    model, q, s, T, _ = problem
+    a, b = _both(model, q, T, s)
+    assert torch.equal(a.converged, b.converged) and torch.equal(a.stationary, b.stationary)
+    clear = a.converged & (nominal_sigma_min(model, q) > 0.02)
+    assert int(clear.sum()) > 200
+    assert float((a.q[clear] - b.q[clear]).abs().max()) < 1e-9
+    assert float(a.residual[a.converged].max()) <= 1e-12
+    assert (a.iterations[clear] - b.iterations[clear]).abs().max() <= 1
+
+
+@pytest.mark.parametrize("kind", ["unbounded", "bounded", "tikhonov"])
+def test_flagged_rows_same_verdicts(problem, kind):
+    """Out-of-reach rows end at a stationary point or at the box, as in the eager loop; trajectories over a flat
+    cost may part after a rounding difference (Cholesky here, LU there): at most 1 % of the rows."""
+    model, q, s, T, far = problem
+    bounded = dict(q_ref=q, max_step=math.radians(5), max_correction=math.radians(5), stop_at_bound=True, max_iter=20)
+    kw = {"unbounded": {}, "bounded": bounded, "tikhonov": dict(bounded, lam=1e-3, tol=1e-8)}[kind]
+    a, b = _both(model, q, T if kind == "tikhonov" else far, s, **kw)
+    same = (a.converged == b.converged) & (a.blocked == b.blocked) & (a.stationary == b.stationary)
+    assert float(same.double().mean()) >= 0.99
+    if kind != "tikhonov":
+        flagged = same & ~a.converged
+        assert int((a.stationary | a.blocked).sum()) > 100
+        rel = (a.residual[flagged] - b.residual[flagged]).abs() / b.residual[flagged]
+        assert float(rel.median()) < 1e-9
+    it = (a.iterations - b.iterations)[same].abs()
+    assert float((it <= 1).double().mean()) >= 0.99
+
+
+def test_rows_do_not_see_each_other(problem):
+    """A frozen row stays frozen and the others do not notice it: each row's answer is the one it gets in a
+    shuffled, shorter batch. Reachable targets to rounding; out-of-reach rows get the same verdicts, iteration
+    counts and residuals (their iterates, on a flat cost, follow the batch's rounding: MKL's batched products
+    round by batch size, ~1e-8 rad apart here)."""
+    model, q, s, T, far = problem
+    k = FlangeKernel(model, fused=False)
+    pick = torch.randperm(q.shape[0], generator=torch.Generator().manual_seed(3))[:57]
+    for target in (T, far):
+        full = damped_least_squares(model, q, target, s, kernel=k, fixed_shape=True)
+        part = damped_least_squares(model, q[pick], target[pick], s[pick], kernel=k, fixed_shape=True)
+        for f in ("converged", "iterations", "blocked", "stationary"):
+            assert torch.equal(getattr(full, f)[pick], getattr(part, f)), f
+        assert torch.allclose(full.residual[pick], part.residual, rtol=1e-9, atol=1e-15)
+        if target is T:
+            assert torch.allclose(full.q[pick], part.q, rtol=0, atol=1e-13)
+            assert torch.allclose(full.step[pick], part.step, rtol=0, atol=1e-13)

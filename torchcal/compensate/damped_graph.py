@@ -1,0 +1,76 @@
+"""The damped least squares of :mod:`.damped` on a GPU: fixed-shape iterations replayed as CUDA graphs.
+
+On a GPU one Levenberg-Marquardt iteration of :func:`.damped.damped_least_squares` is ~400 small kernels
+(the flange, its Jacobian, the 6 x 6 solves), whatever the row count: the rows handed on by the fast path
+(a few per cent of a large batch) leave the GPU idle while the host launches them, and the eager loop
+synchronizes once an iteration to drop finished rows. Here the rows keep their places: a finished row is frozen
+(every state update masked by ``active``), so every iteration has the same shapes and is captured once as a
+CUDA graph and replayed, one launch an iteration. The host asks whether any row is still active once per
+window of iterations. Each row follows exactly the eager loop's iteration (the same :func:`.damped.lm_step`); the
+linear solve is an unrolled Cholesky (:func:`.damped.spd_solve`) instead of cuSOLVER's LU, which cannot be
+captured, so results agree with the eager loop to rounding.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def _masked(step, S: dict, C: dict, check: bool, active, flags):
+    """One iteration of the rows still active, in place: S's tensors and the flags (converged, blocked,
+    stationary) keep their storage, which a captured graph needs."""
+    N, conv, stall, blocked = step(S, C, check)
+    for k, v in N.items():
+        S[k].copy_(torch.where(active.view(-1, *([1] * (v.dim() - 1))), v, S[k]))
+    done = active & (conv | stall)
+    flags["converged"] |= done & conv
+    if blocked is not None:
+        flags["blocked"] |= done & blocked
+        flags["stationary"] |= done & stall & ~conv & ~blocked
+    else:
+        flags["stationary"] |= done & stall & ~conv
+    active &= ~done
+
+
+def solve_fixed_shape(step, S: dict, C: dict, max_iter: int, window: int, graphs: bool | None = None) -> dict:
+    """Run ``max_iter`` iterations of ``step`` (:func:`.damped.lm_step` bound to its options) on every row.
+
+    step(S, C, check_window) -> (new state, conv, stall, blocked); S: the state, (M, ...) tensors; C: the rows'
+    constants. graphs: capture and replay CUDA graphs (None: on a CUDA device). -> dict of the final state
+    (finished rows frozen where they finished) and the converged, blocked, stationary flags (M,).
+    """
+    q = S["q"]
+    M, device = q.shape[0], q.device
+    graphs = device.type == "cuda" if graphs is None else graphs
+    S = {k: v.clone() for k, v in S.items()}
+    active = torch.ones(M, dtype=torch.bool, device=device)
+    flags = {k: torch.zeros(M, dtype=torch.bool, device=device) for k in ("converged", "blocked", "stationary")}
+    if max_iter <= 0:
+        return dict(state=S, **flags)
+
+    def run(check):
+        _masked(step, S, C, check, active, flags)
+
+    replay = {}
+    if graphs:
+        # the first iteration runs eagerly on a side stream (lazy initialization, cuBLAS workspaces: what a
+        # capture must not see for the first time); then one graph per kind of iteration, sharing one pool
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            run(window == 1)
+        torch.cuda.current_stream(device).wait_stream(side)
+        pool = None
+        for check in sorted({False, True} if window > 1 else {True}):
+            g = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(g, pool=pool):
+                run(check)
+            pool = g.pool()
+            replay[check] = g.replay
+    first = 1 if graphs else 0
+    for k in range(first, max_iter):
+        check = (k + 1) % window == 0
+        (replay[check] if graphs else (lambda c=check: run(c)))()
+        if (check or k + 1 == max_iter) and not bool(active.any()):
+            break
+    return dict(state=S, **flags)

@@ -16,7 +16,7 @@ if [ "$1" = "--compensation" ]; then  # compensation alone (~5 min): its CUDA te
   python3 -m torchcal.cli compile --only targets,damped,flange > $OUT/compile.txt 2>&1 &  # the CPU side's kernels
   timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/compensate/test_det_sign.py \
     tests/compensate/test_damped_fixed_shape.py -k "compensation or damped or det" 2>&1 | tail -4
-  timeout 150 python3 bench/gpu_compensation_probe.py 2>&1 | tee $OUT/probe.txt | grep -v "^ *[0-9]" | head -40
+  timeout 150 python3 bench/gpu_compensation_probe.py 2>&1 | tee $OUT/probe.txt | grep -E "graphs|best|NVIDIA"
   wait; tail -2 $OUT/compile.txt | head -1
   timeout 100 taskset -c 0,1 python3 bench/gpu.py --cpu-threads 2 --only compensation 2>&1 | tee $OUT/comp_quiet.txt | tail -4
   taskset -c 0 python3 -c "while True: pass" & C=$!

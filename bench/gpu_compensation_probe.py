@@ -12,7 +12,7 @@ import torch
 
 import torchcal
 import torchcal.sim
-from torchcal.compensate import compensate, newton
+from torchcal.compensate import compensate, damped_graph, newton
 from torchcal.core import units as U
 from torchcal.identify import fit
 
@@ -53,11 +53,32 @@ def timed_damped(*a, **k):  # the damped path's own time (synchronized) and rows
 
 
 newton.damped_least_squares = timed_damped
+graph_log = []
+inner_graph = damped_graph.solve_fixed_shape
+
+
+def logged_graph(*a, **k):  # the graphs' events: the eager first iteration, the capture, the replays
+    o = inner_graph(*a, **k)
+    graph_log.append(o.get("events"))
+    return o
+
+
+damped_graph.solve_fixed_shape = logged_graph
+
+
+def graph_times():
+    """-> 'first/capture/replays' in ms for each damped call of the last compensate (after its synchronize)."""
+    out = []
+    for ev in graph_log:
+        if ev:
+            out.append("/".join(f"{ev[i].elapsed_time(ev[i + 1]):.0f}" for i in range(3)))
+    return ", ".join(out)
 
 
 def one(model, qq, ss, graphs):
     os.environ["TORCHCAL_CUDA_GRAPHS"] = "1" if graphs else "0"
     damped_log.clear()
+    graph_log.clear()
     torch.cuda.synchronize()
     t = time.perf_counter()
     r = compensate(model, qq, ss)
@@ -76,7 +97,9 @@ for name, model, qq, ss in (("float64", g, qp, s), ("float32", g32, qp.float(), 
             times[graphs].append(t)
             res[graphs] = r
             dl = "; ".join(f"{rows} rows {sec * 1e3:.0f} ms max it {it}" for rows, sec, it in log)
-            print(f"{name} graphs {'on ' if graphs else 'off'} {t:.3f} s  {N / t:.3g} poses/s  damped: {dl}", flush=True)
+            gt = f"  graph ms first/capture/replays: {graph_times()}" if graphs else ""
+            print(f"{name} graphs {'on ' if graphs else 'off'} {t:.3f} s  {N / t:.3g} poses/s  damped: {dl}{gt}",
+                  flush=True)
     a, b = res[True], res[False]
     same = float((a.status == b.status).double().mean())
     ok = a.converged & b.converged

@@ -151,7 +151,8 @@ def test_damped_graphs_match_the_eager_loop(setup, monkeypatch):
     for target, kw in ((T, {}), (far, {}), (far, bounded)):
         a = damped_least_squares(g, q, target, s, **kw)  # graphs
         b = damped_least_squares(g, q, target, s, fixed_shape=False, **kw)
-        c = damped_least_squares(m, q.cpu(), target.cpu(), s.cpu(), **kw)
+        c = damped_least_squares(m, q.cpu(), target.cpu(), s.cpu(), **{k: v.cpu() if torch.is_tensor(v) else v
+                                                                        for k, v in kw.items()})
         for other in (b, c):
             same = (a.converged.cpu() == other.converged.cpu()) & (a.stationary.cpu() == other.stationary.cpu())
             assert float(same.double().mean()) >= 0.99

@@ -311,7 +311,8 @@ def lm_step(o: _Options, S: dict, C: dict, check_window: bool, solve=lu_solve):
 
     -> (the new state, conv, stall, blocked (or None)): every (M, ...) row on its own, so that the eager loop may
     drop finished rows and the fixed-shape loop of a GPU may freeze them instead. check_window: this iteration
-    closes a window of ``window`` iterations (the progress test)."""
+    closes a window of ``window`` iterations (the progress test): a bool, or a 0-dim bool tensor on the rows'
+    device."""
     q, r, Jr, cost, mu, nu, ref = S["q"], S["r"], S["Jr"], S["cost"], S["mu"], S["nu"], C["ref"]
     lam2, eye = o.lam2, o.eye
     JrT = Jr.transpose(1, 2)
@@ -357,7 +358,10 @@ def lm_step(o: _Options, S: dict, C: dict, check_window: bool, solve=lu_solve):
     # stalled: a vanishing step far from zero error (least-squares optimum of an
     # unreachable target, or damping so large that nothing moves any more)
     stall = ((small | flat) & ~conv) | (N["mu"] > 1e20) | ~torch.isfinite(N["cost"])
-    if check_window:
+    if isinstance(check_window, torch.Tensor):  # decided on the device (a captured graph replays every iteration)
+        stall = stall | (check_window & ~conv & (N["cost"] > (1.0 - o.window_rtol) * S["cost_ref"]))
+        N["cost_ref"] = torch.where(check_window, N["cost"], S["cost_ref"])
+    elif check_window:
         # no real progress over the last `window` iterations: stuck at a stationary
         # point (or crawling along a singular direction); keep the best, flag it
         stall = stall | (~conv & (N["cost"] > (1.0 - o.window_rtol) * S["cost_ref"]))

@@ -6,7 +6,7 @@ On a GPU one Levenberg-Marquardt iteration of :func:`.damped.damped_least_square
 synchronizes once an iteration to drop finished rows. Here the rows keep their places: a finished row is frozen
 (every state update masked by ``active``), so every iteration has the same shapes and is captured once as a
 CUDA graph and replayed, one launch an iteration. The host asks whether any row is still active once per
-window of iterations. Each row follows exactly the eager loop's iteration (the same :func:`.damped.lm_step`); the
+window of iterations; the iteration count and the window's progress test live on the device. Each row follows exactly the eager loop's iteration (the same :func:`.damped.lm_step`); the
 linear solve is an unrolled Cholesky (:func:`.damped.spd_solve`) instead of cuSOLVER's LU, which cannot be
 captured, so results agree with the eager loop to rounding.
 """
@@ -16,12 +16,12 @@ from __future__ import annotations
 import torch
 
 
-def _masked(step, S: dict, C: dict, check: bool, active, flags):
+def _masked(step, S: dict, C: dict, check, active, flags):
     """One iteration of the rows still active, in place: S's tensors and the flags (converged, blocked,
     stationary) keep their storage, which a captured graph needs."""
     N, conv, stall, blocked = step(S, C, check)
     for k, v in N.items():
-        S[k].copy_(torch.where(active.view(-1, *([1] * (v.dim() - 1))), v, S[k]))
+        torch.where(active.view(-1, *([1] * (v.dim() - 1))), v, S[k], out=S[k])
     done = active & (conv | stall)
     flags["converged"] |= done & conv
     if blocked is not None:
@@ -36,8 +36,10 @@ def solve_fixed_shape(step, S: dict, C: dict, max_iter: int, window: int, graphs
     """Run ``max_iter`` iterations of ``step`` (:func:`.damped.lm_step` bound to its options) on every row.
 
     step(S, C, check_window) -> (new state, conv, stall, blocked); S: the state, (M, ...) tensors; C: the rows'
-    constants. graphs: capture and replay CUDA graphs (None: on a CUDA device). -> dict of the final state
-    (finished rows frozen where they finished) and the converged, blocked, stationary flags (M,).
+    constants. graphs: capture and replay a CUDA graph (None: on a CUDA device). -> dict of the final state
+    (finished rows frozen where they finished), the converged, blocked, stationary flags (M,), and with graphs
+    ``events``: CUDA events before the first (eager) iteration, after it, after the capture and after the
+    replays (bench/gpu_compensation_probe.py reads the times between them).
     """
     q = S["q"]
     M, device = q.shape[0], q.device
@@ -47,30 +49,34 @@ def solve_fixed_shape(step, S: dict, C: dict, max_iter: int, window: int, graphs
     flags = {k: torch.zeros(M, dtype=torch.bool, device=device) for k in ("converged", "blocked", "stationary")}
     if max_iter <= 0:
         return dict(state=S, **flags)
+    # the iteration count lives on the device: one graph holds every iteration, the window's progress test too
+    count = torch.zeros((), dtype=torch.long, device=device)
 
-    def run(check):
-        _masked(step, S, C, check, active, flags)
+    def run():
+        _masked(step, S, C, (count + 1) % window == 0, active, flags)
+        count.add_(1)
 
-    replay = {}
+    replay, events = run, None
     if graphs:
+        events = [torch.cuda.Event(enable_timing=True) for _ in range(4)]
+        events[0].record()
         # the first iteration runs eagerly on a side stream (lazy initialization, cuBLAS workspaces: what a
-        # capture must not see for the first time); then one graph per kind of iteration, sharing one pool
+        # capture must not see for the first time); then the capture
         side = torch.cuda.Stream(device)
         side.wait_stream(torch.cuda.current_stream(device))
         with torch.cuda.stream(side):
-            run(window == 1)
+            run()
         torch.cuda.current_stream(device).wait_stream(side)
-        pool = None
-        for check in sorted({False, True} if window > 1 else {True}):
-            g = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(g, pool=pool):
-                run(check)
-            pool = g.pool()
-            replay[check] = g.replay
-    first = 1 if graphs else 0
-    for k in range(first, max_iter):
-        check = (k + 1) % window == 0
-        (replay[check] if graphs else (lambda c=check: run(c)))()
-        if (check or k + 1 == max_iter) and not bool(active.any()):
+        events[1].record()
+        g = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(g):
+            run()
+        events[2].record()
+        replay = g.replay
+    for k in range(1 if graphs else 0, max_iter):
+        replay()
+        if ((k + 1) % window == 0 or k + 1 == max_iter) and not bool(active.any()):
             break
-    return dict(state=S, **flags)
+    if graphs:
+        events[3].record()
+    return dict(state=S, **flags, events=events)

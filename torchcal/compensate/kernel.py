@@ -201,24 +201,17 @@ class FlangeKernel:
         a = sin(t)/t, b = (1 - cos t)/t², t = |w|.
         """
         t2 = (eps * eps).sum(1)
-        # |eps| < 0.01 rad (any real robot): the Taylor series of sin(t)/t and
-        # (1 - cos t)/t² to t^8 is exact to rounding there (next term < 1e-22),
-        # and needs no sqrt/sin/cos
+        # |eps| < 0.01 rad (any real robot): the Taylor series of sin(t)/t and (1 - cos t)/t² to t^8 is exact to
+        # rounding there (next term < 1e-22). Each row picks its series, as the compiled kernel does: a row's pose
+        # does not depend on the batch it came in, and no host synchronization asks whether every row may take
+        # the series (none could be captured in a CUDA graph, :mod:`.damped_graph`)
         taylor = t2 < 1e-4
         a_t = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0 * (1.0 - t2 / 42.0 * (1.0 - t2 / 72.0)))
         b_t = 0.5 * (1.0 - t2 / 12.0 * (1.0 - t2 / 30.0 * (1.0 - t2 / 56.0 * (1.0 - t2 / 90.0))))
-        # off the CPU each row picks its series: asking the host whether all rows may take the Taylor series
-        # would synchronize every evaluation (and no CUDA graph could hold it, :mod:`.damped_graph`)
-        if eps.device.type == "cpu" and bool(taylor.all()):
-            a, b = a_t, b_t
-        else:
-            small = t2 < 1e-8
-            t2s = torch.where(small, torch.ones_like(t2), t2)
-            t = torch.sqrt(t2s)
-            a = torch.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, torch.sin(t) / t)
-            b = torch.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - torch.cos(t)) / t2s)
-            if eps.device.type != "cpu":
-                a, b = torch.where(taylor, a_t, a), torch.where(taylor, b_t, b)
+        t2s = torch.where(taylor, torch.ones_like(t2), t2)
+        t = torch.sqrt(t2s)
+        a = torch.where(taylor, a_t, torch.sin(t) / t)
+        b = torch.where(taylor, b_t, (1.0 - torch.cos(t)) / t2s)
         R = (b[:, None] * eps)[:, :, None, :] * eps[:, None, :, :]
         d = 1.0 - b * t2
         for i in range(3):

@@ -15,7 +15,8 @@ if [ "$1" = "--compensation" ]; then  # compensation alone (~5 min): its CUDA te
   # and off side by side (bench/gpu_compensation_probe.py), then the bench's compensation rows quiet and loaded
   python3 -m torchcal.cli compile --only targets,damped,flange > $OUT/compile.txt 2>&1 &  # the CPU side's kernels
   timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/compensate/test_det_sign.py \
-    tests/compensate/test_damped_fixed_shape.py -k "compensation or damped or det" 2>&1 | tail -4
+    tests/compensate/test_damped_fixed_shape.py -k "not cartesian" 2>&1 | tail -4
+  TORCHCAL_NO_NUMBA=1 timeout 90 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py -k cartesian 2>&1 | tail -1
   timeout 150 python3 bench/gpu_compensation_probe.py 2>&1 | tee $OUT/probe.txt | grep -E "graphs|best|NVIDIA"
   wait; tail -2 $OUT/compile.txt | head -1
   timeout 100 taskset -c 0,1 python3 bench/gpu.py --cpu-threads 2 --only compensation 2>&1 | tee $OUT/comp_quiet.txt | tail -4

@@ -13,16 +13,18 @@ python3 -c "import torch, numpy, numba; print('torch', torch.__version__, torch.
 lscpu | grep -E "Model name|^CPU\(s\)"
 if [ "$1" = "--compensation" ]; then  # compensation alone (~5 min): its CUDA tests, the damped path's graphs on
   # and off side by side (bench/gpu_compensation_probe.py), then the bench's compensation rows quiet and loaded
-  python3 -m torchcal.cli compile --only targets,damped,flange > $OUT/compile.txt 2>&1 &  # the CPU side's kernels
+  # the CPU side's kernels; FLEET=1: the fleet's row too (quiet), PROBE=0: no graphs on/off probe
+  python3 -m torchcal.cli compile --only targets,damped,flange${FLEET:+,fleet} > $OUT/compile.txt 2>&1 &
   timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/compensate/test_det_sign.py \
     tests/compensate/test_damped_fixed_shape.py -k "not cartesian" 2>&1 | tail -4
   TORCHCAL_NO_NUMBA=1 timeout 90 python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py -k cartesian 2>&1 | tail -1
-  timeout 150 python3 bench/gpu_compensation_probe.py 2>&1 | tee $OUT/probe.txt | grep -E "graphs|best|NVIDIA"
+  [ "$PROBE" = 0 ] || timeout 150 python3 bench/gpu_compensation_probe.py 2>&1 | tee $OUT/probe.txt | grep -E "graphs|best|NVIDIA"
   wait; tail -2 $OUT/compile.txt | head -1
   timeout 100 taskset -c 0,1 python3 bench/gpu.py --cpu-threads 2 --only compensation 2>&1 | tee $OUT/comp_quiet.txt | tail -4
   taskset -c 0 python3 -c "while True: pass" & C=$!
   timeout 100 taskset -c 0,1 python3 bench/gpu.py --cpu-threads 2 --only compensation 2>&1 | tee $OUT/comp_loaded.txt | tail -4
   kill $C
+  [ -z "$FLEET" ] || timeout 150 taskset -c 0,1 python3 bench/gpu.py --units 100 --cpu-threads 2 --only fleet 2>&1 | tee $OUT/fleet_quiet.txt | tail -2
   exit 0
 fi
 if [ "$1" = "--fleet" ]; then  # the fleet (~6 min): the CUDA tests, the fleet's ratio quiet and loaded, with

@@ -80,7 +80,7 @@ class Measurements:
         index = index.to(self.q.device)
         return replace(self, q=self.q[index], tool=self.tool[index], xyz=self.xyz[index],
                        direction=self.direction[index], pose=self.pose[index], rows=self.rows[index.cpu()],
-                       extra={k: v[index] for k, v in self.extra.items()})
+                       extra={k: v[index.to(v.device)] for k, v in self.extra.items()})
 
     def poses_subset(self, pose_ids) -> "Measurements":
         """All rows whose pose id is in pose_ids."""

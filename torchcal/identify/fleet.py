@@ -106,9 +106,9 @@ class FleetProblem(BatchedProblem):
     model: zero error; a model loaded with a fleet mean starts there). structured: the factored Jacobian where the model has one (else
     dense A by ``vmap``); dense_normal: with the factored Jacobian, the normal matrix from the dense A it
     expands to (one large product, what a GPU is fast at) instead of per-pose Gram blocks.
-    Each unit's rows are held pose by pose (``units``, ``stack`` and everything per row: :func:`pose_groups`);
-    ``row_order[m]`` gives, for each of them, its row in the unit's data (:func:`fit_fleet` maps the joint
-    errors of its results back).
+    On the CPU each unit's rows are held pose by pose (``units``, ``stack`` and everything per row:
+    :func:`pose_groups`); ``row_order[m]`` gives, for each of them, its row in the unit's data (:func:`fit_fleet`
+    maps the joint errors of its results back). Elsewhere the rows keep the data's order (row_order None).
     """
 
     def __init__(self, make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
@@ -128,10 +128,17 @@ class FleetProblem(BatchedProblem):
         dev = superset.device
         # each unit's rows pose by pose, as the factored kernels walk them (structured.slots_of): in the data's
         # order (tool-major) a pose's rows lie far apart, and the kernels' reads jumped by a row's 1.4 kB of
-        # factors at every row (the final per-row pass ran 3x slower); row_order maps back (FitResult.v)
-        groups = pose_groups([u.q for u in units], [u.direction if u.has_direction else None for u in units])
-        self.row_order = [order for _, order, _ in groups]
-        units = [u.subset(o).to(dev) for u, o in zip(units, self.row_order)]
+        # factors at every row (the final per-row pass ran 3x slower); row_order maps back (FitResult.v). A GPU's
+        # dense form reads no pose's rows together: there the grouping (a host copy of every unit's commands)
+        # and the units' reordering (gathers and host syncs per unit: 0.28 -> 0.36 s for 100 FANUCs on an
+        # H200) are skipped
+        groups, self.row_order = None, None
+        if dev.type == "cpu":
+            groups = pose_groups([u.q for u in units], [u.direction if u.has_direction else None for u in units])
+            self.row_order = [order for _, order, _ in groups]
+            units = [u.subset(o).to(dev) for u, o in zip(units, self.row_order)]
+        else:
+            units = [u.to(dev) for u in units]
         noises = list(noise) if isinstance(noise, (list, tuple)) else [noise] * M
         if len(noises) != M:
             raise ValueError(f"fit_fleet: {len(noises)} noise models for {M} units")
@@ -162,7 +169,11 @@ class FleetProblem(BatchedProblem):
             self.dense_normal = bool(dense_normal)
             self.workspace = Workspace()  # the solver's large temporaries, reused from one iteration to the next
             if not self.dense_normal:  # the per-pose Gram blocks' poses and basis values
-                self.slots = slots_of([tuple(t.to(dev) for t in g) for g in regrouped(groups)], R)
+                if groups is None:  # (off the CPU, in the data's order)
+                    groups = pose_groups([u.q for u in units], [u.direction if u.has_direction else None
+                                                                for u in units])
+                self.slots = slots_of([tuple(t.to(dev) for t in g)
+                                       for g in (groups if self.row_order is None else regrouped(groups))], R)
                 self.phi_p, self.pp = self._pose_basis()
                 self.unit_pp = None  # each unit's own pair products, formed at the first step (_pair_products)
             self.one_program = self._one_program()
@@ -187,7 +198,7 @@ class FleetProblem(BatchedProblem):
         sub = copy.copy(self)
         ix = torch.as_tensor(list(idx), dtype=torch.long, device=self.keep.device)
         sub.models, sub.units = [self.models[i] for i in idx], [self.units[i] for i in idx]
-        sub.row_order = [self.row_order[i] for i in idx]
+        sub.row_order = None if self.row_order is None else [self.row_order[i] for i in idx]
         sub.stack = {k: (v[ix] if torch.is_tensor(v) else v) for k, v in self.stack.items()}
         sub.unit_pp = None  # formed for its own units at its first step
         for name in ("rows", "scale", "w_v", "w_v_cost", "keep", "slots", "phi_p"):
@@ -201,7 +212,7 @@ class FleetProblem(BatchedProblem):
     def in_data_order(self, results) -> None:
         """Put the joint errors ``v`` of the units' :class:`FitResult` s (held pose by pose) back in each unit's
         data order, in place (padding rows stay last)."""
-        for r, order in zip(results, self.row_order):
+        for r, order in zip(results, self.row_order or []):
             v = r.v.clone()
             v[order.to(v.device)] = r.v[:order.numel()]
             r.v = v

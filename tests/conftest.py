@@ -89,6 +89,37 @@ def randomize(model, seed: int, rot: float = 2e-3, trans: float = 2e-4, decay: f
     return model
 
 
+@pytest.fixture(scope="module")
+def damped_problem(fanuc, tools_m):
+    """A randomized FANUC model, 400 commands, directions, their nominal poses T (a calibration-sized correction
+    away on the model) and poses `far` stretched out of reach: what the damped least squares' variants are
+    compared on (tests/compensate/test_damped_*.py)."""
+    from torchcal.models.robot import RobotModel
+
+    model = randomize(RobotModel(fanuc, tools_m, orders=4, backlash=True), 5, rot=3e-3, trans=3e-4)
+    q = random_commands(fanuc, 400, 6)
+    g = torch.Generator().manual_seed(7)
+    s = torch.where(torch.rand(q.shape, generator=g) < 0.5, -1.0, 1.0).double()
+    with torch.no_grad():
+        T = model.nominal_flange(q)
+    far = T.clone()
+    far[:, :3, 3] *= 1.0 + 0.5 * torch.rand(q.shape[0], 1, generator=g, dtype=torch.float64)  # many out of reach
+    return model, q, s, T, far
+
+
+def assert_reachable_alike(a, b, model, q):
+    """Two damped least squares results (a: a variant, b: the torch loop) on reachable targets: the same verdicts,
+    the same commands away from singular poses, converged to the residual bound, iteration counts within one."""
+    from torchcal.compensate.newton import nominal_sigma_min
+
+    assert torch.equal(a.converged, b.converged) and torch.equal(a.stationary, b.stationary)
+    clear = a.converged & (nominal_sigma_min(model, q) > 0.02)
+    assert int(clear.sum()) > 0.75 * q.shape[0]
+    assert float((a.q[clear] - b.q[clear]).abs().max()) < 1e-9
+    assert float(a.residual[a.converged].max()) <= 1e-12
+    assert (a.iterations[clear] - b.iterations[clear]).abs().max() <= 1
+
+
 def assert_point_jacobians_match_autograd(model, q, tool, s, v):
     """RobotModel.point_jacobians against torch.func.jacrev, every parameter group and v.
 

@@ -9,14 +9,12 @@ import math
 
 import pytest
 import torch
-from conftest import random_commands, randomize
+from conftest import assert_reachable_alike
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchcal.compensate.damped import damped_least_squares, spd_solve
 from torchcal.compensate.kernel import FlangeKernel
-from torchcal.compensate.newton import nominal_sigma_min
-from torchcal.models.robot import RobotModel
 
 
 @settings(max_examples=40, deadline=None)
@@ -37,16 +35,8 @@ def test_spd_solve_matches_lapack(seed, n, log_scale):
 
 
 @pytest.fixture(scope="module")
-def problem(fanuc, tools_m):
-    model = randomize(RobotModel(fanuc, tools_m, orders=4, backlash=True), 5, rot=3e-3, trans=3e-4)
-    q = random_commands(fanuc, 300, 6)
-    g = torch.Generator().manual_seed(7)
-    s = torch.where(torch.rand(q.shape, generator=g) < 0.5, -1.0, 1.0).double()
-    with torch.no_grad():
-        T = model.nominal_flange(q)
-    far = T.clone()
-    far[:, :3, 3] *= 1.0 + 0.5 * torch.rand(q.shape[0], 1, generator=g, dtype=torch.float64)  # many out of reach
-    return model, q, s, T, far
+def problem(damped_problem):
+    return damped_problem
 
 
 def _both(model, q0, target, s, **kw):
@@ -57,13 +47,7 @@ def _both(model, q0, target, s, **kw):
 
 def test_reachable_targets_same_solutions(problem):
     model, q, s, T, _ = problem
-    a, b = _both(model, q, T, s)
-    assert torch.equal(a.converged, b.converged) and torch.equal(a.stationary, b.stationary)
-    clear = a.converged & (nominal_sigma_min(model, q) > 0.02)
-    assert int(clear.sum()) > 200
-    assert float((a.q[clear] - b.q[clear]).abs().max()) < 1e-9
-    assert float(a.residual[a.converged].max()) <= 1e-12
-    assert (a.iterations[clear] - b.iterations[clear]).abs().max() <= 1
+    assert_reachable_alike(*_both(model, q, T, s), model, q)
 
 
 @pytest.mark.parametrize("kind", ["unbounded", "bounded", "tikhonov"])

@@ -159,13 +159,14 @@ def damped_least_squares(
     iterations for nothing a flagged row needs). DampedResult.blocked marks them.
 
     fixed_shape: finished rows stay in place, frozen, instead of leaving the working set, and the linear
-    solves are Cholesky's (:mod:`.damped_graph`: on a GPU the iterations are then replayed as CUDA graphs).
-    None: on a CUDA device (6-DOF, no gravity compliance) unless TORCHCAL_CUDA_GRAPHS=0.
+    solves are Cholesky's (:mod:`.damped_graph`: on a GPU the iterations are then replayed as CUDA graphs;
+    True also on the CPU, in torch ops instead of the compiled pass). None: on a CUDA device (6-DOF, no
+    gravity compliance) unless TORCHCAL_CUDA_GRAPHS=0.
     """
     M, n = q0.shape
     dtype, device = q0.dtype, q0.device
     ev = _Eval(kernel if kernel is not None else FlangeKernel(model))
-    if M and ev.k.fused is not None and axis is None:
+    if M and ev.k.fused is not None and axis is None and not fixed_shape:
         return _compiled(ev.k.fused, q0, target, direction, q_ref, tol, max_iter, damping, length, residual_tol,
                          stall_rtol, window, window_rtol, lam, max_step, max_correction, stop_at_bound)
     q_out = q0.clone()
@@ -271,8 +272,9 @@ def lu_solve(A: torch.Tensor, b: torch.Tensor):
 
 def spd_solve(A: torch.Tensor, b: torch.Tensor):
     """(M, n, n) symmetric positive definite, (M, n) -> x (M, n), ok (M,) bool: Cholesky unrolled over the n
-    columns, elementwise over the rows, with no host synchronization (a CUDA graph can hold it; cuSOLVER's
-    batched solves cannot be captured). A row that is not positive definite gets ok False (and a non-finite x)."""
+    columns, elementwise over the rows: nothing but elementwise kernels and no host synchronization, which a
+    CUDA graph can hold (torch.linalg.solve's CUDA path could not be captured, pytorch/pytorch#96632; solve_ex was
+    not tried). A row that is not positive definite gets ok False (and a non-finite x)."""
     n = A.shape[-1]
     At = A.permute(1, 2, 0).contiguous()  # (n, n, M): each entry a contiguous run of rows
     L = [[None] * n for _ in range(n)]
@@ -305,7 +307,7 @@ def spd_solve(A: torch.Tensor, b: torch.Tensor):
     return torch.stack(x, -1), ok
 
 
-def lm_step(o: _Options, S: dict, C: dict, check_window: bool, solve=lu_solve):
+def lm_step(o: _Options, S: dict, C: dict, check_window: bool | torch.Tensor, solve=lu_solve):
     """One Levenberg-Marquardt iteration of every row of S (the state: q, r, de, Jr, near, cost, mu, nu, it,
     step, cost_ref, hits; C: the rows' targets, directions, references), as pure tensor functions.
 

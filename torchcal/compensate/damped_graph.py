@@ -6,9 +6,11 @@ On a GPU one Levenberg-Marquardt iteration of :func:`.damped.damped_least_square
 synchronizes once an iteration to drop finished rows. Here the rows keep their places: a finished row is frozen
 (every state update masked by ``active``), so every iteration has the same shapes and is captured once as a
 CUDA graph and replayed, one launch an iteration. The host asks whether any row is still active once per
-window of iterations; the iteration count and the window's progress test live on the device. Each row follows exactly the eager loop's iteration (the same :func:`.damped.lm_step`); the
-linear solve is an unrolled Cholesky (:func:`.damped.spd_solve`) instead of cuSOLVER's LU, which cannot be
-captured, so results agree with the eager loop to rounding.
+window of iterations; the iteration count and the window's progress test live on the device. Each row
+follows exactly the eager loop's iteration (the same :func:`.damped.lm_step`); the linear solve is an
+unrolled Cholesky (:func:`.damped.spd_solve`) instead of LAPACK's / cuSOLVER's LU, so results agree with the
+eager loop to rounding. Measured on an H200 (README, The GPU): the damped path's two calls of a 4·10^6-pose
+compensation took 85 + 80 ms against 135 + 134 ms eagerly.
 """
 
 from __future__ import annotations

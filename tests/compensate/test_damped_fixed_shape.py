@@ -105,3 +105,40 @@ def test_seven_axis_user_robot(iiwa, tools_m):
     with torch.no_grad():
         Fa, Fb = model.flange(a.q, s, base=False), model.flange(b.q, s, base=False)
     assert float((Fa - Fb)[a.converged].abs().max()) < 1e-11
+
+
+def test_failed_capture_falls_back_to_eager_iterations(problem, monkeypatch):
+    """A CUDA graph capture that fails (another torch or CUDA than the one verified) warns and runs the same
+    iterations eagerly: the answer is the graph-free loop's, bit for bit. torch.cuda is stood in for here (CPU),
+    with a capture that refuses to start."""
+    import contextlib
+
+    from torchcal.compensate import damped_graph
+
+    class Dummy:
+        def __init__(self, *a, **k):
+            pass
+
+        def record(self, *a):
+            pass
+
+        def wait_stream(self, *a):
+            pass
+
+    @contextlib.contextmanager
+    def refused(*a, **k):
+        raise RuntimeError("operation not permitted when stream is capturing")
+        yield
+
+    model, q, s, T, far = problem
+    k = FlangeKernel(model, fused=False)
+    plain = damped_least_squares(model, q, far, s, kernel=k, fixed_shape=True)
+    inner = damped_graph.solve_fixed_shape
+    monkeypatch.setattr(damped_graph, "solve_fixed_shape", lambda *a, **kw: inner(*a, **{**kw, "graphs": True}))
+    for name, value in (("Event", Dummy), ("Stream", Dummy), ("CUDAGraph", Dummy), ("graph", refused),
+                        ("stream", lambda *a: contextlib.nullcontext()), ("current_stream", lambda *a: Dummy())):
+        monkeypatch.setattr(torch.cuda, name, value)
+    with pytest.warns(RuntimeWarning, match="could not be captured"):
+        fell_back = damped_least_squares(model, q, far, s, kernel=k, fixed_shape=True)
+    for f in ("q", "converged", "iterations", "pose_error", "step", "blocked", "stationary"):
+        assert torch.equal(getattr(plain, f), getattr(fell_back, f)), f

@@ -15,6 +15,8 @@ compensation took 85 + 80 ms against 135 + 134 ms eagerly.
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 
@@ -71,10 +73,17 @@ def solve_fixed_shape(step, S: dict, C: dict, max_iter: int, window: int, graphs
         torch.cuda.current_stream(device).wait_stream(side)
         events[1].record()
         g = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(g):
-            run()
+        try:
+            with torch.cuda.graph(g):
+                run()
+            replay = g.replay
+        except RuntimeError as exc:
+            # a capture this torch / CUDA cannot take (verified on torch 2.11 + CUDA 13 only): nothing recorded
+            # ran, so the same iterations go on eagerly, launched one by one
+            warnings.warn(f"torchcal: the damped least squares' CUDA graph could not be captured ({exc}); its "
+                          "iterations run eagerly (TORCHCAL_CUDA_GRAPHS=0 skips the attempt)", RuntimeWarning,
+                          stacklevel=3)
         events[2].record()
-        replay = g.replay
     for k in range(1 if graphs else 0, max_iter):
         replay()
         if ((k + 1) % window == 0 or k + 1 == max_iter) and not bool(active.any()):

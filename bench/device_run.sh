@@ -11,7 +11,7 @@ else python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir 
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 NUMBA_CACHE_DIR=/tmp/numba-cache
 python3 -c "import torch, numpy, numba; print('torch', torch.__version__, torch.cuda.get_device_name(), 'numpy', numpy.__version__, 'numba', numba.__version__)"
 lscpu | grep -E "Model name|^CPU\(s\)"
-if [ "$1" = "--compensation" ]; then  # compensation alone (~5 min): its CUDA tests, the damped path's graphs on
+if [ "$1" = "--compensation" ]; then  # compensation alone (~3 min): its CUDA tests, the damped path's graphs on
   # and off side by side (bench/gpu_compensation_probe.py), then the bench's compensation rows quiet and loaded
   # the CPU side's kernels; FLEET=1: the fleet's row too (quiet), PROBE=0: no graphs on/off probe
   python3 -m torchcal.cli compile --only targets,damped,flange${FLEET:+,fleet} > $OUT/compile.txt 2>&1 &

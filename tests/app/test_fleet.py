@@ -190,7 +190,7 @@ def test_fleet_command_fails_only_the_unit_of_another_format(tmp_path, robot):
 
 
 def test_fleet_command_stops_at_fleet_ftol(tmp_path, robot):
-    """fleet.ftol governs the units' stopping (more iterations at 1e-8 than at the default); a bad value is refused
+    """fleet.ftol governs the units' stopping (more iterations at 1e-12 than at the default); a bad value is refused
     naming the key; a solver.ftol set in a fleet's config is warned about, not silently ignored."""
     from torchcal.app.config import FleetConfig
     from torchcal.app.fleet import run_fleet
@@ -200,7 +200,7 @@ def test_fleet_command_stops_at_fleet_ftol(tmp_path, robot):
     assert FleetConfig().ftol == FLEET_FTOL  # the config's default is the library's
     cfg = _write_fleet(tmp_path, robot, count=3)
     loose = run_fleet(cfg, out=tmp_path / "a")
-    tight = run_fleet(cfg, ["fleet.ftol=1e-8", "solver.ftol=1e-9"], out=tmp_path / "b")
+    tight = run_fleet(cfg, ["fleet.ftol=1e-12", "solver.ftol=1e-9"], out=tmp_path / "b")
     assert sum(r["iterations"] for r in tight.rows) > sum(r["iterations"] for r in loose.rows)
     assert any("solver.ftol" in w for w in tight.warnings) and not any("solver.ftol" in w for w in loose.warnings)
     with pytest.raises(ConfigError, match="fleet.ftol"):

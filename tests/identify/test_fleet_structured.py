@@ -60,6 +60,9 @@ def test_factored_jacobian_is_the_dense_one(problems, compiled):
                          st["xyz"])
     s = fact.scale[:, :, None] / fact.instrument.weight.sigma
     assert _rel(raw * s, f) < 1e-10
+    if compiled:  # a trial point's residual alone: the kernel's Jacobian-free pass, the same bits
+        assert torch.equal(fn(fact.superset, fact.structure, fact._params(X), st["q"], st["tool"], st["direction"], V,
+                              st["xyz"], jac=False), raw)
     assert _rel(Jv * s[..., None], C) < 1e-10
     Ad = dense_jacobian(E * s[..., None], Phi, fact.structure) * fact.keep[:, None, None, :]
     assert _rel(Ad, A) < 1e-10
@@ -183,6 +186,8 @@ def test_compiled_rows_are_the_torch_rows(problems):
     assert _rel(a.gx, b.gx) < 1e-10 and _rel(a.diag_x, b.diag_x) < 1e-10
     dbx = torch.randn(fact.M, st.size, generator=g, dtype=torch.float64)
     assert _rel(a.product(dbx), b.product(dbx)) < 1e-10
+    r = torch.randn(fact.M, fact.R, 3, generator=g, dtype=torch.float64)  # another residual (geodesic acceleration)
+    assert _rel(a.gradient(r), b.gradient(r)) < 1e-10
     for x, y in zip(a.finish(dbx), b.finish(dbx)):
         assert _rel(x, y) < 1e-10
     # units measured with one program: the shared pair products and basis values take the other contraction
@@ -377,3 +382,62 @@ def test_pose_groups_are_torch_uniques_rows(rows, poses, cols, seed, directions)
     slots = slots_of(pose_groups([q], [s]), rows)
     assert torch.equal(torch.sort(slots[slots < rows]).values, torch.arange(rows))  # every row in one slot
     assert bool((inv[slots.clamp(max=rows - 1)][slots < rows] == torch.arange(inv_ref.max() + 1)[:, None].expand_as(slots)[slots < rows]).all())
+
+
+@pytest.mark.parametrize("form", ["dense", "torch", "compiled"])
+def test_a_steps_system_solved_again_is_the_step_for_that_residual(problems, form, monkeypatch):
+    """Resolve (geodesic acceleration's second solve) reuses a step's damped system: for another residual r it
+    gives what a fresh step with r for the residual and no prior offsets (V = 0, X at the prior mean) gives."""
+    dense, fact, X, g = problems
+    if form == "compiled" and not fleet_kernel.available("cpu"):
+        pytest.skip("numba not importable")
+    if form == "torch":
+        monkeypatch.setattr(fleet_kernel, "available", lambda device: False)
+    V = 2e-5 * torch.randn(fact.M, fact.R, fact.n, generator=g, dtype=torch.float64) * fact.rows[..., None]
+    mu = torch.tensor([1e-8, 1e-3, 1e-1], dtype=torch.float64)
+    w = torch.arange(fact.M)
+    r = torch.randn(fact.M, fact.R, 3, generator=g, dtype=torch.float64) * fact.rows[..., None]
+    zero_v, zero_x = torch.zeros_like(V), torch.zeros_like(X)
+    if form == "dense":
+        f, A, C = dense.linearize(X, V, w)
+        *_, resolve = schur_steps(f, A, C, dense.w_v, V, dense.lam, X - dense.mean, mu, dense.keep, again=True)
+        fresh = schur_steps(r, A, C, dense.w_v, zero_v, dense.lam, zero_x, mu, dense.keep)[0]
+    else:
+        lin = fact.linearize(X, V, w)
+        args = (fact.structure, fact.slots, fact.w_v)
+        *_, resolve = structured_steps(lin, *args, V, fact.lam, X - fact.mean, mu, fact.keep, again=True)
+        fresh = structured_steps((r, *lin[1:]), *args, zero_v, fact.lam, zero_x, mu, fact.keep)[0]
+    assert _rel(resolve(r), fresh) < 1e-10
+    assert resolve.scale.shape == X.shape and bool((resolve.scale >= 0).all())
+
+
+def test_geodesic_acceleration_reaches_each_units_optimum_in_fewer_iterations():
+    """A fleet solved with geodesic acceleration lands where the plain Levenberg-Marquardt solve lands (each
+    unit's own optimum), in fewer unit iterations: units of Paper II's FANUC truth (own truths, own programs,
+    random approach directions) whose first steps bend along the wrist's coupled rotations."""
+    from torchcal.identify.batched import solve_batched
+    from torchcal.identify.fleet import FLEET_FTOL
+
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    noise = torchcal.NoiseModel.from_robot(robot)
+    fleet = fleet_truths(robot, TOOLS, 4, 1, [2])
+    lim = robot.joint_map.limits
+    units = []
+    for k, t in enumerate(fleet.truths):
+        q = torchcal.sim.quasi_random_commands(lim, 60, 5 + k)
+        g = torch.Generator().manual_seed(k)
+        d = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+        units.append(torchcal.simulate(t, q, [0, 1, 2], noise, 30 + k, directions=d))
+
+    def make():
+        return torchcal.RobotModel(robot, TOOLS, orders=4, backlash=True)
+
+    def solve(ftol, accelerate):
+        out = solve_batched(FleetProblem(make, units, noise), ftol=ftol, accelerate=accelerate).results
+        assert all(r.success for r in out)
+        return out
+
+    for p, f in zip(solve(1e-10, False), solve(1e-10, True)):  # to the optimum (seen: 1e-11 apart)
+        assert abs(f.fun - p.fun) <= 1e-8 * p.fun
+    # at the fleet's own tolerance (seen: 18 unit iterations against 14)
+    assert sum(r.nit for r in solve(FLEET_FTOL, True)) <= sum(r.nit for r in solve(FLEET_FTOL, False)) - 2

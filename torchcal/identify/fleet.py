@@ -164,6 +164,8 @@ class FleetProblem(BatchedProblem):
         if gauge:
             keep = keep & ~self._pins(keep, noises[0], prior, fixed, gauge_units)
         self.keep = keep
+        # geodesic acceleration (solve_batched): measured on the CPU only, so off elsewhere until it is
+        self.accelerate = dev.type == "cpu"
         # the factored Jacobian (torchcal.identify.structured) where the model has one, else dense A
         self.structure = None
         self.dense_normal = False
@@ -267,7 +269,7 @@ class FleetProblem(BatchedProblem):
         return phi, (pair_basis(phi[0], self.n).contiguous() if shared else None)
 
     @torch.no_grad()
-    def linearize(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor, slot: int | None = None):
+    def linearize(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor, slot: int | str | None = None):
         """Whitened residual f (m, R, d), parameter Jacobian A (m, R, d, P) and joint-error Jacobian C
         (m, R, d, n) of the units ``which`` (m,) at X (m, P), V (m, R, n), each on its own rows (factored where
         the model allows: f, C, E, Phi, Phi_p). slot: the compiled factored outputs are written into the
@@ -302,35 +304,46 @@ class FleetProblem(BatchedProblem):
         kf = self.keep[which].to(A)
         return f * s, A * s[..., None] * kf[:, None, None, :], C * s[..., None]
 
-    def _factored(self, X, V, w, q, tool, obs, slot=None):
+    @torch.no_grad()
+    def residual(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor, slot: int | str | None = None):
+        """The whitened residual f (m, R, d) alone of the units ``which`` at X (m, P), V (m, R, n), for a point
+        whose Jacobian no step reads (the compiled kernel skips it; elsewhere :meth:`linearize`'s first part)."""
+        st, w = self.stack, which.to(self.stack["q"].device)
+        if self.structure is None or not fleet_kernel.available(w.device):
+            return self.linearize(X, V, which, slot)[0]
+        return self._factored(X, V, w, st["q"][w], st["tool"][w], st["xyz"][w], slot, jac=False)
+
+    def _factored(self, X, V, w, q, tool, obs, slot=None, jac=True):
         """Whitened residual f (m, R, d), joint-error Jacobian C (m, R, d, n) and the factored parameter
-        Jacobian (E (m, R, d, Q), Phi (m, R, n, K), each pose's Phi_p (m, Pp, n, K) at its command) of the units w."""
+        Jacobian (E (m, R, d, Q), Phi (m, R, n, K), each pose's Phi_p (m, Pp, n, K) at its command) of the units w
+        (jac False, compiled: f alone)."""
         st = self.stack
         direction = st["direction"][w] if st["has_direction"] else None
         s = self.scale[w] / self.instrument.weight.sigma
         if fleet_kernel.available(q.device):  # whitened in the kernel: a pass over E the less
             out = None if slot is None else (lambda name, shape, like: self.workspace.take(f"lin{slot}.{name}", shape, like))
-            f, Jv, E, Phi = factored_linearization_fused(self.superset, self.structure, self._params(X), q, tool,
-                                                         direction, V, obs, scale=s, out=out)
-            return (f, Jv, E, Phi) if self.dense_normal else (f, Jv, E, Phi, self.phi_p[w])
+            lin = factored_linearization_fused(self.superset, self.structure, self._params(X), q, tool, direction, V,
+                                               obs, scale=s, out=out, jac=jac)
+            return lin if not jac or self.dense_normal else (*lin, self.phi_p[w])
         raw, Jv, E, Phi = factored_linearization(self.superset, self.structure, self._params(X), q, tool, direction, V,
                                                  obs)
         s = s[:, :, None]
         out = raw * s, Jv * s[..., None], E * s[..., None], Phi
         return out if self.dense_normal else (*out, self.phi_p[w])
 
-    def step(self, lin, V, dX, mu, which):
+    def step(self, lin, V, dX, mu, which, again: bool = False):
         """Damped Gauss-Newton steps of the units ``which`` (factored where the model allows, else dense)."""
         if self.structure is None:
-            return super().step(lin, V, dX, mu, which)
+            return super().step(lin, V, dX, mu, which, again)
         if self.dense_normal:
             f, C, E, Phi = lin
             A = dense_jacobian(E, Phi, self.structure) * self.keep[which].to(E)[:, None, None, :]
-            return schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which])
+            return schur_steps(f, A, C, self.w_v[which], V, self.lam, dX, mu, self.keep[which], again=again)
         # one program at a common point (the first step of a fresh fleet): one normal matrix for every unit
         shared = self._common(dX, V) and bool((mu == mu[:1]).all())
         return structured_steps(lin, self.structure, self.slots[which], self.w_v[which], V, self.lam, dX, mu,
-                                self.keep[which], pp=self._pair_products(which), ws=self.workspace, shared=shared)
+                                self.keep[which], pp=self._pair_products(which), ws=self.workspace, shared=shared,
+                                again=again)
 
     def _pair_products(self, which: torch.Tensor) -> torch.Tensor | None:
         """The pair products (:func:`pair_basis`) for a step of the units ``which``: the shared ones where every

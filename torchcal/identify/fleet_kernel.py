@@ -98,10 +98,11 @@ def _mm(out, x, y):
 
 @njit(parallel=True, nogil=True, cache=True)
 def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, coupling, offset, ecoup, eoff,
-                   lo, width, oR, op, axes, prismatic, tipR, tipp, Kc, Kb, A, obs, scale, p_out, Jv_out, E_out, Phi_out):
+                   lo, width, oR, op, axes, prismatic, tipR, tipp, Kc, Kb, A, obs, scale, p_out, Jv_out, E_out, Phi_out,
+                   jac):
     """Residuals p_out (B, 3) (tool point - obs (B, 3)), Jv_out (B, 3, n), factored E_out (B, 3, n A + 6 + 3 T),
     each times the row's scale (B,) (the whitening, where a copy per output would cost more than the row), and
-    Phi_out (B, n, K) of rows
+    Phi_out (B, n, K) of rows (jac False: the residuals alone, the other outputs untouched; Phi_out's K is read)
     qv (B, n) (commands plus joint errors), s (B, n), tool (B,), unit (B,): every unit's masked coef
     (M, n, 6, Kc), backlash (M, n, Kb), base T0 (M, 3, 3) / (M, 3), its twist Jacobian factors RJb, Rbb
     (M, 3, 3) and tool points pts (M, T, 3)."""
@@ -147,7 +148,7 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
                     dbs[i, 1] = 1.0
                 for k in range(2, K):
                     bs[i, k] = 2.0 * lam * bs[i, k - 1] - bs[i, k - 2]
-                    dbs[i, k] = 2.0 * bs[i, k - 1] + 2.0 * lam * dbs[i, k - 1] - dbs[i, k - 2]
+                    dbs[i, k] = (2.0 * bs[i, k - 1] + 2.0 * lam * dbs[i, k - 1] - dbs[i, k - 2]) if jac else 0.0
                 sc = 2.0 / width[i]
                 for k in range(K):
                     dbs[i, k] *= sc
@@ -210,6 +211,8 @@ def linearize_rows(qv, s, use_s, tool, unit, coef, bl, T0R, T0p, RJb, Rbb, pts, 
             x2 = Rn[2, 0] * t0 + Rn[2, 1] * t1 + Rn[2, 2] * t2 + p2
             sc = scale[r]
             p_out[r, 0], p_out[r, 1], p_out[r, 2] = (x0 - obs[r, 0]) * sc, (x1 - obs[r, 1]) * sc, (x2 - obs[r, 2]) * sc
+            if not jac:
+                continue
             for q in range(E_out.shape[2]):
                 E_out[r, 0, q] = 0.0
                 E_out[r, 1, q] = 0.0
@@ -378,11 +381,12 @@ def available(device) -> bool:
 
 
 @torch.no_grad()
-def factored_linearization_fused(model, st, params: dict, q, tool, direction, v, obs, scale=None, out=None):
+def factored_linearization_fused(model, st, params: dict, q, tool, direction, v, obs, scale=None, out=None,
+                                 jac: bool = True):
     """:func:`torchcal.identify.structured.factored_linearization` by :func:`linearize_rows` (same arguments,
     same results to rounding). scale: (m, R) each row's whitening, applied to the residual, Jv and E (None: 1).
     out: (name, shape, like) -> the tensor to write an output into (a :class:`~.workspace.Workspace`'s take
-    bound to a slot; None: allocated)."""
+    bound to a slot; None: allocated). jac: False, the residual (m, R, 3) alone (a trial point's)."""
     from ..kinematics.transforms import so3_exp, twist_to_transform
     from ..models.jacobian import so3_right_jacobian
 
@@ -407,8 +411,9 @@ def factored_linearization_fused(model, st, params: dict, q, tool, direction, v,
         def out(name, shape, like):
             return like.new_empty(shape)
     like = q.new_empty(0, dtype=torch.float64)
-    p_out, Jv = out("p", (B, 3), like), out("Jv", (B, 3, n), like)
-    E, Phi = out("E", (B, 3, st.ne + st.Nd), like), out("Phi", (B, n, st.K), like)
+    p_out = out("p", (B, 3), like)
+    rows = B if jac else 1  # a residual alone: the other outputs only lend the kernel their shapes
+    Jv, E, Phi = out("Jv", (rows, 3, n), like), out("E", (rows, 3, st.ne + st.Nd), like), out("Phi", (rows, n, st.K), like)
     sc = torch.ones(B, **f64) if scale is None else scale.reshape(B).to(**f64)
     npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
     with dynamic():
@@ -417,7 +422,10 @@ def factored_linearization_fused(model, st, params: dict, q, tool, direction, v,
                        npy(model.error_offset), npy(je.ranges[:, 0]), npy(je.ranges[:, 1] - je.ranges[:, 0]),
                        npy(model.origins[:, :3, :3]), npy(model.origins[:, :3, 3]), npy(model.axes),
                        npy(model.prismatic), npy(model.tip[:3, :3]), npy(model.tip[:3, 3]), st.Kc, Kb, st.A,
-                       npy(obs.reshape(B, 3).to(**f64)), npy(sc), p_out.numpy(), Jv.numpy(), E.numpy(), Phi.numpy())
+                       npy(obs.reshape(B, 3).to(**f64)), npy(sc), p_out.numpy(), Jv.numpy(), E.numpy(), Phi.numpy(),
+                       bool(jac))
+    if not jac:
+        return p_out.view(m, R, 3)
     return p_out.view(m, R, 3), Jv.view(m, R, 3, n), E.view(m, R, 3, -1), Phi.view(m, R, n, st.K)
 
 

@@ -84,6 +84,32 @@ linear and the prior keeps it positive definite, so undamped Gauss-Newton steps 
 textbook start) damped the near-redundant combinations the prior holds, and a FANUC order-6 fit took 25 iterations
 instead of 7 to reach the same optimum (a rejected first step raises the damping at once)."""
 
+GEODESIC_H = 0.1
+"""The finite-difference step (a fraction of the Gauss-Newton step) for the residual's second directional
+derivative in :func:`second_directional` (Transtrum & Sethna 2012 use 0.1)."""
+
+GEODESIC_ALPHA = 0.75
+"""Geodesic acceleration is kept only while 2 |a| <= alpha |delta| in Marquardt's scaling (Transtrum & Sethna):
+beyond it the second-order term is no correction but a sign that the step left the region the model describes."""
+
+
+def second_directional(f: torch.Tensor, f_h: torch.Tensor, lin: torch.Tensor, h: float = GEODESIC_H) -> torch.Tensor:
+    """The residual's second directional derivative along a Gauss-Newton step, by one extra residual
+    (Transtrum & Sethna, "Improvements to the Levenberg-Marquardt algorithm for nonlinear least-squares
+    minimization", 2012): r_vv ~ (2 / h) ((r(x + h delta) - r(x)) / h - J delta).
+
+    f: r(x), f_h: r(x + h delta), lin: r(x) + J delta (the step's linearized residual), any equal shapes,
+    e.g. (m, R, d). -> r_vv, the same shape. The acceleration a solves the step's damped system with r_vv for
+    the residual; the step taken is delta + a / 2.
+    """
+    return (2.0 / h) * ((f_h - f) / h - (lin - f))
+
+
+def acceleration_kept(a: torch.Tensor, db: torch.Tensor, scale: torch.Tensor, alpha: float = GEODESIC_ALPHA) -> torch.Tensor:
+    """(m,) bool: whether each model's acceleration a (m, P) is small enough beside its step db (m, P) to be taken,
+    2 |a| <= alpha |db| with both measured in ``scale`` (m, P), Marquardt's diagonal: unit-free."""
+    return 2.0 * (a * scale).norm(dim=-1) <= alpha * (db * scale).norm(dim=-1)
+
 
 def levenberg_marquardt(
     problem: CalibrationProblem,

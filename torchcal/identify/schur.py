@@ -25,11 +25,12 @@ def inv3_sym(G: torch.Tensor) -> torch.Tensor:
     return torch.stack([A, B, C, B, D, E, C, E, F], -1).reshape(G.shape) / det[..., None, None]
 
 
-def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
+def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep, again: bool = False):
     """Damped Gauss-Newton steps of m models at once (the batched :func:`~torchcal.identify.lm._schur_step`).
 
     f (m, R, d), A (m, R, d, P), C (m, R, d, n), w_v (m, R, n), V (m, R, n), lam (P,), dx (m, P), mu (m,),
-    keep (m, P). -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d).
+    keep (m, P). -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d); with ``again``, also
+    :class:`Resolve`: the same damped system solved for another residual (geodesic acceleration).
 
     Each row's joint errors are eliminated in Woodbury form. Their damped block is
     H_vv = C^T C + D, D = (1 + mu) w_v + mu diag(C^T C) diagonal, so the row's projector
@@ -66,7 +67,31 @@ def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep):
     u = (Mr * (C * Dy[..., None, :]).sum(-1)[..., None, :]).sum(-1)  # M C D^-1 y  (m, R, d)
     dv = (CD * u[..., None]).sum(-2) - Dy  # -(D^-1 y - D^-1 C^T M C D^-1 y)
     lin = f + Adb + (C * dv[..., None, :]).sum(-1)
-    return db, dv, lin
+    if not again:
+        return db, dv, lin
+
+    def solve(r):
+        rr = (Mr * r[..., None, :]).sum(-1)
+        rhs = -(Af.transpose(1, 2) @ rr.reshape(m, -1, 1))[..., 0] * kf
+        out = torch.cholesky_solve(rhs[..., None], Ls)[..., 0]
+        if bool(bad.any()):
+            out[bad] = torch.linalg.lstsq(S[bad], rhs[bad][..., None]).solution[..., 0]
+        return out
+
+    return db, dv, lin, Resolve(solve, diag_bb.sqrt())
 
 
-__all__ = ["inv3_sym", "schur_steps"]
+class Resolve:
+    """A step's damped system, kept to be solved again for another whitened residual r (m, R, d), with the
+    priors' terms zero: ``resolve(r)`` -> the parameter part (m, P) (the joint errors eliminated as in the
+    step). ``scale`` (m, P): Marquardt's scaling of the parameters (the square root of the system's diagonal
+    before damping), to measure a step in. Valid until the solver's next step (it may share buffers)."""
+
+    def __init__(self, solve, scale: torch.Tensor):
+        self._solve, self.scale = solve, scale
+
+    def __call__(self, r: torch.Tensor) -> torch.Tensor:
+        return self._solve(r)
+
+
+__all__ = ["Resolve", "inv3_sym", "schur_steps"]

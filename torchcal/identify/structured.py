@@ -65,6 +65,7 @@ from ..core import blas, hugepages
 from ..kinematics.fk import chain_frames
 from ..kinematics.transforms import small_matmul, twist_to_transform
 from ..models.jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
+from .schur import Resolve
 from .workspace import Workspace
 
 GROUPS = ("joint_errors.coef", "joint_errors.backlash", "base.twist", "tools.delta")
@@ -371,7 +372,7 @@ def contract(parts, Phi_p: torch.Tensor, st: RobotStructure, pp: torch.Tensor | 
 
 def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, refine: int = 0,
                      tol: float = 1e-6, pp: torch.Tensor | None = None, ws: Workspace | None = None,
-                     shared: bool = False):
+                     shared: bool = False, again: bool = False):
     """Damped Gauss-Newton steps of m units from factored linearizations (the factored
     :func:`~torchcal.identify.schur.schur_steps`).
 
@@ -389,7 +390,9 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     shared: every unit's damped normal matrix is the first unit's (the caller vouches: the same rows, joint
     errors, parameters, damping and kept entries, as at a one-program fleet's common start): it is formed and
     factored once, and the units differ only in their right-hand sides.
-    -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d).
+    again: also return a :class:`~torchcal.identify.schur.Resolve`, the damped system (S's) solved for another
+    residual (geodesic acceleration): one pass over E with each row's projector, one triangular solve.
+    -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d) (, Resolve).
     The per-row work is compiled (:mod:`.fleet_kernel`) on the CPU, batched torch elsewhere.
     """
     from . import fleet_kernel
@@ -438,7 +441,15 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     if refine <= 0:
         dbx[:, idx] = db
         dv, lin_res = rows.finish(dbx)
-        return db, dv, lin_res
+        if not again:
+            return db, dv, lin_res
+
+        def resolve(r):
+            return solve(-rows.gradient(r)[:, idx] * kf)
+
+        return db, dv, lin_res, Resolve(resolve, diag_bb.sqrt())
+    if again:
+        raise ValueError("structured_steps: again is for refine=0 (the fleet's steps)")
     r = rhs - exact(db)
     z = solve(r)
     d = z.clone()
@@ -485,6 +496,13 @@ class _RowsTorch:
         self.diag_x = to_extended((E * E).sum(2), Phi * Phi, st)
         g = 1 if shared else m
         self.S = contract(gram_parts(E[:g], self.Mm[:g] @ E[:g], slots[:g], st), Phi_p[:g], st, pp)
+
+    def gradient(self, r):
+        """(m, size) the extended gradient of another whitened residual r (m, R, d), the joint errors' response
+        out and their prior term zero: E^T M r per row, as gx is of f."""
+        f, C, E, Phi, _ = self.lin
+        Mr = (self.Mm @ r[..., None])[..., 0]
+        return to_extended((E * Mr[..., None]).sum(2), Phi, self.st)
 
     def product(self, dbx):
         """(m, size) the extended A^T M A dbx, every row with its own basis values."""
@@ -539,6 +557,16 @@ class _RowsFused(_RowsTorch):
             if m > mg:
                 run(slice(mg, m), False)
         self.gx, self.diag_x = gx.sum(1), dg.sum(1)
+
+        def gradient(r):  # the rows' pass again without Gram blocks, r for f and no joint-error prior term
+            scratch = [torch.empty_like(t).numpy() for t in (self.Dinv, self.gv, self.Mm)]
+            g = torch.empty_like(gx)
+            with dynamic():
+                schur_rows(r.contiguous().numpy(), *args[1:4], np.zeros_like(args[4]), *args[5:], n, A, pair.numpy(),
+                           False, *scratch, *grams, g.numpy(), torch.empty_like(dg).numpy())
+            return g.sum(1)
+
+        self.gradient = gradient
         self.S = contract((Gs.permute(0, 2, 3, 4, 1), Gsd.permute(2, 0, 3, 4, 1), Gdd.sum(1), pi, pj), Phi_p[:mg], st,
                           pp, ws)
 

@@ -317,7 +317,8 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
 
     bp: a :class:`BatchedProblem` (models sharing the data) or anything with its surface
     (``M, R, n, d, layout, models, keep, w_v, lam, mean``, ``start()``, ``write(X)``,
-    ``linearize(X, V, which)``, ``cost_from(f, X, V, which)``), e.g. a fleet's units each with
+    ``linearize(X, V, which)``, ``cost_from(f, X, V, which)``; optionally ``step(lin, V, dX, mu, which, again)``,
+    ``residual(X, V, which)`` (a trial point's residual alone) and ``accelerate``), e.g. a fleet's units each with
     their own data (:class:`torchcal.identify.fleet.FleetProblem`).
     threads: the solve's CPU threads (None: by the work's size, :func:`~torchcal.core.threads.threads_for`);
     bar: a progress task to advance by the models finished (None: the solve's own, named ``label``).

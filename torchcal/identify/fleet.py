@@ -379,8 +379,8 @@ FLEET_FTOL = 1e-4
 1e-8). After ~4 iterations from zero a unit's cost is within ~1e-6 of its optimum, and the iterations to 1e-8
 move no prediction that matters: on 100 simulated FANUCs (experiments/fleet/run.py's fleet, order 6 + backlash)
 every unit's validation residual stayed within 0.023 % of its separate fit at 1e-8, its model error within 0.08 %,
-the same five units flagged, in 553 unit iterations instead of 771 (1e-5: 641 and 0.012 %; 1e-6: 687).
-The issue's bound is 1 %."""
+the same five units flagged, in 553 unit iterations instead of 771 (1e-5: 641 and 0.012 %; 1e-6: 687; all
+before geodesic acceleration, which brings 1e-4 to 380 unit iterations and 0.017 %). The issue's bound is 1 %."""
 
 
 def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,

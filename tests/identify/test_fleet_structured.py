@@ -414,7 +414,7 @@ def test_a_steps_system_solved_again_is_the_step_for_that_residual(problems, for
 def test_geodesic_acceleration_reaches_each_units_optimum_in_fewer_iterations():
     """A fleet solved with geodesic acceleration lands where the plain Levenberg-Marquardt solve lands (each
     unit's own optimum), in fewer unit iterations: units of Paper II's FANUC truth (own truths, own programs,
-    random approach directions) whose first steps bend along the wrist's coupled rotations."""
+    random approach directions), whose residuals curve along the first steps."""
     from torchcal.identify.batched import solve_batched
     from torchcal.identify.fleet import FLEET_FTOL
 

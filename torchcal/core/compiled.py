@@ -24,7 +24,7 @@ log = logging.getLogger("torchcal")
 
 FAMILIES = {
     "fleet": ("torchcal.identify.fleet_kernel", ("linearize_rows", "schur_rows", "apply_rows", "cholesky_rows",
-                                                  "cholesky_solve_rows", "gather_rows"), "about 45 s"),
+                                                  "cholesky_solve_rows", "gather_rows", "gradient_rows"), "about 45 s"),
     "flange": ("torchcal.compensate.fused", ("flange_soa",), "about 15 s"),
     "damped": ("torchcal.compensate.fused_damped", ("damped_soa",), "about 35 s"),
     "targets": ("torchcal.compensate.fused_targets", ("targets_soa",), "about 2.5 min"),

@@ -705,6 +705,48 @@ def schur_rows(f, C, E, Phi, V, w_v, mu, slots, n, A, pair, gram, Dinv_o, gv_o, 
 
 
 @njit(parallel=True, nogil=True, cache=True, fastmath=True)
+def gradient_rows(r, E, Phi, M, slots, n, A, gx_b):
+    """The extended gradient of another whitened residual r (m, R, d) through a step's row projectors M (m, R, d, d)
+    (:func:`schur_rows`' M_o): per block of poses (:func:`pose_blocks`), gx_b (m, NB, size) the sum over its rows of
+    E_r^T M_r r_r, each row with its own basis values Phi (m, R, n, K); the joint errors' prior term is zero. The
+    second right-hand side of geodesic acceleration: the projectors are read, not formed again, and no Gram
+    block is touched. d = 3 (point targets)."""
+    m, R, d, Q = E.shape
+    Pp, T = slots.shape[1], slots.shape[2]
+    K = Phi.shape[3]
+    ne = n * A
+    ns = ne * K
+    NB = gx_b.shape[1]
+    for b in prange(NB):
+        h = np.empty(Q)
+        for u in range(m):
+            gx_b[u, b] = 0.0
+        for p in range(b * _POSES, min(Pp, (b + 1) * _POSES)):
+            for u in range(m):
+                gxl = gx_b[u, b]
+                for t in range(T):
+                    row = slots[u, p, t]
+                    if row >= R:
+                        continue
+                    Mr, f = M[u, row], r[u, row]
+                    y0 = Mr[0, 0] * f[0] + Mr[0, 1] * f[1] + Mr[0, 2] * f[2]
+                    y1 = Mr[1, 0] * f[0] + Mr[1, 1] * f[1] + Mr[1, 2] * f[2]
+                    y2 = Mr[2, 0] * f[0] + Mr[2, 1] * f[1] + Mr[2, 2] * f[2]
+                    E0, E1, E2 = E[u, row, 0], E[u, row, 1], E[u, row, 2]
+                    for q in range(Q):
+                        h[q] = E0[q] * y0 + E1[q] * y1 + E2[q] * y2
+                    for i in range(n):
+                        Pt = Phi[u, row, i]
+                        for a in range(A):
+                            x = h[i * A + a]
+                            o = (i * A + a) * K
+                            for k in range(K):
+                                gxl[o + k] += x * Pt[k]
+                    for q in range(ne, Q):
+                        gxl[ns + q - ne] += h[q]
+
+
+@njit(parallel=True, nogil=True, cache=True, fastmath=True)
 def apply_rows(E, Phi, dbx, slots, n, A, final, M, Dinv, gv, f, C, sx_b, dv, lin):
     """A db of every row (E_r times the step's extended values weighted by the row's basis values), one task per
     block of poses (:func:`pose_blocks`), every unit's; final=False: the extended product A^T M A db, each block's

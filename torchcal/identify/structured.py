@@ -557,18 +557,18 @@ class _RowsFused(_RowsTorch):
             if m > mg:
                 run(slice(mg, m), False)
         self.gx, self.diag_x = gx.sum(1), dg.sum(1)
-
-        def gradient(r):  # the rows' pass again without Gram blocks, r for f and no joint-error prior term
-            scratch = [torch.empty_like(t).numpy() for t in (self.Dinv, self.gv, self.Mm)]
-            g = torch.empty_like(gx)
-            with dynamic():
-                schur_rows(r.contiguous().numpy(), *args[1:4], np.zeros_like(args[4]), *args[5:], n, A, pair.numpy(),
-                           False, *scratch, *grams, g.numpy(), torch.empty_like(dg).numpy())
-            return g.sum(1)
-
-        self.gradient = gradient
         self.S = contract((Gs.permute(0, 2, 3, 4, 1), Gsd.permute(2, 0, 3, 4, 1), Gdd.sum(1), pi, pj), Phi_p[:mg], st,
                           pp, ws)
+
+    def gradient(self, r):
+        from .fleet_kernel import dynamic, gradient_rows, pose_blocks
+
+        f, C, E, Phi = self.c
+        g = torch.empty(E.shape[0], pose_blocks(self.slots.shape[1]), self.st.size, dtype=E.dtype)
+        with dynamic():
+            gradient_rows(r.contiguous().numpy(), E.numpy(), Phi.numpy(), self.Mm.numpy(), self.slots.numpy(),
+                          self.st.n, self.st.A, g.numpy())
+        return g.sum(1)
 
     def _apply(self, dbx, final):
         from .fleet_kernel import apply_rows, dynamic, pose_blocks

@@ -391,7 +391,8 @@ def structured_steps(lin, st: RobotStructure, slots, w_v, V, lam, dx, mu, keep, 
     errors, parameters, damping and kept entries, as at a one-program fleet's common start): it is formed and
     factored once, and the units differ only in their right-hand sides.
     again: also return a :class:`~torchcal.identify.schur.Resolve`, the damped system (S's) solved for another
-    residual (geodesic acceleration): one pass over E with each row's projector, one triangular solve.
+    residual (geodesic acceleration): one pass over the rows with their projectors (the compiled
+    :func:`~.fleet_kernel.gradient_rows`), one triangular solve.
     -> db (m, P), dv (m, R, n), predicted linearized residual (m, R, d) (, Resolve).
     The per-row work is compiled (:mod:`.fleet_kernel`) on the CPU, batched torch elsewhere.
     """

@@ -378,16 +378,17 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
         return fresh[which] & (~first[which]) & (predicted >= 0) & (predicted <= 0.1 * ftol * cost[which])
 
     def step_chunk(c, wc, w):
-        """(db, dv, linearized residual, the acceleration to add to db) of the active models c:c+chunk."""
+        """(db, dv, linearized residual, predicted cost reduction (judged on db alone), the acceleration to add
+        to db) of the active models c:c+chunk."""
         wcc, ww = wc[c:c + chunk], w[c:c + chunk]
         lin_c = [take_entries(t, wcc, 0, ws, f"step{k}") for k, t in enumerate(lin)]
         out = step(lin_c, V[ww], X[ww] - bp.mean, mu[ww], ww)
         db, dv, lres = out[:3]
+        predicted = cost[ww] - bp.cost_from(lres, X[ww] + db, V[ww] + dv, ww)
         if not accelerate:
-            return db, dv, lres, None
+            return db, dv, lres, predicted, None
         # before the next chunk's step: the system may share the workspace's buffers
         resolve = out[3]
-        predicted = cost[ww] - bp.cost_from(lres, X[ww] + db, V[ww] + dv, ww)
         go = ~flat_test(predicted, ww)  # a model that stops here takes no trial point
         goc = on(go.cpu().nonzero()[:, 0])
         r = torch.zeros_like(lres)
@@ -399,7 +400,7 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             r[goc] = second_directional(lin_c[0][goc], f_h, lres[goc])
         a = resolve(r)
         kept = go & acceleration_kept(a, db, resolve.scale)
-        return db, dv, lres, torch.where(kept[:, None], 0.5 * a, torch.zeros_like(a))
+        return db, dv, lres, predicted, torch.where(kept[:, None], 0.5 * a, torch.zeros_like(a))
 
     with (limit_threads(threads) if threads else threads_for_work(work)), \
             (nullcontext(bar) if bar is not None else task(label, total=M)) as bar:
@@ -423,12 +424,11 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
             # steps of the active models, in chunks (memory); a chunk's linearizations are views where its models
             # are consecutive, else copies into the workspace
             steps = [step_chunk(c, wc, w) for c in range(0, w.numel(), chunk)]
-            db, dv, lres = (torch.cat(t) for t in list(zip(*steps))[:3])
+            db, dv, predicted = (torch.cat([s[k] for s in steps]) for k in (0, 1, 3))
             Xn, Vn = X[w] + db, V[w] + dv
-            predicted = cost[w] - bp.cost_from(lres, Xn, Vn, w)  # judged on delta, the acceleration apart
             flat = flat_test(predicted, w)
             if accelerate:
-                Xn = Xn + torch.cat([s[3] for s in steps])
+                Xn = Xn + torch.cat([s[4] for s in steps])
             flat_c = flat.cpu()
             needc = (~flat_c).nonzero()[:, 0]
             need, wlc = on(needc), wc[needc]

@@ -323,17 +323,17 @@ def fleet_cmd(
     rows = result.rows
     if len(rows) > FLEET_TABLE_ROWS:  # a plant's fleet: the units that need a look; every unit is in the files
         rows = [r for r in rows if r.get("status") != "fitted" or r.get("flagged") or not r.get("converged", True)
-                or r.get("determined") is False]
+                or r.get("determined") is False or r.get("changed")]
     caption = None if rows is result.rows else (
-        f"{len(rows)} of {len(result.rows)} units shown: failed, flagged, not converged or undetermined; every "
+        f"{len(rows)} of {len(result.rows)} units shown: failed, flagged, changed, not converged or undetermined; every "
         "unit in summary.csv and the fleet report")
     t = Table(title=f"Fleet: {len(result.rows)} units ({result.time:.1f} s, solve {result.solve_time:.1f} s)",
               caption=caption)
     cols = ["unit", "status", "converged", "identification_mean_mm", "validation_mean_mm", "validation_max_mm",
-            "outlier_score", "findings", "reason"]
+            "outlier_score", "findings", "change_rms_mm", "change", "reason"]
     cols = [c for c in cols if any(r.get(c) not in (None, "") for r in result.rows)]
     for c in cols:
-        t.add_column(c.replace("_mm", " (mm)").replace("_", " "), justify="left" if c in ("unit", "findings", "reason") else "right")
+        t.add_column(c.replace("_mm", " (mm)").replace("_", " "), justify="left" if c in ("unit", "findings", "change", "reason") else "right")
     for r in rows:
         t.add_row(*[f"{r[c]:.4f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
     _console().print(t)

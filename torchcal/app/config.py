@@ -222,6 +222,10 @@ class FleetConfig:
     """Relative cost reduction at which every unit's fit stops (torchcal.identify.fleet.FLEET_FTOL: each unit
     within a few hundredths of a percent of its own fit's residuals). solver.ftol is a single fit's and is not
     used here; 1e-8 gives the single fit's stopping point."""
+    baseline: Optional[str] = None
+    """An earlier ``torchcal fleet`` run directory of the same units: each unit fitted in both is compared with
+    its earlier model (the change at the tool, the joints that changed), and the units that changed far beyond
+    the fleet's own changes are named (torchcal.identify.fleet_change: a crash, a gearbox swap)."""
 
 
 @dataclass(frozen=True)

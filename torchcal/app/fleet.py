@@ -19,7 +19,8 @@ identification / validation mean and max in mm, ``determined``: whether the
 data hold as many equations as the model has parameters, the outlier score and
 what was flagged) and ``units/<name>/`` with the unit's own ``config.yaml`` (a
 ``torchcal fit`` of it refits that unit alone), ``model.pt`` (usable by
-``torchcal predict`` / ``compensate``) and ``metrics.json``.
+``torchcal predict`` / ``compensate``) and ``metrics.json``. With ``fleet.baseline`` (an earlier run of the
+same units) each unit is also compared with its earlier calibration (:mod:`.fleet_baseline`).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ from ..core.exceptions import ConfigError
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
 from .config import SolverConfig, config_from_text, load_config, to_yaml, updated
+from .fleet_baseline import KEY, baseline_units, check_structure, compare_with_baseline
+from .fleet_prior import fleet_backlash_orders
 
 log = logging.getLogger("torchcal")
 
@@ -52,6 +55,7 @@ class FleetRunResult:
     time: float = 0.0
     solve_time: float = 0.0
     warnings: list[str] = field(default_factory=list)  # what the data leave open, also in run.log
+    changes: list = field(default_factory=list)  # fleet.baseline: the units that changed since it
 
 
 def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
@@ -211,6 +215,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     label = cfg.config_file or "config"
     _check_fleet_config(cfg)
     files = unit_files(cfg)
+    baseline = baseline_units(cfg, label)  # (run, its fitted units) or None; a bad folder fails before any work
     robot = load_robot(cfg.robot)
     check_config(cfg, label, robot.joint_map.n)
     T = config_tool_count(cfg)
@@ -253,7 +258,13 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if not loaded:
             raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
         loaded = _same_format(loaded, rows, robot)
+        if baseline is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
+            cfg = updated(cfg, {"model.backlash": fleet_backlash_orders(baseline[0])})
+            log.info("backlash orders %s (model.backlash: true), the baseline's (%s)", cfg.model.backlash, KEY)
         cfg = _fleet_backlash(cfg, robot, loaded, warn)
+        if baseline is not None:
+            check_structure(*baseline, _factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(
+                config_orders(cfg, robot.joint_map.n)), label)
         thin = _data_checks(cfg, robot, T, loaded, warn)  # {unit: why}: fewer equations than parameters
         size = int(cfg.fleet.cell)
         cells = [[(n, i) for n, i, _ in loaded[c:c + size]] for c in range(0, len(loaded), size)]
@@ -303,6 +314,9 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 log.warning("flagged: %s", f)
         elif fitted:
             warn(f"outliers: {len(scored)} unit(s) with data enough to judge, at least 3 are needed; none scored")
+        if baseline is not None and fitted:
+            result.changes = compare_with_baseline(*baseline, fitted, idents, rows, run_dir,
+                                                   float(cfg.fleet.threshold), robot, device, warn)
         by_name = {name: (str(fi), None if fv is None else str(fv)) for name, fi, fv in files}
         for u, model in fitted:
             name = u["name"]
@@ -462,7 +476,8 @@ def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
                                         "engine": cfg.fleet.engine, "cell": int(cfg.fleet.cell),
                                         "model_backlash": cfg.model.backlash,  # as resolved for the whole fleet
                                         "threshold": float(cfg.fleet.threshold), "min_ratio": OUTLIER_MIN_RATIO,
-                                        "units": result.rows, "findings": [str(f) for f in result.findings]})
+                                        "units": result.rows, "findings": [str(f) for f in result.findings],
+                                        "baseline": cfg.fleet.baseline, "changes": [str(c) for c in result.changes]})
 
 
 __all__ = ["FleetRunResult", "fit_cell", "run_fleet", "unit_files"]

@@ -74,9 +74,15 @@ class FeatureScores:
 def feature_scores(models) -> FeatureScores:
     """:func:`joint_features` of every model, each feature standardized by the fleet's median and MAD."""
     feats = [joint_features(m) for m in models]
-    out = FeatureScores(list(models[0].joint_errors.joint_names), {}, {}, {}, {}, {})
-    for key in feats[0]:
-        F = torch.stack([f[key] for f in feats]).cpu().clamp(min=1e-15)  # (M, n)
+    return scores_from_values({key: torch.stack([f[key] for f in feats]) for key in feats[0]},
+                              list(models[0].joint_errors.joint_names))
+
+
+def scores_from_values(values: dict, joints: list) -> FeatureScores:
+    """Per feature name (M, n) values of M units, each standardized by the units' median and MAD (per column)."""
+    out = FeatureScores(list(joints), {}, {}, {}, {}, {})
+    for key, F in values.items():
+        F = F.detach().cpu().clamp(min=1e-15)  # (M, n)
         med = F.median(0).values
         mad = (F - med).abs().median(0).values.clamp(min=1e-15)
         out.value[key], out.median[key], out.mad[key] = F, med, mad
@@ -117,4 +123,5 @@ def parameter_outliers(fit, threshold: float = 5.0, min_ratio: float = OUTLIER_M
     return score, found
 
 
-__all__ = ["FeatureScores", "OUTLIER_MIN_RATIO", "Outlier", "feature_scores", "joint_features", "parameter_outliers"]
+__all__ = ["FeatureScores", "OUTLIER_MIN_RATIO", "Outlier", "feature_scores", "joint_features", "parameter_outliers",
+           "scores_from_values"]

@@ -107,6 +107,10 @@ def _summary(run: FleetFiles) -> str:
     cards = [("Units", f"{len(run.units)}", f"{len(fitted)} fitted, {len(failed)} failed"),
              ("Flagged", f"{len(flagged)}", ", ".join(str(u.get("unit")) for u in flagged) or "no unit lies far from "
               "the fleet")]
+    if get(run.fleet, "baseline", default=None):
+        changed = [u for u in fitted if u.get("changed")]
+        cards.append(("Changed", f"{len(changed)}", ", ".join(str(u.get("unit")) for u in changed) or
+                      "no unit changed far beyond the fleet since the baseline"))
     ident = _median(_float(u.get("identification_mean_mm")) for u in fitted)
     if ident is not None:
         cards.append(("Identification residual", f"{ident:.4f} mm", "median over the units of each unit's mean"))
@@ -140,6 +144,30 @@ def _flagged(run: FleetFiles) -> str:
              r["value_unit"], num(r["fleet_median"], 4), num(r.get("ratio"), 1), num(r["robust_z"], 1)] for r in hot]
     return intro + table(["unit", "joint", "feature", "value", "unit of value", "fleet median", "x median",
                           "robust z"], rows, numeric=(3, 5, 6, 7))
+
+
+def _changes(run: FleetFiles) -> str:
+    """fleet.baseline: what changed since the earlier run (torchcal.identify.fleet_change)."""
+    base = get(run.fleet, "baseline", default=None)
+    compared = [u for u in run.units if _float(u.get("change_rms_mm")) is not None]
+    intro = (f"<p>Each unit fitted in both runs compared with its calibration in <b>{esc(base)}</b>: the distance "
+             "between the points its earlier and its new model predict at its new commands (each with its own tool "
+             "vectors, after the best rigid alignment: the tracker stands elsewhere in each campaign). A unit is "
+             "changed where that lies far above the fleet's own changes (robust z above "
+             f"{esc(get(run.fleet, 'threshold', default='the threshold'))}, at least twice the fleet's median); "
+             "the joints named are those whose transmission error or backlash changed far beyond the fleet's. "
+             "Check the named joint's gearbox, or the unit's mastering and links where none is named.</p>")
+    if not compared:
+        return intro + not_available("changes", "no unit of this run was fitted in the baseline run")
+    med = _median(_float(u.get("change_rms_mm")) for u in compared)
+    found = get(run.fleet, "changes", default=[]) or []
+    body = (f'<p>{len(compared)} units compared; the fleet\'s median change at the tool <b>{med:.4f} mm</b> RMS '
+            "(the season, the targets' mounting and the calibrations' own scatter).</p>")
+    body += ("<ul>" + "".join(f"<li>{esc(f)}</li>" for f in found) + "</ul>" if found else
+             '<p class="ok">No unit changed far beyond the fleet.</p>')
+    hist = histogram_svg([_float(u.get("change_rms_mm")) for u in compared], "Change at the tool per unit (RMS)",
+                         bins=30, xlabel="change since the baseline (mm)", counted="units")
+    return intro + body + f'<div class="hists">{hist}</div>'
 
 
 def _distributions(run: FleetFiles) -> str:
@@ -185,6 +213,9 @@ def _units(run: FleetFiles) -> str:
     header = ["unit", "status", "rows", "converged", "iterations", "identification mean (mm)", "identification max (mm)"]
     if has_val:
         header += ["validation mean (mm)", "validation max (mm)"]
+    has_change = any(_float(u.get("change_rms_mm")) is not None for u in run.units)
+    if has_change:
+        header += ["change at the tool (mm)"]
     header += ["outlier score", "findings / reason"]
     rows = []
     for u in run.units:
@@ -196,8 +227,12 @@ def _units(run: FleetFiles) -> str:
         if has_val:
             r += [num(_float(u.get("validation_mean_mm")), 4, key=f"{name}/validation_mean_mm"),
                   num(_float(u.get("validation_max_mm")), 4, key=f"{name}/validation_max_mm")]
-        r += [num(_float(u.get("outlier_score")), 1), u.get("findings") or u.get("reason") or ""]
-        css = "after" if u.get("flagged") else ""
+        if has_change:
+            r += [num(_float(u.get("change_rms_mm")), 4, key=f"{name}/change_rms_mm")]
+        r += [num(_float(u.get("outlier_score")), 1),
+              "; ".join(x for x in (u.get("findings"), u.get("change") if u.get("changed") else None) if x)
+              or u.get("reason") or ""]
+        css = "after" if u.get("flagged") or u.get("changed") else ""
         rows.append((css, r) if css else r)
     numeric = tuple(i for i, h in enumerate(header) if h not in ("unit", "status", "converged", "findings / reason"))
     return table(header, rows, cls="wide", numeric=numeric)
@@ -224,6 +259,8 @@ def render_fleet_report(run_dir) -> str:
     parts = [
         section("summary", "Summary", _summary(run), major=True, first=True),
         section("flagged", "Units far from the fleet", _flagged(run)),
+        *([section("changes", "Changed since the baseline", _changes(run))]
+          if get(run.fleet, "baseline", default=None) else []),
         section("features", "The fleet's joints", _distributions(run), major=True),
         section("accuracy", "Accuracy per unit", _accuracy(run)),
         section("units", "Every unit", _units(run), major=True),

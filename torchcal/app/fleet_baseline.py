@@ -1,0 +1,138 @@
+"""``fleet.baseline``: a ``torchcal fleet`` run compared unit by unit with an earlier run of the same units.
+
+A plant re-measures its fleet after a crash, a gearbox swap or a season. With ``fleet.baseline`` naming the
+earlier run's directory, every unit fitted in both runs (by name) is compared
+(:mod:`torchcal.identify.fleet_change`): its change at the tool (RMS and max over its new commands, mm), and
+the joints whose transmission error or backlash changed. The units that changed far beyond the fleet's own
+changes are named in the log, ``summary.csv`` (``changed``, ``change``), ``fleet.json`` (``changes``),
+``changes.csv`` (every compared unit's changes, the fleet's medians and z-scores) and the fleet report.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+
+from ..core import units
+from ..core.exceptions import ConfigError
+from ..io.atomic import atomic_path
+
+log = logging.getLogger("torchcal")
+
+KEY = "fleet.baseline"
+
+
+def baseline_units(cfg, label: str) -> tuple[Path, list[str]] | None:
+    """(the baseline run directory, its fitted units' names) of ``cfg.fleet.baseline``, or None where none is
+    set; ConfigError naming the key where it is not a ``torchcal fleet`` run directory with fitted units."""
+    import pandas as pd
+
+    if not cfg.fleet.baseline:
+        return None
+    run = Path(cfg.fleet.baseline)
+    summary = run / "summary.csv"
+    if not (run / "fleet.json").is_file() or not summary.is_file():
+        raise ConfigError(f"{label}: key '{KEY}': {run} is not a `torchcal fleet` run directory (it needs its "
+                          "fleet.json and summary.csv)")
+    table = pd.read_csv(summary)
+    if "unit" not in table or "status" not in table:
+        raise ConfigError(f"{label}: key '{KEY}': {summary} lacks the columns 'unit' and 'status'")
+    names = [str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]]
+    if not names:
+        raise ConfigError(f"{label}: key '{KEY}': {run} has no fitted unit to compare with")
+    return run, names
+
+
+def check_structure(run: Path, names: list[str], model, label: str) -> None:
+    """Refuse (ConfigError naming the key) a baseline whose units are another robot type or model structure than
+    ``model`` (the fleet's, as it will be fitted): checked before the solve, so that nothing fitted is lost."""
+    from ..identify.layout import ParameterLayout
+    from ..io.rundir import load_model
+
+    theirs = load_model(run / "units" / names[0], torch.device("cpu"))
+    if theirs.robot.name != model.robot.name:
+        raise ConfigError(f"{label}: key '{KEY}': the units of {run} are a {theirs.robot.name}, this fleet a "
+                          f"{model.robot.name}")
+    if ParameterLayout(theirs).names() != ParameterLayout(model).names():
+        raise ConfigError(f"{label}: key '{KEY}': the units of {run} have another model structure (orders, backlash) "
+                          "than this fleet's: compare like with like (the same model.order and model.backlash)")
+
+
+def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dict, rows: dict, run_dir: Path,
+                          threshold: float, robot, device, warn) -> list:
+    """Every unit of ``fitted`` ([(unit dict, model)]) that the baseline ``run`` also fitted, compared with its
+    earlier model at its new identification commands (``idents`` {name: Measurements}); ``rows`` {name: row}
+    gain ``change_rms_mm``, ``change_max_mm``, ``changed`` and ``change``; ``changes.csv`` is written. ->
+    the changed units (:class:`~torchcal.identify.fleet_change.UnitChange`, named)."""
+    from ..identify.fleet_change import changed_units, joint_changes, tool_change
+    from ..io.rundir import load_model
+
+    earlier = set(names)
+    pairs = [(u["name"], m) for u, m in fitted if u["name"] in earlier]
+    now = {u["name"] for u, _ in fitted}
+    gone = [n for n in names if n not in now]
+    if gone:
+        warn(f"{KEY}: {len(gone)} unit(s) of {run} not fitted in this run: {', '.join(gone)}")
+    for u, _ in fitted:
+        if u["name"] not in earlier:
+            rows[u["name"]]["change"] = f"not in {KEY} (new since {run.name}, or not fitted there)"
+    if not pairs:
+        warn(f"{KEY}: no unit of this run was fitted in {run}: nothing compared")
+        return []
+    old = [load_model(run / "units" / n, device) for n, _ in pairs]
+    dist = [tool_change(o, m, idents[n].q, idents[n].tool, idents[n].direction if idents[n].has_direction else None)
+            for o, (n, m) in zip(old, pairs)]
+    rms = torch.stack([d.pow(2).mean().sqrt() for d in dist]).cpu()
+    for (n, _), d, r in zip(pairs, dist, rms.tolist()):
+        rows[n].update(change_rms_mm=units.m_to_mm(r), change_max_mm=units.m_to_mm(float(d.max())), changed=False)
+    joints = joint_changes(old, [m for _, m in pairs])
+    joint_names = list(pairs[0][1].joint_errors.joint_names)
+    value_units = units.joint_unit_names(robot.joint_map.prismatic.cpu())
+    if len(pairs) < 3:
+        warn(f"{KEY}: {len(pairs)} unit(s) compared with {run.name}; at least 3 are needed to judge a change against "
+             "the fleet's: the changes are reported, none judged")
+        _write_changes(run_dir, [n for n, _ in pairs], rms, joints, joint_names, value_units, None, None, threshold)
+        return []
+    tool_sc, joint_sc, found = changed_units(rms, joints, joint_names, value_units, threshold)
+    _write_changes(run_dir, [n for n, _ in pairs], rms, joints, joint_names, value_units, tool_sc, joint_sc,
+                   threshold)
+    median = units.m_to_mm(float(tool_sc.median["tool change"][0]))
+    log.info(f"{KEY}: {len(pairs)} unit(s) compared with {run}; the fleet's median change at the tool "
+             f"{median:.4f} mm RMS; {len(found)} changed")
+    for c in found:
+        c.unit = pairs[c.unit][0]
+        rows[c.unit].update(changed=True, change=str(c).split(": ", 1)[1])
+        log.warning("changed: %s", c)
+    return found
+
+
+def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_units, tool_sc, joint_sc,
+                   threshold: float) -> None:
+    """changes.csv: per compared unit its change at the tool (mm, RMS) and per joint and feature its change (deg,
+    mm for a prismatic joint), with the fleet's median, the ratio and the robust z where judged."""
+    import pandas as pd
+
+    scale = [units.m_to_mm(1.0) if u == "mm" else 1.0 / units.DEG for u in value_units]
+    out = []
+    for m, name in enumerate(names):
+        row = {"unit": name, "joint": "tool", "feature": "tool change", "change": units.m_to_mm(float(rms[m])),
+               "value_unit": "mm"}
+        if tool_sc is not None:
+            row.update(fleet_median=units.m_to_mm(float(tool_sc.median["tool change"][0])),
+                       ratio=float(tool_sc.ratio["tool change"][m, 0]), robust_z=float(tool_sc.z["tool change"][m, 0]))
+        out.append(row)
+        for key, value in joints.items():
+            for j, joint in enumerate(joint_names):
+                row = {"unit": name, "joint": joint, "feature": key, "change": float(value[m, j]) * scale[j],
+                       "value_unit": value_units[j]}
+                if joint_sc is not None:
+                    row.update(fleet_median=float(joint_sc.median[key][j]) * scale[j],
+                               ratio=float(joint_sc.ratio[key][m, j]), robust_z=float(joint_sc.z[key][m, j]))
+                out.append(row)
+    with atomic_path(run_dir / "changes.csv") as tmp:
+        pd.DataFrame(out).to_csv(tmp, index=False, float_format="%.9g")
+
+
+__all__ = ["KEY", "baseline_units", "check_structure", "compare_with_baseline"]

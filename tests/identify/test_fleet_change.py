@@ -80,21 +80,27 @@ def test_joint_changes_measure_a_transmission_error_and_a_backlash_change():
     assert abs(float(back[4]) - bl) < 1e-12 and float(back[[0, 1, 2, 3, 5]].max()) < 1e-12
 
 
-def test_changed_units_needs_the_tool_and_names_the_joint():
-    """A unit is changed by its change at the tool alone; a joint's change only says where. A unit whose joint
-    alone scatters (not at the tool) is not changed."""
+def test_changed_units_by_the_tool_or_a_transmission_error_seen_there():
+    """A unit is changed by its change at the tool (z and 1.5x the median), or by a joint's transmission error
+    change where the tool moved beyond the fleet's scatter too (z alone); the joints say where. A joint's change
+    with nothing at the tool, and a backlash change alone, change no unit."""
     g = torch.Generator().manual_seed(0)
     M, n = 12, 6
     tool = 1e-4 * (1 + 0.02 * torch.randn(M, generator=g, dtype=torch.float64))
     te = 1e-5 * (1 + 0.1 * torch.rand(M, n, generator=g, dtype=torch.float64))
     back = 1e-6 * (1 + 0.1 * torch.rand(M, n, generator=g, dtype=torch.float64))
     tool[3] *= 5.0
-    te[3, 2] *= 40.0  # unit 3: joint 3's transmission error
+    te[3, 2] *= 40.0  # unit 3: joint 3's transmission error, seen at the tool
+    tool[5] *= 1.3  # unit 5: outlying at the tool (z), but only 1.3x the median: not enough to matter
     back[7, 5] *= 40.0  # unit 7: joint 6's backlash alone, nothing at the tool
+    te[9, 5] *= 10.0  # unit 9: joint 6's transmission error (a wrist's gearbox), the tool moved 1.2x
+    tool[9] *= 1.2
+    te[10, 1] *= 10.0  # unit 10: joint 2's transmission error, nothing at the tool: the fits' own scatter
     names = [f"joint{j + 1}" for j in range(n)]
     _, _, found = changed_units(tool, {"transmission error change": te, "backlash change": back}, names, ["deg"] * n)
-    assert [c.unit for c in found] == [3]
+    assert [c.unit for c in found] == [3, 9]  # largest z at the tool first
     assert [(j, f) for j, f, *_ in found[0].joints] == [("joint3", "transmission error change")]
+    assert [(j, f) for j, f, *_ in found[1].joints] == [("joint6", "transmission error change")]
     assert found[0].joints[0][2] == float(te[3, 2]) / U.DEG  # stated in degrees
-    _, _, none = changed_units(tool[:3].clone().fill_(1e-4), {"t": te[:3]}, names, ["deg"] * n)
+    _, _, none = changed_units(tool[:3].clone().fill_(1e-4), {"transmission error change": te[:3]}, names, ["deg"] * n)
     assert none == []

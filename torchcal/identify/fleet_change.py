@@ -19,7 +19,8 @@ to 0.08 mm). A changed mastering or a bent link shows at the tool, not at a join
 Each change is judged against the fleet's own changes (:func:`changed_units`: the median and MAD over the
 compared units, as :func:`~.fleet_outliers.parameter_outliers` judges the features themselves). What every
 unit shares is the season, the targets' mounting and the calibrations' own scatter; a unit far beyond it at
-the tool changed, and its joints whose changes lie far beyond the fleet's say where. Joint 1's mastering is the
+the tool, or in a joint's transmission error, changed, and its joints whose changes lie far beyond the fleet's
+say where. Joint 1's mastering is the
 measurement frame's rotation about the base axis, which each campaign fits afresh: it needs a reference fixed
 to the base and shows nowhere here.
 """
@@ -87,10 +88,19 @@ def tool_change(old, new, q: torch.Tensor, tool: torch.Tensor, direction: torch.
         return ((p_old @ R.T + t) - p_new).norm(dim=-1)
 
 
-CHANGE_MIN_RATIO = 2.0
+CHANGE_MIN_RATIO = 1.5
 """How many times the fleet's median change at the tool a changed unit's must be, beside its robust z
 (:func:`changed_units`). Lower than the outlier test's 3x (:data:`~.fleet_outliers.OUTLIER_MIN_RATIO`): the
-fleet's changes spread far less than its backlash does (simulated FANUCs, one season: 0.082-0.087 mm RMS)."""
+fleet's changes at the tool spread far less than its backlash does (100 simulated FANUCs, one season:
+0.081-0.088 mm RMS, at most 1.04x their median; experiments/fleet/recheck.py)."""
+
+SOLE_FEATURE = "transmission error change"
+"""The joint change that names a unit changed with less than ``min_ratio`` x the fleet's change at the tool
+(:func:`changed_units`), where the tool's change is beyond the fleet's scatter too; a backlash change only
+says where. Two calibrations of one unchanged FANUC scatter in the wrist's backlash (joint 6: robust z up to
+6.3, 4.1x the median over 87 healthy units) more than in a transmission error (z at most 4.1, 2.2x; one
+healthy unit of 87 in another seed: joint 2, z 9, but nothing at the tool), which a gearbox swapped on the
+wrist changes (joint 6: z 25, 9x) while the tool moves 1.1x the fleet's median change."""
 
 
 @dataclass
@@ -113,26 +123,31 @@ class UnitChange:
                                   for j, f, v, u, _, z in self.joints) if self.joints else
                  "; no joint's transmission error or backlash changed beyond the fleet's (a mastering, a link or a "
                  "target)")
-        return (f"{who}: changed at the tool by {self.tool_rms_mm:.3f} mm RMS, {self.ratio:.1f}x the fleet's median "
+        return (f"{who}: changed {self.tool_rms_mm:.3f} mm RMS at the tool, {self.ratio:.1f}x the fleet's median "
                 f"change (robust z {self.z:.1f}){where}")
 
 
 def changed_units(tool_rms: torch.Tensor, joint: dict[str, torch.Tensor], joints, value_units: list[str],
                   threshold: float = 5.0, min_ratio: float = CHANGE_MIN_RATIO):
     """The units that changed far beyond the fleet: their change at the tool ``tool_rms`` (M,) (m, RMS of
-    :func:`tool_change`) above ``threshold`` in robust z and at least ``min_ratio`` x the fleet's median; in
-    each, the joints whose :func:`joint_changes` lie above ``threshold`` and 3x the fleet's (the outlier test's
-    rule, :data:`~.fleet_outliers.OUTLIER_MIN_RATIO`). A joint alone never flags a unit: two calibrations of
-    one unchanged unit scatter most in the least determined terms (a wrist's backlash), which move no point.
+    :func:`tool_change`) above ``threshold`` in robust z and at least ``min_ratio`` x the fleet's median; or
+    above ``threshold`` in robust z alone where a joint's transmission error change (:data:`SOLE_FEATURE`) lies
+    above ``threshold`` and 3x the fleet's (the outlier test's rule, :data:`~.fleet_outliers.OUTLIER_MIN_RATIO`):
+    a gearbox swapped on the wrist moves the tool beyond the fleet's scatter but little. In each, the joints whose
+    :func:`joint_changes` lie beyond the fleet's by that rule say where. A backlash change alone names no unit:
+    two calibrations of one unchanged unit scatter most in the least determined terms (a wrist's backlash),
+    which move no point.
 
     joint: {feature: (M, n)} as :func:`joint_changes` gives; joints: the n joint names; value_units: 'deg' or
     'mm' per joint (the findings' units). -> (tool scores, joint scores (:class:`FeatureScores`), the changed
-    units (:class:`UnitChange`, largest z first)).
+    units (:class:`UnitChange`, largest z at the tool first)).
     """
     tool_sc = scores_from_values({"tool change": tool_rms[:, None]}, ["tool"])
     joint_sc = scores_from_values(joint, list(joints))
     scale = [units.m_to_mm(1.0) if u == "mm" else 1.0 / units.DEG for u in value_units]
     hit = tool_sc.flagged("tool change", threshold, min_ratio)[:, 0]
+    if SOLE_FEATURE in joint_sc.value:  # confirmed at the tool: its points moved beyond the fleet's scatter
+        hit = hit | (joint_sc.flagged(SOLE_FEATURE, threshold).any(1) & (tool_sc.z["tool change"][:, 0] > threshold))
     out = []
     for m in hit.nonzero()[:, 0].tolist():
         where = []
@@ -148,4 +163,4 @@ def changed_units(tool_rms: torch.Tensor, joint: dict[str, torch.Tensor], joints
     return tool_sc, joint_sc, out
 
 
-__all__ = ["CHANGE_MIN_RATIO", "UnitChange", "changed_units", "joint_changes", "tool_change"]
+__all__ = ["CHANGE_MIN_RATIO", "SOLE_FEATURE", "UnitChange", "changed_units", "joint_changes", "tool_change"]

@@ -58,6 +58,9 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="", help="comma list of: fit, prediction, compensation, fleet (default: all)")
     ap.add_argument("--dry-run", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--repeats", type=int, default=2, help="fleet timings: the best of this many after a warm-up")
+    ap.add_argument("--accelerate", choices=("default", "on", "off", "both"), default="both",
+                    help="the GPU fleet's geodesic acceleration (fit_fleet(accelerate=)): default (off on a GPU until "
+                         "measured), on, off, or both timed side by side (a row each)")
     args = ap.parse_args(argv)
     if args.dry_run:  # the script's own check, without a GPU: the CPU stands in, small sizes
         gpu, cpu = torch.device("cpu"), torch.device("cpu")
@@ -160,29 +163,34 @@ def main(argv=None) -> int:
         units = [torchcal.simulate(t, q, [0, 1, 2], noise, k, directions=dirs) for k, t in enumerate(fleet.truths)]
         ug = [u.to(gpu) for u in units]
 
-        def fleet_time(dev, us):
-            fit_fleet(lambda: make(dev), us[:3], noise)  # warm-up: CUDA handles, numba's kernels
+        def fleet_time(dev, us, accelerate=None):
+            fit_fleet(lambda: make(dev), us[:3], noise, accelerate=accelerate)  # warm-up: CUDA handles, numba's kernels
             best, out = float("inf"), None
             for _ in range(max(1, args.repeats)):
                 if dev.type == "cuda":
                     torch.cuda.synchronize()
                 t = time.perf_counter()
-                out = fit_fleet(lambda: make(dev), us, noise)
+                out = fit_fleet(lambda: make(dev), us, noise, accelerate=accelerate)
                 if dev.type == "cuda":
                     torch.cuda.synchronize()
                 best = min(best, time.perf_counter() - t)
             return best, out
 
-        t_g, fg = fleet_time(gpu, ug)
+        modes = {"default": [None], "on": [True], "off": [False], "both": [False, True]}[args.accelerate]
+        gpu_runs = [(acc, *fleet_time(gpu, ug, acc)) for acc in modes]  # (accelerate, time, FleetFit)
+        _, t_g, fg = gpu_runs[0]
         if args.skip_cpu_fleet:
             t_c, note = float("nan"), "CPU side skipped"
         else:
             t_c, fc = fleet_time(cpu, units)
             d = max(abs(a.fun / b.fun - 1) for a, b in zip(fg.results, fc.results))
             note = f"largest relative cost difference GPU / CPU {d:.1e}"
-        add((f"fleet of {args.units} (one batched solve)", f"{t_c:.2f} s", f"{t_g:.2f} s",
-                     f"{t_c / t_g:.1f}x", f"target GPU >= 10x the {args.cpu_threads}-thread CPU: "
-                                          f"{'PASS' if t_c / t_g >= 10 else 'MISS'}; {note}"))
+        for acc, t_g, fg in gpu_runs:
+            how = "" if acc is None else f", GPU acceleration {'on' if acc else 'off'}"
+            its = sum(r.nit for r in fg.results)
+            add((f"fleet of {args.units} (one batched solve{how})", f"{t_c:.2f} s", f"{t_g:.2f} s",
+                 f"{t_c / t_g:.1f}x", f"target GPU >= 10x the {args.cpu_threads}-thread CPU: "
+                                      f"{'PASS' if t_c / t_g >= 10 else 'MISS'}; GPU unit iterations {its}; {note}"))
     w = max(len(r[0]) for r in rows)
     print(f"{'case':<{w}}  {'CPU':>10}  {'GPU':>10}  {'GPU/CPU':>8}  note")
     for r in rows:

@@ -411,10 +411,12 @@ def test_a_steps_system_solved_again_is_the_step_for_that_residual(problems, for
     assert resolve.scale.shape == X.shape and bool((resolve.scale >= 0).all())
 
 
-def test_geodesic_acceleration_reaches_each_units_optimum_in_fewer_iterations():
+@pytest.mark.parametrize("dense_normal", [False, True])
+def test_geodesic_acceleration_reaches_each_units_optimum_in_fewer_iterations(dense_normal):
     """A fleet solved with geodesic acceleration lands where the plain Levenberg-Marquardt solve lands (each
     unit's own optimum), in fewer unit iterations: units of Paper II's FANUC truth (own truths, own programs,
-    random approach directions), whose residuals curve along the first steps."""
+    random approach directions), whose residuals curve along the first steps. dense_normal: the GPU's path (one
+    dense normal matrix a unit; its trial residual by the whole linearization), here on the CPU."""
     from torchcal.identify.batched import solve_batched
     from torchcal.identify.fleet import FLEET_FTOL
 
@@ -433,11 +435,20 @@ def test_geodesic_acceleration_reaches_each_units_optimum_in_fewer_iterations():
         return torchcal.RobotModel(robot, TOOLS, orders=4, backlash=True)
 
     def solve(ftol, accelerate):
-        out = solve_batched(FleetProblem(make, units, noise), ftol=ftol, accelerate=accelerate).results
+        fp = FleetProblem(make, units, noise, dense_normal=dense_normal)
+        assert fp.dense_normal == dense_normal
+        out = solve_batched(fp, ftol=ftol, accelerate=accelerate).results
         assert all(r.success for r in out)
         return out
 
     for p, f in zip(solve(1e-10, False), solve(1e-10, True)):  # to the optimum (seen: 1e-11 apart)
         assert abs(f.fun - p.fun) <= 1e-8 * p.fun
     # at the fleet's own tolerance (seen: 18 unit iterations against 14)
-    assert sum(r.nit for r in solve(FLEET_FTOL, True)) <= sum(r.nit for r in solve(FLEET_FTOL, False)) - 2
+    on, off = solve(FLEET_FTOL, True), solve(FLEET_FTOL, False)
+    assert sum(r.nit for r in on) <= sum(r.nit for r in off) - 2
+    if not dense_normal:  # fit_fleet's switch reaches the solve (one stream: the same arithmetic as above)
+        from torchcal.identify.fleet import fit_fleet
+
+        for acc, ref in ((True, on), (False, off)):
+            got = fit_fleet(make, units, noise, accelerate=acc, streams=1).results
+            assert [r.nit for r in got] == [r.nit for r in ref] and [r.fun for r in got] == [r.fun for r in ref]

@@ -155,8 +155,7 @@ class FleetProblem(BatchedProblem):
             raise ValueError("fit_fleet: every unit needs an isotropic tracker sigma (noise.sigma_m); per-row "
                              "covariances are not stacked")
         self.layout, self.instrument, self.data = p.layout, p.instrument, p.data
-        st = stack_units(units)
-        self.stack = st
+        self.stack = st = stack_units(units)
         M, R, n = st["q"].shape
         self.M, self.R, self.n, self.d = M, R, n, p.dim
         self._set_weights(noises, list(st["direction"]), st["rows"], "fit_fleet: every unit")
@@ -167,8 +166,7 @@ class FleetProblem(BatchedProblem):
         # geodesic acceleration (solve_batched): measured on the CPU only, so off elsewhere until it is
         self.accelerate = dev.type == "cpu"
         # the factored Jacobian (torchcal.identify.structured) where the model has one, else dense A
-        self.structure = None
-        self.dense_normal = False
+        self.structure, self.dense_normal = None, False
         if structured and RobotStructure.supports(superset, p.instrument, self.layout):
             self.structure = RobotStructure(superset, self.layout)
             self.dense_normal = bool(dense_normal)
@@ -386,7 +384,7 @@ before geodesic acceleration, which brings 1e-4 to 380 unit iterations and 0.017
 def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements], noise=None,
               prior: Prior | None = Prior(), fixed=(), gauge: bool = True, max_iter: int = 100, ftol: float = FLEET_FTOL,
               xtol: float = 1e-10, mu0: float = MU0, chunk: int | None = None, gauge_units: int | None = None,
-              structured: bool | None = None, streams: int | None = None) -> FleetFit:
+              structured: bool | None = None, streams: int | None = None, accelerate: bool | None = None) -> FleetFit:
     """Fit one model per unit, every unit on its own data, in one batched Levenberg-Marquardt solve (on the CPU,
     one per stream).
 
@@ -408,6 +406,8 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     path, else 1). The split depends only on the unit count and ``streams``, so a run is reproducible bit for
     bit wherever it runs with the same thread count; a different split moves results by rounding (~1e-10)
     only. While the streams run, torch's intra-op threads are set to 1 (a process-wide setting).
+    accelerate: geodesic acceleration of every step (:func:`~.batched.solve_batched`); None: where measured to
+    pay (the CPU), off elsewhere (a GPU: not measured yet; ``bench/gpu.py --accelerate`` times both).
     Each unit's result is its own fit's (the same optimum, up to the stopping
     tolerance ``ftol``). -> :class:`FleetFit` (each unit's model fitted in place).
 
@@ -430,6 +430,7 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     with limit_threads(1) if on_cpu else nullcontext():
         fp = FleetProblem(make, units, noise, prior, fixed, gauge, gauge_units, structured=structured is not False,
                           dense_normal=not on_cpu if structured is None else False)
+    fp.accelerate = fp.accelerate if accelerate is None else bool(accelerate)
     k = fleet_streams(fp) if streams is None else max(1, min(int(streams), fp.M))
     if chunk is None:
         if fp.structure is not None and not fp.dense_normal:  # factors, per-pose Gram blocks, temporaries

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import pytest
 import torch
 from hypothesis import given, settings
@@ -13,7 +15,8 @@ from torchcal.identify import fleet_kernel
 from torchcal.identify.schur import schur_steps
 from torchcal.identify.fleet import FleetProblem
 from torchcal.identify.structured import (RobotStructure, contract, dense_jacobian, factored_linearization,
-                                          gram_parts, pair_basis, pose_groups, slots_of, structured_steps)
+                                          factored_residual, gram_parts, pair_basis, pose_groups, slots_of,
+                                          structured_steps)
 from torchcal.sim.fleet import fleet_truths
 
 TOOLS = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]], dtype=torch.float64)
@@ -44,7 +47,7 @@ def _rel(a, b):
 
 
 @pytest.mark.parametrize("compiled", [False, True])
-def test_factored_jacobian_is_the_dense_one(problems, compiled):
+def test_factored_jacobian_is_the_dense_one(problems, compiled, monkeypatch):
     """E x Phi reassembled column by column is RobotModel.point_jacobians' A (whitened, masked rows), to rounding;
     the residual and the joint-error Jacobian too, in the torch form and in the compiled one."""
     dense, fact, X, g = problems
@@ -60,9 +63,14 @@ def test_factored_jacobian_is_the_dense_one(problems, compiled):
                          st["xyz"])
     s = fact.scale[:, :, None] / fact.instrument.weight.sigma
     assert _rel(raw * s, f) < 1e-10
-    if compiled:  # a trial point's residual alone: the kernel's Jacobian-free pass, the same bits
-        assert torch.equal(fn(fact.superset, fact.structure, fact._params(X), st["q"], st["tool"], st["direction"], V,
-                              st["xyz"], jac=False), raw)
+    # a trial point's residual alone: the kernel's Jacobian-free pass, or the torch form's forward half (a GPU's
+    # geodesic acceleration), the same bits
+    alone = (partial(fn, jac=False) if compiled else factored_residual)(
+        fact.superset, fact.structure, fact._params(X), st["q"], st["tool"], st["direction"], V, st["xyz"])
+    assert torch.equal(alone, raw)
+    if not compiled:  # and FleetProblem.residual where no kernel serves the device
+        monkeypatch.setattr(fleet_kernel, "available", lambda device: False)
+        assert torch.equal(fact.residual(X, V, w), raw * s)
     assert _rel(Jv * s[..., None], C) < 1e-10
     Ad = dense_jacobian(E * s[..., None], Phi, fact.structure) * fact.keep[:, None, None, :]
     assert _rel(Ad, A) < 1e-10

@@ -17,10 +17,11 @@ Khatri-Rao factors (twist Jacobian columns times Chebyshev basis values,
 normal matrix as per-pose Gram matrices contracted with the basis, ~10x
 fewer flops than the dense product and a tenth of the memory traffic.
 
-:func:`fleet_prior` turns the fitted fleet into a Gaussian prior (mean and
-spread of every parameter over the units) for a new unit measured with few
-poses; :func:`~.fleet_outliers.parameter_outliers` (:mod:`.fleet_outliers`) flags units whose parameters
-lie far from the fleet's (a damaged gearbox, a bad measurement).
+:func:`~.fleet_prior.fleet_prior` (:mod:`.fleet_prior`) turns the fitted fleet into a Gaussian prior (mean
+and spread of every parameter over the units) for a new unit measured with few poses;
+:func:`~.fleet_outliers.parameter_outliers` (:mod:`.fleet_outliers`) flags units whose parameters lie far from
+the fleet's (a damaged gearbox, a bad measurement); :mod:`.fleet_change` compares a unit with its earlier
+calibration (a crash, a gearbox swap).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from ..core.threads import limit_threads
 from .batched import BatchedFitResult, BatchedProblem, _Predict, solve_batched
 from .gauge import dependent_columns_masked, gauge_basis, gauge_priority
 from .lm import MU0
+from .fleet_prior import fleet_prior  # noqa: F401  (re-exported: the fleet's API in one place)
 from .fleet_outliers import (OUTLIER_MIN_RATIO, FeatureScores, Outlier, feature_scores, joint_features,
                              parameter_outliers)  # the fleet's API too (__all__)
 from .problem import CalibrationProblem, Prior, _prefixed
@@ -48,8 +50,8 @@ from . import fleet_kernel
 from .fleet_kernel import factored_linearization_fused
 from ..models.jacobian import chebyshev_design
 from .streams import STREAM_MIN_UNITS, fleet_streams, solve_streams
-from .structured import (RobotStructure, dense_jacobian, factored_linearization, pair_basis, pose_groups, regrouped,
-                         slots_of, structured_steps)
+from .structured import (RobotStructure, dense_jacobian, factored_linearization, factored_residual, pair_basis,
+                         pose_groups, regrouped, slots_of, structured_steps)
 from .workspace import Workspace, take_entries
 
 UNIT_PAIRS_BYTES = 2 << 30  # the most memory each unit's own pair products may hold between steps
@@ -135,9 +137,8 @@ class FleetProblem(BatchedProblem):
         def grouped(us):
             return pose_groups([u.q for u in us], [u.direction if u.has_direction else None for u in us])
 
-        groups, self.row_order = None, None
+        groups, self.row_order = (grouped(units), None) if dev.type == "cpu" else (None, None)
         if dev.type == "cpu":
-            groups = grouped(units)
             self.row_order = [order for _, order, _ in groups]
             units = [u.subset(o).to(dev) for u, o in zip(units, self.row_order)]
         else:
@@ -305,16 +306,16 @@ class FleetProblem(BatchedProblem):
     @torch.no_grad()
     def residual(self, X: torch.Tensor, V: torch.Tensor, which: torch.Tensor, slot: int | str | None = None):
         """The whitened residual f (m, R, d) alone of the units ``which`` at X (m, P), V (m, R, n), for a point
-        whose Jacobian no step reads (the compiled kernel skips it; elsewhere :meth:`linearize`'s first part)."""
+        whose Jacobian no step reads (the factored forms skip it; the dense one: :meth:`linearize`'s first part)."""
         st, w = self.stack, which.to(self.stack["q"].device)
-        if self.structure is None or not fleet_kernel.available(w.device):
+        if self.structure is None:
             return self.linearize(X, V, which, slot)[0]
         return self._factored(X, V, w, st["q"][w], st["tool"][w], st["xyz"][w], slot, jac=False)
 
     def _factored(self, X, V, w, q, tool, obs, slot=None, jac=True):
         """Whitened residual f (m, R, d), joint-error Jacobian C (m, R, d, n) and the factored parameter
         Jacobian (E (m, R, d, Q), Phi (m, R, n, K), each pose's Phi_p (m, Pp, n, K) at its command) of the units w
-        (jac False, compiled: f alone)."""
+        (jac False: f alone)."""
         st = self.stack
         direction = st["direction"][w] if st["has_direction"] else None
         s = self.scale[w] / self.instrument.weight.sigma
@@ -323,6 +324,8 @@ class FleetProblem(BatchedProblem):
             lin = factored_linearization_fused(self.superset, self.structure, self._params(X), q, tool, direction, V,
                                                obs, scale=s, out=out, jac=jac)
             return lin if not jac or self.dense_normal else (*lin, self.phi_p[w])
+        if not jac:
+            return factored_residual(self.superset, self.structure, self._params(X), q, tool, direction, V, obs) * s[..., None]
         raw, Jv, E, Phi = factored_linearization(self.superset, self.structure, self._params(X), q, tool, direction, V,
                                                  obs)
         s = s[:, :, None]
@@ -452,47 +455,6 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
         batch = solve_streams(fp, k, max_iter, ftol, xtol, mu0, chunk, label, t0)
     fp.in_data_order(batch.results)
     return FleetFit(fp.models, batch, fp.layout)
-
-
-# ------------------------------------------------------------------ the fleet's distribution
-def fleet_prior(fit: FleetFit, exclude: Sequence[int] = (), inflate: float = 1.0, floor: float = 1e-3,
-                method: str = "shrunk", rank: int | None = None, pin_gauge: bool = False):
-    """A Gaussian prior for a new unit of the type: the fleet's mean and covariance of every parameter.
-
-    The covariance is the units' sample covariance regularized by ``method``
-    (:func:`torchcal.identify.fleet_prior.fleet_covariance`: 'shrunk', the
-    default, shrinks the correlations towards zero (Schaefer-Strimmer);
-    'ledoit-wolf'; 'factor', low rank (``rank`` components) + diagonal;
-    'sample' where there are more units than parameters; 'block', one
-    Ledoit-Wolf block per joint, the base and each tool, none across): it carries how the
-    parameters vary *together* from unit to unit (a strain-wave error of
-    random phase moves a joint's Chebyshev coefficients along a few
-    directions only), which is what lets a unit measured with a few poses
-    borrow the fleet's knowledge. exclude: units left out (the flagged
-    outliers); inflate: factor on the standard deviations; floor: each
-    variance is at least (floor x the default :class:`Prior`'s sigma)^2, so
-    no entry is pinned by a fleet that happens to agree on it. Entries the
-    fleet's gauge pinned are left to the unit's own gauge, or, with
-    ``pin_gauge``, held at the fleet's value (zero) by a tight prior (1e-6 x
-    the default sigma), so that a unit fitted with ``gauge=False`` stays in
-    the fleet's gauge, the coordinates the covariance was estimated in.
-    -> (:class:`~torchcal.identify.blocks.GaussianPrior` to pass as
-    ``blocks=[...]`` to :func:`torchcal.fit`, mean (P,) in the full layout: a
-    start for the unit's model).
-    """
-    from .blocks import GaussianPrior
-    from .fleet_prior import prior_from_parameters
-
-    X, keep, names = fit.batch.x, fit.batch.keep, fit.batch.names
-    skip = set(int(e) for e in exclude)
-    use = torch.tensor([m not in skip for m in range(X.shape[0])], device=X.device)
-    if int(use.sum()) < 3:
-        raise ValueError(f"fleet_prior: {int(use.sum())} units left; at least 3 are needed for a spread")
-    base = Prior().sigma(fit.layout).to(X)
-    parts = prior_from_parameters(X[use], keep[use], names, base, method, rank, inflate, floor, pin_gauge)
-    mean = torch.zeros(X.shape[1], dtype=X.dtype, device=X.device)
-    mean[parts.free] = parts.mean
-    return GaussianPrior(parts.names, parts.mean.cpu(), parts.cov.cpu()), mean
 
 
 __all__ = ["FLEET_FTOL", "FeatureScores", "FleetFit", "FleetProblem", "OUTLIER_MIN_RATIO", "Outlier", "STREAM_MIN_UNITS",

@@ -194,5 +194,45 @@ def prior_from_parameters(X: torch.Tensor, keep: torch.Tensor, names: Sequence[s
     return FleetPriorParts(kept, mean, cov, cover, info)
 
 
-__all__ = ["FleetPriorParts", "METHODS", "entry_groups", "factor_correlation", "fleet_covariance", "ledoit_wolf_correlation",
-           "prior_from_parameters", "shrunk_correlation"]
+def fleet_prior(fit, exclude: Sequence[int] = (), inflate: float = 1.0, floor: float = 1e-3,
+                method: str = "shrunk", rank: int | None = None, pin_gauge: bool = False):
+    """A Gaussian prior for a new unit of the type: the fleet's mean and covariance of every parameter.
+
+    fit: a :class:`~torchcal.identify.fleet.FleetFit` (its ``batch`` and ``layout``). The covariance is the units' sample covariance regularized by ``method``
+    (:func:`torchcal.identify.fleet_prior.fleet_covariance`: 'shrunk', the
+    default, shrinks the correlations towards zero (Schaefer-Strimmer);
+    'ledoit-wolf'; 'factor', low rank (``rank`` components) + diagonal;
+    'sample' where there are more units than parameters; 'block', one
+    Ledoit-Wolf block per joint, the base and each tool, none across): it carries how the
+    parameters vary *together* from unit to unit (a strain-wave error of
+    random phase moves a joint's Chebyshev coefficients along a few
+    directions only), which is what lets a unit measured with a few poses
+    borrow the fleet's knowledge. exclude: units left out (the flagged
+    outliers); inflate: factor on the standard deviations; floor: each
+    variance is at least (floor x the default :class:`Prior`'s sigma)^2, so
+    no entry is pinned by a fleet that happens to agree on it. Entries the
+    fleet's gauge pinned are left to the unit's own gauge, or, with
+    ``pin_gauge``, held at the fleet's value (zero) by a tight prior (1e-6 x
+    the default sigma), so that a unit fitted with ``gauge=False`` stays in
+    the fleet's gauge, the coordinates the covariance was estimated in.
+    -> (:class:`~torchcal.identify.blocks.GaussianPrior` to pass as
+    ``blocks=[...]`` to :func:`torchcal.fit`, mean (P,) in the full layout: a
+    start for the unit's model).
+    """
+    from .blocks import GaussianPrior
+    from .problem import Prior
+
+    X, keep, names = fit.batch.x, fit.batch.keep, fit.batch.names
+    skip = set(int(e) for e in exclude)
+    use = torch.tensor([m not in skip for m in range(X.shape[0])], device=X.device)
+    if int(use.sum()) < 3:
+        raise ValueError(f"fleet_prior: {int(use.sum())} units left; at least 3 are needed for a spread")
+    base = Prior().sigma(fit.layout).to(X)
+    parts = prior_from_parameters(X[use], keep[use], names, base, method, rank, inflate, floor, pin_gauge)
+    mean = torch.zeros(X.shape[1], dtype=X.dtype, device=X.device)
+    mean[parts.free] = parts.mean
+    return GaussianPrior(parts.names, parts.mean.cpu(), parts.cov.cpu()), mean
+
+
+__all__ = ["FleetPriorParts", "METHODS", "entry_groups", "factor_correlation", "fleet_covariance", "fleet_prior",
+           "ledoit_wolf_correlation", "prior_from_parameters", "shrunk_correlation"]

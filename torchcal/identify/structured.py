@@ -210,14 +210,8 @@ def regrouped(groups: list) -> list:
 
 
 @torch.no_grad()
-def factored_linearization(model, st: RobotStructure, params: dict, q, tool, direction, v, obs):
-    """Residual and factored Jacobians of m units at once (the closed form of ``RobotModel.point_jacobians``).
-
-    params: {name: (m, *shape)} every unit's parameters; q, v: (m, R, n); tool: (m, R) long; direction:
-    (m, R, n) or None; obs: (m, R, 3). -> raw residual (m, R, 3) (model - observed), Jv (m, R, 3, n),
-    E (m, R, 3, ne + Nd) and Phi (m, R, n, K): the parameter Jacobian's column (i, a, k) is
-    E[..., i*A + a] * Phi[..., i, k], its base and tool columns are E[..., ne:].
-    """
+def _factored_forward(model, st: RobotStructure, params: dict, q, tool, direction, v):
+    """What both the residual and the factored Jacobians need: the chain walked once for m units' rows."""
     je = model.joint_errors
     m, R, n = q.shape
     B = m * R
@@ -245,6 +239,27 @@ def factored_linearization(model, st: RobotStructure, params: dict, q, tool, dir
     pts = model.tools.nominal + params["tools.delta"]  # (m, T, 3)
     p_t = pts[torch.arange(m, device=q.device)[:, None], tool].reshape(B, 3)
     p = small_matmul(F[:, :3, :3], p_t[..., None])[..., 0] + F[:, :3, 3]
+    return dict(m=m, R=R, n=n, B=B, b4=b4, e=e, de=de, s=s, twist=twist, T0=T0, jR=jR, jp=jp, F=F, p=p)
+
+
+def factored_residual(model, st: RobotStructure, params: dict, q, tool, direction, v, obs) -> torch.Tensor:
+    """The raw residual (m, R, 3) (model - observed) alone, as :func:`factored_linearization` gives it: a trial
+    point's residual where no kernel skips the Jacobians (a GPU's geodesic acceleration)."""
+    f = _factored_forward(model, st, params, q, tool, direction, v)
+    return f["p"].view(f["m"], f["R"], 3) - obs
+
+
+def factored_linearization(model, st: RobotStructure, params: dict, q, tool, direction, v, obs):
+    """Residual and factored Jacobians of m units at once (the closed form of ``RobotModel.point_jacobians``).
+
+    params: {name: (m, *shape)} every unit's parameters; q, v: (m, R, n); tool: (m, R) long; direction:
+    (m, R, n) or None; obs: (m, R, 3). -> raw residual (m, R, 3) (model - observed), Jv (m, R, 3, n),
+    E (m, R, 3, ne + Nd) and Phi (m, R, n, K): the parameter Jacobian's column (i, a, k) is
+    E[..., i*A + a] * Phi[..., i, k], its base and tool columns are E[..., ne:].
+    """
+    f = _factored_forward(model, st, params, q, tool, direction, v)
+    m, R, n, B, e, de, s, p = f["m"], f["R"], f["n"], f["B"], f["e"], f["de"], f["s"], f["p"]
+    jR, jp, F, T0, twist = f["jR"], f["jp"], f["F"], f["T0"], f["twist"]
     Je = twist_jacobian(jR, jp, e, p[:, None, :])[:, :, :3, :]  # (B, n, 3, 6)
     Jax = joint_axis_jacobian(jR, jp, model.axes, model.prismatic, p)[:, :3, :]
     slope = small_matmul(Je, de[..., None])[..., 0].transpose(1, 2)  # (B, 3, n)
@@ -258,7 +273,7 @@ def factored_linearization(model, st: RobotStructure, params: dict, q, tool, dir
     onehot = torch.nn.functional.one_hot(tool.reshape(B), st.T).to(F)
     Jt = (F[:, :3, None, :3] * onehot[:, None, :, None]).reshape(B, 3, 3 * st.T)
     E = torch.cat([Es, Jb, Jt], -1)
-    return ((p.view(m, R, 3) - obs), Jv.view(m, R, 3, n), E.view(m, R, 3, -1), b4)
+    return ((p.view(m, R, 3) - obs), Jv.view(m, R, 3, n), E.view(m, R, 3, -1), f["b4"])
 
 
 def to_extended(h: torch.Tensor, Phi: torch.Tensor, st: RobotStructure) -> torch.Tensor:
@@ -602,5 +617,5 @@ def dense_jacobian(E: torch.Tensor, Phi: torch.Tensor, st: RobotStructure) -> to
     return torch.cat([struct, E[..., st.ne:]], -1)[..., st.index]
 
 
-__all__ = ["GROUPS", "RobotStructure", "contract", "dense_jacobian", "factored_linearization", "gram_parts", "pair_basis",
-           "pose_gram", "pose_groups", "regrouped", "slots_of", "structured_steps"]
+__all__ = ["GROUPS", "RobotStructure", "contract", "dense_jacobian", "factored_linearization", "factored_residual",
+           "gram_parts", "pair_basis", "pose_gram", "pose_groups", "regrouped", "slots_of", "structured_steps"]

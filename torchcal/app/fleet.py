@@ -315,8 +315,11 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         elif fitted:
             warn(f"outliers: {len(scored)} unit(s) with data enough to judge, at least 3 are needed; none scored")
         if baseline is not None and fitted:
-            result.changes = compare_with_baseline(*baseline, fitted, idents, rows, run_dir,
-                                                   float(cfg.fleet.threshold), robot, device, warn)
+            try:
+                result.changes = compare_with_baseline(*baseline, fitted, idents, rows, run_dir,
+                                                       float(cfg.fleet.threshold), robot, device, warn)
+            except Exception as exc:  # the fits are done: a comparison that fails is said, and they are written
+                warn(f"{KEY}: the comparison with {baseline[0]} failed: {type(exc).__name__}: {exc}")
         by_name = {name: (str(fi), None if fv is None else str(fv)) for name, fi, fv in files}
         for u, model in fitted:
             name = u["name"]

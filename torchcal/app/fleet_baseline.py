@@ -51,7 +51,15 @@ def check_structure(run: Path, names: list[str], model, label: str) -> None:
     from ..identify.layout import ParameterLayout
     from ..io.rundir import load_model
 
-    theirs = load_model(run / "units" / names[0], torch.device("cpu"))
+    theirs, why = None, []
+    for name in names:  # the first readable unit (a broken one is said per unit after the solve)
+        try:
+            theirs = load_model(run / "units" / name, torch.device("cpu"))
+            break
+        except Exception as exc:
+            why.append(str(exc))
+    if theirs is None:
+        raise ConfigError(f"{label}: key '{KEY}': no unit model of {run} is readable ({why[0]})")
     if theirs.robot.name != model.robot.name:
         raise ConfigError(f"{label}: key '{KEY}': the units of {run} are a {theirs.robot.name}, this fleet a "
                           f"{model.robot.name}")
@@ -69,19 +77,32 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
     from ..identify.fleet_change import changed_units, joint_changes, tool_change
     from ..io.rundir import load_model
 
+    from ..identify.layout import ParameterLayout
+
     earlier = set(names)
-    pairs = [(u["name"], m) for u, m in fitted if u["name"] in earlier]
     now = {u["name"] for u, _ in fitted}
     gone = [n for n in names if n not in now]
     if gone:
         warn(f"{KEY}: {len(gone)} unit(s) of {run} not fitted in this run: {', '.join(gone)}")
-    for u, _ in fitted:
-        if u["name"] not in earlier:
-            rows[u["name"]]["change"] = f"not in {KEY} (new since {run.name}, or not fitted there)"
+    pairs, old = [], []
+    for u, m in fitted:
+        name = u["name"]
+        if name not in earlier:
+            rows[name]["change"] = f"not in {KEY} (new since {run.name}, or not fitted there)"
+            continue
+        try:  # a unit whose earlier model cannot be read (or is of another structure) is said, the rest compared
+            o = load_model(run / "units" / name, device)
+            if ParameterLayout(o).names() != ParameterLayout(m).names():
+                raise ConfigError(f"{run / 'units' / name}: another model structure than this fleet's")
+        except Exception as exc:
+            rows[name]["change"] = f"not compared: {exc}"
+            warn(f"{KEY}: unit {name} not compared: {exc}")
+            continue
+        pairs.append((name, m))
+        old.append(o)
     if not pairs:
-        warn(f"{KEY}: no unit of this run was fitted in {run}: nothing compared")
+        warn(f"{KEY}: no unit of this run could be compared with {run}")
         return []
-    old = [load_model(run / "units" / n, device) for n, _ in pairs]
     dist = [tool_change(o, m, idents[n].q, idents[n].tool, idents[n].direction if idents[n].has_direction else None)
             for o, (n, m) in zip(old, pairs)]
     rms = torch.stack([d.pow(2).mean().sqrt() for d in dist]).cpu()

@@ -163,8 +163,9 @@ def test_baseline_that_is_not_a_fleet_run_is_refused(campaigns):
 
 
 def test_an_unreadable_earlier_model_is_said_and_the_rest_compared(campaigns):
-    """A baseline unit whose model.pt is broken is named with its file; every other unit is compared and every
-    unit's new calibration is written (nothing fitted is lost)."""
+    """A baseline unit whose model.pt is broken (the first: the structure check before the solve reads the next
+    one) is named with its file; every other unit is compared and every unit's new calibration is written (nothing
+    fitted is lost)."""
     import shutil
 
     from torchcal.app.fleet import run_fleet
@@ -172,12 +173,12 @@ def test_an_unreadable_earlier_model_is_said_and_the_rest_compared(campaigns):
     tmp, run1, cfg2, (_, _, names, keep), _ = campaigns
     base = tmp / "run1_damaged"
     shutil.copytree(run1.run_dir, base)
-    broken = base / "units" / names[1] / "model.pt"
+    broken = base / "units" / names[0] / "model.pt"
     broken.write_bytes(broken.read_bytes()[:100])
     res = run_fleet(cfg2, [f"fleet.baseline={base}"], out=tmp / "run2b")
     rows = {r["unit"]: r for r in res.rows}
-    assert "not compared" in rows[names[1]]["change"] and "model.pt" in rows[names[1]]["change"]
-    assert "change_rms_mm" not in rows[names[1]]
-    assert all("change_rms_mm" in rows[names[k]] for k in keep[:-1] if k != 1)
+    assert "not compared" in rows[names[0]]["change"] and "model.pt" in rows[names[0]]["change"]
+    assert "change_rms_mm" not in rows[names[0]]
+    assert all("change_rms_mm" in rows[names[k]] for k in keep[:-1] if k != 0)
     assert {c.unit for c in res.changes} == {names[CRASHED], names[SWAPPED]}
     assert all((res.run_dir / "units" / names[k] / "model.pt").is_file() for k in keep)

@@ -38,8 +38,7 @@ from ..core.exceptions import ConfigError
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
 from .config import SolverConfig, config_from_text, load_config, to_yaml, updated
-from .fleet_baseline import KEY, baseline_units, check_structure, compare_with_baseline
-from .fleet_prior import fleet_backlash_orders
+from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 
 log = logging.getLogger("torchcal")
 
@@ -258,12 +257,13 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if not loaded:
             raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
         loaded = _same_format(loaded, rows, robot)
-        if baseline is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
-            cfg = updated(cfg, {"model.backlash": fleet_backlash_orders(baseline[0])})
+        theirs = baseline_model(*baseline, label) if baseline is not None else None
+        if theirs is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
+            cfg = updated(cfg, {"model.backlash": [int(b) for b in theirs.joint_errors.backlash_orders.tolist()]})
             log.info("backlash orders %s (model.backlash: true), the baseline's (%s)", cfg.model.backlash, KEY)
         cfg = _fleet_backlash(cfg, robot, loaded, warn)
-        if baseline is not None:
-            check_structure(*baseline, _factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(
+        if theirs is not None:
+            check_structure(baseline[0], theirs, _factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(
                 config_orders(cfg, robot.joint_map.n)), label)
         thin = _data_checks(cfg, robot, T, loaded, warn)  # {unit: why}: fewer equations than parameters
         size = int(cfg.fleet.cell)

@@ -45,21 +45,26 @@ def baseline_units(cfg, label: str) -> tuple[Path, list[str]] | None:
     return run, names
 
 
-def check_structure(run: Path, names: list[str], model, label: str) -> None:
-    """Refuse (ConfigError naming the key) a baseline whose units are another robot type or model structure than
-    ``model`` (the fleet's, as it will be fitted): checked before the solve, so that nothing fitted is lost."""
-    from ..identify.layout import ParameterLayout
+def baseline_model(run: Path, names: list[str], label: str):
+    """The first readable unit model of the baseline ``run`` (its structure and backlash orders are the fleet's;
+    a broken one is said per unit after the solve); ConfigError naming the key where none is readable."""
     from ..io.rundir import load_model
 
-    theirs, why = None, []
-    for name in names:  # the first readable unit (a broken one is said per unit after the solve)
+    why = []
+    for name in names:
         try:
-            theirs = load_model(run / "units" / name, torch.device("cpu"))
-            break
+            return load_model(run / "units" / name, torch.device("cpu"))
         except Exception as exc:
             why.append(str(exc))
-    if theirs is None:
-        raise ConfigError(f"{label}: key '{KEY}': no unit model of {run} is readable ({why[0]})")
+    raise ConfigError(f"{label}: key '{KEY}': no unit model of {run} is readable ({why[0]})")
+
+
+def check_structure(run: Path, theirs, model, label: str) -> None:
+    """Refuse (ConfigError naming the key) a baseline whose units (``theirs``, :func:`baseline_model`) are another
+    robot type or model structure than ``model`` (the fleet's, as it will be fitted): checked before the solve, so
+    that nothing fitted is lost."""
+    from ..identify.layout import ParameterLayout
+
     if theirs.robot.name != model.robot.name:
         raise ConfigError(f"{label}: key '{KEY}': the units of {run} are a {theirs.robot.name}, this fleet a "
                           f"{model.robot.name}")
@@ -156,4 +161,4 @@ def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_u
         pd.DataFrame(out).to_csv(tmp, index=False, float_format="%.9g")
 
 
-__all__ = ["KEY", "baseline_units", "check_structure", "compare_with_baseline"]
+__all__ = ["KEY", "baseline_model", "baseline_units", "check_structure", "compare_with_baseline"]

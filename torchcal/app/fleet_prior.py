@@ -103,7 +103,13 @@ def fleet_backlash_orders(run_dir) -> list[int]:
     fitted = [str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]]
     if not fitted:
         raise ConfigError(f"prior.fleet: {run_dir} has no fitted unit")
-    return [int(b) for b in load_model(run_dir / "units" / fitted[0]).joint_errors.backlash_orders.tolist()]
+    why = []
+    for name in fitted:  # the first readable unit: one broken file does not hide the fleet's structure
+        try:
+            return [int(b) for b in load_model(run_dir / "units" / name).joint_errors.backlash_orders.tolist()]
+        except Exception as exc:
+            why.append(str(exc))
+    raise ConfigError(f"prior.fleet: no unit model of {run_dir} is readable ({why[0]})")
 
 
 __all__ = ["FleetRunPrior", "fleet_backlash_orders", "prior_from_fleet_run"]

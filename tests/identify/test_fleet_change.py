@@ -104,3 +104,24 @@ def test_changed_units_by_the_tool_or_a_transmission_error_seen_there():
     assert found[0].joints[0][2] == float(te[3, 2]) / U.DEG  # stated in degrees
     _, _, none = changed_units(tool[:3].clone().fill_(1e-4), {"transmission error change": te[:3]}, names, ["deg"] * n)
     assert none == []
+
+
+def test_a_users_7_axis_robot_is_compared_the_same_way(iiwa):
+    """A robot we do not bundle (a 7-axis arm from a datasheet's DH table, conftest.iiwa): another tracker frame
+    changes nothing; a transmission error change of joint 7 is measured at joint 7 and moves the tool."""
+    tools = torch.tensor([[0.05, 0.0, 0.1], [-0.05, 0.0, 0.1]], dtype=torch.float64)
+    a = torchcal.RobotModel(iiwa, tools, orders=3, backlash=True)
+    g = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        for p in a.parameters():
+            p.copy_(1e-4 * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    moved, changed = copy.deepcopy(a), copy.deepcopy(a)
+    with torch.no_grad():
+        moved.base.twist += torch.tensor([0.01, -0.02, 0.005, 0.003, 0.002, -0.004], dtype=torch.float64)
+        changed.joint_errors.coef[6, 2, 2] += 0.05 * U.DEG  # joint 7, about its axis, T_2
+    q = torchcal.sim.quasi_random_commands(iiwa.joint_map.limits * 0.9, 50, 1)
+    tool = torch.arange(50) % 2
+    assert float(tool_change(a, moved, q, tool).max()) < 1e-9
+    assert float(tool_change(a, changed, q, tool).max()) > 1e-5  # 0.05 deg at 0.05-0.1 m from the axis
+    te = joint_changes([a, a], [moved, changed])["transmission error change"]
+    assert float(te[0].max()) < 1e-12 and int(te[1].argmax()) == 6 and float(te[1, :6].max()) < 1e-12

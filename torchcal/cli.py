@@ -309,11 +309,13 @@ def fleet_cmd(
     config: Annotated[Path, typer.Argument(help="YAML config of one robot type whose data.identification is a folder "
                                                 "with one CSV per unit (data.validation: a folder of the same names).")],
     overrides: Annotated[Optional[list[str]], typer.Argument(
-        help="Dotted overrides, e.g. fleet.engine=ray fleet.cell=25 model.order=4.")] = None,
+        help="Dotted overrides, e.g. fleet.engine=ray fleet.cell=25 model.order=4 "
+             "fleet.baseline=runs/fleets/2026-11-26_10-40-01.")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Run directory (default: 'fleets' beside the config's out).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ):
-    """Fit every unit of a fleet in batched solves: a run directory per unit, a summary, outliers flagged."""
+    """Fit every unit of a fleet in batched solves: a run directory per unit, a summary, outliers flagged; with
+    fleet.baseline=RUN each unit compared with its calibration in that earlier run (what changed since)."""
     with _user_errors():
         from .app.fleet import run_fleet
 

@@ -137,8 +137,9 @@ class FleetProblem(BatchedProblem):
         def grouped(us):
             return pose_groups([u.q for u in us], [u.direction if u.has_direction else None for u in us])
 
-        groups, self.row_order = (grouped(units), None) if dev.type == "cpu" else (None, None)
+        groups, self.row_order = None, None
         if dev.type == "cpu":
+            groups = grouped(units)
             self.row_order = [order for _, order, _ in groups]
             units = [u.subset(o).to(dev) for u, o in zip(units, self.row_order)]
         else:
@@ -324,8 +325,9 @@ class FleetProblem(BatchedProblem):
             lin = factored_linearization_fused(self.superset, self.structure, self._params(X), q, tool, direction, V,
                                                obs, scale=s, out=out, jac=jac)
             return lin if not jac or self.dense_normal else (*lin, self.phi_p[w])
-        if not jac:
-            return factored_residual(self.superset, self.structure, self._params(X), q, tool, direction, V, obs) * s[..., None]
+        if not jac:  # the forward half alone (a GPU's geodesic acceleration)
+            raw = factored_residual(self.superset, self.structure, self._params(X), q, tool, direction, V, obs)
+            return raw * s[..., None]
         raw, Jv, E, Phi = factored_linearization(self.superset, self.structure, self._params(X), q, tool, direction, V,
                                                  obs)
         s = s[:, :, None]

@@ -69,8 +69,9 @@ def check_structure(run: Path, theirs, model, label: str) -> None:
         raise ConfigError(f"{label}: key '{KEY}': the units of {run} are a {theirs.robot.name}, this fleet a "
                           f"{model.robot.name}")
     if ParameterLayout(theirs).names() != ParameterLayout(model).names():
-        raise ConfigError(f"{label}: key '{KEY}': the units of {run} have another model structure (orders, backlash) "
-                          "than this fleet's: compare like with like (the same model.order and model.backlash)")
+        raise ConfigError(f"{label}: key '{KEY}': the units of {run} have another model structure (orders, backlash or "
+                          "tool count) than this fleet's: compare like with like (the same model.order, model.backlash "
+                          "and tools)")
 
 
 def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dict, rows: dict, run_dir: Path,

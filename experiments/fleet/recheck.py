@@ -12,7 +12,7 @@ backlash, one batched solve each), and torchcal.identify.fleet_change compares e
 Printed: per event its change at the tool (the models' and the truth's own, rigidly aligned, mm RMS), whether
 the unit was named changed and which joints; the healthy units named (false alarms); the season's median.
 
-    python experiments/fleet/recheck.py [--units 100] [--seed 0]
+    python experiments/fleet/recheck.py [--units 100] [--seed 0] [--own-programs]
 """
 
 from __future__ import annotations
@@ -84,6 +84,8 @@ def main(argv=None) -> int:
     ap.add_argument("--units", type=int, default=100)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threshold", type=float, default=5.0)
+    ap.add_argument("--own-programs", action="store_true",
+                    help="each unit measured with its own program (commands, directions) in each campaign")
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     robot = torchcal.load_robot("fanuc_lrmate200i")
@@ -92,9 +94,15 @@ def main(argv=None) -> int:
     lim = robot.joint_map.limits
     first = fleet_truths(robot, tools, a.units, a.seed, []).truths
     later = second_campaign(first, a.seed)
-    (q1, d1), (q2, d2) = program(lim, a.seed), program(lim, a.seed + 500)
-    c1 = [torchcal.simulate(t, q1, [0, 1, 2], noise, 1000 * a.seed + k, directions=d1) for k, t in enumerate(first)]
-    c2 = [torchcal.simulate(t, q2, [0, 1, 2], noise, 1000 * a.seed + 500 + k, directions=d2) for k, t in enumerate(later)]
+    if a.own_programs:
+        p1 = [program(lim, 10_000 * (a.seed + 1) + k) for k in range(a.units)]
+        p2 = [program(lim, 10_000 * (a.seed + 1) + 5_000 + k) for k in range(a.units)]
+    else:
+        p1, p2 = [program(lim, a.seed)] * a.units, [program(lim, a.seed + 500)] * a.units
+    c1 = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * a.seed + k, directions=d)
+          for k, (t, (q, d)) in enumerate(zip(first, p1))]
+    c2 = [torchcal.simulate(t, q, [0, 1, 2], noise, 1000 * a.seed + 500 + k, directions=d)
+          for k, (t, (q, d)) in enumerate(zip(later, p2))]
 
     def make():
         return torchcal.RobotModel(robot, tools, orders=6, backlash=True)
@@ -111,8 +119,8 @@ def main(argv=None) -> int:
     by_unit = {c.unit: c for c in found}
     truth = [truth_change_mm(x, y, d) for x, y, d in zip(first, later, c2)]
     healthy = [k for k in range(a.units) if k not in EVENTS]
-    print(f"{a.units} FANUCs, two campaigns of 250 x 3 poses, order 6 + backlash; fits {t_fit:.1f} s, the comparison "
-          f"{t_cmp:.2f} s")
+    print(f"{a.units} FANUCs, two campaigns of 250 x 3 poses ({'each unit its own program' if a.own_programs else 'one program'}"
+          f" a campaign), order 6 + backlash; fits {t_fit:.1f} s, the comparison {t_cmp:.2f} s")
     print(f"season (the {len(healthy)} healthy units): change at the tool median {statistics.median(U.m_to_mm(float(rms[k])) for k in healthy):.4f} mm "
           f"(truth {statistics.median(truth[k] for k in healthy):.4f}), range "
           f"{min(U.m_to_mm(float(rms[k])) for k in healthy):.4f}-{max(U.m_to_mm(float(rms[k])) for k in healthy):.4f} mm")

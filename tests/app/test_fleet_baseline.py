@@ -141,7 +141,13 @@ def test_recheck_names_the_crashed_and_the_swapped_unit(campaigns, robot):
     html = render_report(res.run_dir)
     assert "Changed since the baseline" in html
     section = html.split("Changed since the baseline", 1)[1].split("<section", 1)[0]
-    assert names[CRASHED] in section and names[SWAPPED] in section and names[0] not in section
+    assert names[CRASHED] in section.split("<svg", 1)[0] and names[SWAPPED] in section.split("<svg", 1)[0]
+    assert names[0] not in section.split("<svg", 1)[0]
+    # the strip charts: every compared unit a dot in the tool's chart, only the changed ones named in red
+    tool_chart = section[section.index("Change at the tool since the baseline"):]
+    tool_chart = tool_chart[:tool_chart.index("</svg>")]
+    assert tool_chart.count('data-name="') == len(keep) - 1
+    assert changes.loc[changes["joint"] == "tool", "beyond"].sum() >= 1
 
 
 def test_baseline_of_another_structure_is_refused_before_the_solve(campaigns):

@@ -470,6 +470,7 @@ def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
     import pandas as pd
 
     from ..identify.fleet import OUTLIER_MIN_RATIO
+    from ..identify.fleet_change import CHANGE_MIN_RATIO
     from ..io.rundir import write_json
 
     df = pd.DataFrame(result.rows)
@@ -480,7 +481,8 @@ def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
                                         "model_backlash": cfg.model.backlash,  # as resolved for the whole fleet
                                         "threshold": float(cfg.fleet.threshold), "min_ratio": OUTLIER_MIN_RATIO,
                                         "units": result.rows, "findings": [str(f) for f in result.findings],
-                                        "baseline": cfg.fleet.baseline, "changes": [str(c) for c in result.changes]})
+                                        "baseline": cfg.fleet.baseline, "change_min_ratio": CHANGE_MIN_RATIO,
+                                        "changes": [str(c) for c in result.changes]})
 
 
 __all__ = ["FleetRunResult", "fit_cell", "run_fleet", "unit_files"]

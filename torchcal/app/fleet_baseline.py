@@ -138,8 +138,11 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
 def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_units, tool_sc, joint_sc,
                    threshold: float) -> None:
     """changes.csv: per compared unit its change at the tool (mm, RMS) and per joint and feature its change (deg,
-    mm for a prismatic joint), with the fleet's median, the ratio and the robust z where judged."""
+    mm for a prismatic joint); where judged, the fleet's median, the ratio, the robust z, the level above which
+    a change lies beyond the fleet's (``flag_level``) and whether it does (``beyond``)."""
     import pandas as pd
+
+    from ..identify.fleet_change import CHANGE_MIN_RATIO
 
     scale = [units.m_to_mm(1.0) if u == "mm" else 1.0 / units.DEG for u in value_units]
     out = []
@@ -147,8 +150,11 @@ def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_u
         row = {"unit": name, "joint": "tool", "feature": "tool change", "change": units.m_to_mm(float(rms[m])),
                "value_unit": "mm"}
         if tool_sc is not None:
-            row.update(fleet_median=units.m_to_mm(float(tool_sc.median["tool change"][0])),
-                       ratio=float(tool_sc.ratio["tool change"][m, 0]), robust_z=float(tool_sc.z["tool change"][m, 0]))
+            key = "tool change"
+            row.update(fleet_median=units.m_to_mm(float(tool_sc.median[key][0])),
+                       ratio=float(tool_sc.ratio[key][m, 0]), robust_z=float(tool_sc.z[key][m, 0]),
+                       flag_level=units.m_to_mm(float(tool_sc.flag_level(key, threshold, CHANGE_MIN_RATIO)[0])),
+                       beyond=bool(tool_sc.flagged(key, threshold, CHANGE_MIN_RATIO)[m, 0]))
         out.append(row)
         for key, value in joints.items():
             for j, joint in enumerate(joint_names):
@@ -156,7 +162,9 @@ def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_u
                        "value_unit": value_units[j]}
                 if joint_sc is not None:
                     row.update(fleet_median=float(joint_sc.median[key][j]) * scale[j],
-                               ratio=float(joint_sc.ratio[key][m, j]), robust_z=float(joint_sc.z[key][m, j]))
+                               ratio=float(joint_sc.ratio[key][m, j]), robust_z=float(joint_sc.z[key][m, j]),
+                               flag_level=float(joint_sc.flag_level(key, threshold)[j]) * scale[j],
+                               beyond=bool(joint_sc.flagged(key, threshold)[m, j]))
                 out.append(row)
     with atomic_path(run_dir / "changes.csv") as tmp:
         pd.DataFrame(out).to_csv(tmp, index=False, float_format="%.9g")

@@ -154,9 +154,11 @@ def _changes(run: FleetFiles) -> str:
              "between the points its earlier and its new model predict at its new commands (each with its own tool "
              "vectors, after the best rigid alignment: the tracker stands elsewhere in each campaign). A unit is "
              "changed where that lies far above the fleet's own changes (robust z above "
-             f"{esc(get(run.fleet, 'threshold', default='the threshold'))}, at least twice the fleet's median); "
-             "the joints named are those whose transmission error or backlash changed far beyond the fleet's. "
-             "Check the named joint's gearbox, or the unit's mastering and links where none is named.</p>")
+             f"{esc(get(run.fleet, 'threshold', default='the threshold'))}, at least "
+             f"{esc(get(run.fleet, 'change_min_ratio', default='1.5'))} times the fleet's median), or beyond the "
+             "fleet's scatter (z alone) where one joint's transmission error changed far beyond the fleet's; the "
+             "joints named are those whose transmission error or backlash changed far beyond the fleet's. Check "
+             "the named joint's gearbox, or the unit's mastering and links where none is named.</p>")
     if not compared:
         return intro + not_available("changes", "no unit of this run was fitted in the baseline run")
     med = _median(_float(u.get("change_rms_mm")) for u in compared)
@@ -167,7 +169,40 @@ def _changes(run: FleetFiles) -> str:
              '<p class="ok">No unit changed far beyond the fleet.</p>')
     hist = histogram_svg([_float(u.get("change_rms_mm")) for u in compared], "Change at the tool per unit (RMS)",
                          bins=30, xlabel="change since the baseline (mm)", counted="units")
-    return intro + body + f'<div class="hists">{hist}</div>'
+    return intro + body + f'<div class="hists">{hist}</div>' + _change_strips(run, compared)
+
+
+CHANGE_TITLES = {"tool change": "Change at the tool since the baseline (RMS over the unit's commands)",
+                 "transmission error change": "Transmission error change per joint (RMS over the range, mean left out)",
+                 "backlash change": "Backlash change per joint (mean over the range)"}
+
+
+def _change_strips(run: FleetFiles, compared: list) -> str:
+    """changes.csv as strip charts: a dot per unit, the fleet's median and the level beyond which a change lies;
+    red: the changed units' changes beyond the fleet's."""
+    path = run.folder / "changes.csv"
+    if not path.is_file():
+        return not_available("the fleet's changes per joint", "changes.csv not in the run directory")
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        return not_available("the fleet's changes per joint", f"changes.csv is not readable ({type(exc).__name__})")
+    changed = {str(u.get("unit")) for u in compared if u.get("changed")}
+    out = ["<p>Each dot is one unit's change; the grey bar is the fleet's median change, the dashed red bar the "
+           "level beyond which a change lies far from the fleet's; the changed units' changes beyond it are red "
+           "and named.</p>"]
+    for feature in dict.fromkeys(r.get("feature") for r in rows):
+        mine = [r for r in rows if r.get("feature") == feature]
+        groups = []
+        for joint in dict.fromkeys(r.get("joint") for r in mine):
+            pts = [r for r in mine if r.get("joint") == joint]
+            hot = [(r["unit"], _float(r.get("change")) if _float(r.get("change")) is not None else float("nan"),
+                    r["unit"] in changed and str(r.get("beyond", "")).strip().lower() == "true") for r in pts]
+            groups.append((joint, hot, _float(pts[0].get("fleet_median")), _float(pts[0].get("flag_level"))))
+        unit_names = sorted({r.get("value_unit", "") for r in mine})
+        out.append(strip_svg(groups, CHANGE_TITLES.get(feature, feature), f"{feature} ({', '.join(unit_names)})"))
+    return "".join(out)
 
 
 def _distributions(run: FleetFiles) -> str:

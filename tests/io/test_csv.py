@@ -308,3 +308,90 @@ def test_numbers_parsed_as_pandas_parses_a_column_of_strings(cells):
     ok = ~np.isnan(ref)
     assert np.array_equal(got[ok], ref[ok])  # == : -0.0 equals 0.0
     assert sorted(p.row for p in problems) == [int(r) + 1 for r in np.flatnonzero(~np.isfinite(ref))]
+
+
+# ---------------------------------------------------------------------------- the clean-file fast path
+def _same_measurements(a, b) -> bool:
+    fields = ("q", "tool", "xyz", "direction", "pose", "rows")
+    return (all(torch.equal(getattr(a, k), getattr(b, k)) for k in fields) and a.has_direction == b.has_direction
+            and a.source == b.source and list(a.extra) == list(b.extra)
+            and all(np.array_equal(a.extra[k], b.extra[k]) for k in a.extra)
+            and torch.equal(torch.signbit(a.q), torch.signbit(b.q)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(rows=st.integers(1, 40), directions=st.booleans(), extra=st.booleans(), seed=st.integers(0, 2**31 - 1),
+       zeros=st.booleans())
+def test_a_clean_file_reads_the_same_by_the_fast_path(tmp_path_factory, rows, directions, extra, seed, zeros):
+    """read_measurements reads a clean file by pandas' C float parser (csv._read_clean) into exactly what the
+    checked path (read_table, every cell as text) gives: the same bits, signed zeros included."""
+    from torchcal.io.csv import _read_clean
+
+    robot = load_robot("fanuc_lrmate200i")
+    g = np.random.default_rng(seed)
+    lim = np.degrees(robot.joint_map.limits.numpy())
+    q = g.uniform(lim[:, 0], lim[:, 1], (rows, 6))
+    if zeros:
+        q[:, 0] = 0.0  # '0' cells; a '-0' cell goes the checked way (its sign follows pandas' text path)
+    cols = {"pose": np.arange(rows) // 3, "tool": np.arange(rows) % 3}
+    cols.update({f"q{i + 1}": q[:, i] for i in range(6)})
+    if directions:
+        cols.update({f"dir{i + 1}": g.choice([-1, 1], rows) for i in range(6)})
+    cols.update({c: g.normal(0, 500, rows) for c in ("x", "y", "z")})
+    if extra:
+        cols["note"] = [f"n{k}" for k in range(rows)]
+    path = tmp_path_factory.mktemp("clean") / "m.csv"
+    pd.DataFrame(cols).to_csv(path, index=False, float_format="%.12g", lineterminator="\n")
+    fast = _read_clean(path, robot, 3)
+    assert fast is not None
+    assert _same_measurements(fast, read_table(path, robot, 3)[0])
+    assert _same_measurements(read_measurements(path, robot, 3), fast)
+
+
+@pytest.mark.parametrize("edit", ["blank line", "padding", "quotes", "semicolons", "text cell", "empty cell",
+                                  "out of range", "direction 2", "tool 3", "duplicate", "short line", "inf",
+                                  "minus zero"])
+def test_anything_unusual_goes_the_checked_way(tmp_path, edit):
+    """The fast path declines every file the checked path would say something about (or reads otherwise), so
+    its problems are still named by row and column, or it is read as before."""
+    from torchcal.io.csv import _read_clean
+
+    robot = load_robot("fanuc_lrmate200i")
+    lines = ["pose,tool,q1,q2,q3,q4,q5,q6,dir1,dir2,dir3,dir4,dir5,dir6,x,y,z"]
+    lines += [f"{k},0,{k},10,-5,0,20,0,1,-1,1,1,-1,1,{500 + k},{k},300" for k in range(4)]
+    edits = {"blank line": lambda ls: ls[:2] + [""] + ls[2:], "padding": lambda ls: ls[:1] + [" " + ls[1]] + ls[2:],
+             "quotes": lambda ls: ls[:1] + [ls[1].replace(",0,", ',"0",', 1)] + ls[2:],
+             "minus zero": lambda ls: ls[:1] + [ls[1].replace(",0,20,", ",-0,20,")] + ls[2:],
+             "semicolons": lambda ls: [x.replace(",", ";") for x in ls],
+             "text cell": lambda ls: ls[:1] + [ls[1].replace(",300", ",abc")] + ls[2:],
+             "empty cell": lambda ls: ls[:1] + [ls[1].replace(",300", ",")] + ls[2:],
+             "out of range": lambda ls: ls[:1] + [ls[1].replace(",10,-5,", ",500,-5,")] + ls[2:],
+             "direction 2": lambda ls: ls[:1] + [ls[1].replace(",1,-1,1,1,-1,1,", ",2,-1,1,1,-1,1,")] + ls[2:],
+             "tool 3": lambda ls: ls[:1] + [ls[1].replace("0,0,", "0,3,", 1)] + ls[2:],
+             "duplicate": lambda ls: ls + [ls[1]], "short line": lambda ls: ls + ["9,0,1"],
+             "inf": lambda ls: ls[:1] + [ls[1].replace(",300", ",inf")] + ls[2:]}
+    path = tmp_path / "m.csv"
+    path.write_text("\n".join(lines) + "\n")
+    assert _read_clean(path, robot, 3) is not None  # the file as written is clean
+    path.write_text("\n".join(edits[edit](lines)) + "\n")
+    assert _read_clean(path, robot, 3) is None
+    try:  # what read_measurements does with it is the checked path's answer
+        got = read_measurements(path, robot, 3)
+    except DataError as exc:
+        with pytest.raises(DataError) as checked:
+            read_table(path, robot, 3)
+        assert str(exc) == str(checked.value)
+    else:
+        assert _same_measurements(got, read_table(path, robot, 3)[0])
+
+
+def test_a_clean_windows_file_reads_the_same_by_the_fast_path(tmp_path):
+    """CRLF line ends: read as the csv module reads them, the same bits as the checked path."""
+    from torchcal.io.csv import _read_clean
+
+    robot = load_robot("fanuc_lrmate200i")
+    lines = ["pose,tool,q1,q2,q3,q4,q5,q6,x,y,z"] + [f"{k},{k % 2},{k}.5,10,-5,0,20,0,{500 + k},{k},300" for k in range(5)]
+    path = tmp_path / "m.csv"
+    path.write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    fast = _read_clean(path, robot, 2)
+    assert fast is not None and _same_measurements(fast, read_table(path, robot, 2)[0])

@@ -57,10 +57,16 @@ def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep, again: bool = False):
     S = S + torch.diag_embed(lam_m + mu[:, None] * diag_bb + (1.0 - kf))
     rhs = -((Af.transpose(1, 2) @ r.reshape(m, -1, 1))[..., 0] + lam_m * dx) * kf
     Ls, info = torch.linalg.cholesky_ex(S)
-    db = torch.cholesky_solve(rhs[..., None], Ls)[..., 0]
     bad = info != 0
-    if bool(bad.any()):
-        db[bad] = torch.linalg.lstsq(S[bad], rhs[bad][..., None]).solution[..., 0]
+
+    def solve(rhs):
+        """S^-1 rhs (m, P), least squares for a model whose S has no Cholesky factor."""
+        out = torch.cholesky_solve(rhs[..., None], Ls)[..., 0]
+        if bool(bad.any()):
+            out[bad] = torch.linalg.lstsq(S[bad], rhs[bad][..., None]).solution[..., 0]
+        return out
+
+    db = solve(rhs)
     Adb = (Af @ db[..., None]).reshape(m, R, d)
     y = ((Adb + f)[..., None] * C).sum(-2) + w_v * V  # g_v + C^T A db  (m, R, n)
     Dy = y / D
@@ -70,15 +76,11 @@ def schur_steps(f, A, C, w_v, V, lam, dx, mu, keep, again: bool = False):
     if not again:
         return db, dv, lin
 
-    def solve(r):
+    def resolve(r):
         rr = (Mr * r[..., None, :]).sum(-1)
-        rhs = -(Af.transpose(1, 2) @ rr.reshape(m, -1, 1))[..., 0] * kf
-        out = torch.cholesky_solve(rhs[..., None], Ls)[..., 0]
-        if bool(bad.any()):
-            out[bad] = torch.linalg.lstsq(S[bad], rhs[bad][..., None]).solution[..., 0]
-        return out
+        return solve(-(Af.transpose(1, 2) @ rr.reshape(m, -1, 1))[..., 0] * kf)
 
-    return db, dv, lin, Resolve(solve, diag_bb.sqrt())
+    return db, dv, lin, Resolve(resolve, diag_bb.sqrt())
 
 
 class Resolve:

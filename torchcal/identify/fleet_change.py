@@ -33,21 +33,13 @@ import torch
 
 from ..core import units
 from .alignment import kabsch
-from .fleet_outliers import scores_from_values
+from .fleet_outliers import axis_errors, scores_from_values
 
 
 def _axis_parts(model, samples: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(S, n) the modeled error about (along) each joint's own axis over its range, direction-free part and
     backlash part (half the difference between the two approach directions)."""
-    je = model.joint_errors
-    lo, hi = je.ranges[:, 0], je.ranges[:, 1]
-    t = torch.linspace(0.0, 1.0, samples, dtype=lo.dtype, device=lo.device)[:, None]
-    u = lo + t * (hi - lo)
-    ones = torch.ones_like(u)
-    fwd, bwd = je.twists(u, ones), je.twists(u, -ones)  # (S, n, 6): rotation, translation
-    prismatic = model.prismatic.to(u.device)[None, :]
-    a_f = torch.where(prismatic, fwd[..., 5], fwd[..., 2])
-    a_b = torch.where(prismatic, bwd[..., 5], bwd[..., 2])
+    a_f, a_b = axis_errors(model, samples)
     return 0.5 * (a_f + a_b), 0.5 * (a_f - a_b)
 
 

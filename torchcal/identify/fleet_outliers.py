@@ -28,9 +28,9 @@ class Outlier:
         return f"{who}: {self.joint} {self.feature} {self.ratio:.1f}x the fleet median (robust z {self.z:.1f})"
 
 
-def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:
-    """Per joint (n,): 'angle error' (RMS over the joint's range of its modeled error about its own axis, the
-    transmission error, rad or m) and 'backlash' (mean half difference between the two approach directions)."""
+def axis_errors(model, samples: int = 101) -> tuple[torch.Tensor, torch.Tensor]:
+    """(S, n) twice: each joint's modeled error about (along, if prismatic) its own axis at ``samples`` points
+    evenly over its range, approached from the + side and from the - side (rad or m)."""
     je = model.joint_errors
     with torch.no_grad():
         lo, hi = je.ranges[:, 0], je.ranges[:, 1]
@@ -38,10 +38,16 @@ def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:
         u = lo + t * (hi - lo)
         ones = torch.ones_like(u)
         fwd, bwd = je.twists(u, ones), je.twists(u, -ones)  # (S, n, 6): rotation, translation
-        axis = torch.where(model.prismatic.to(u.device)[None, :], fwd[..., 5], fwd[..., 2])
-        axis_b = torch.where(model.prismatic.to(u.device)[None, :], bwd[..., 5], bwd[..., 2])
-        ang = (axis - axis.mean(0)).pow(2).mean(0).sqrt()
-        back = (0.5 * (axis - axis_b)).abs().mean(0)
+        prismatic = model.prismatic.to(u.device)[None, :]
+        return torch.where(prismatic, fwd[..., 5], fwd[..., 2]), torch.where(prismatic, bwd[..., 5], bwd[..., 2])
+
+
+def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:
+    """Per joint (n,): 'angle error' (RMS over the joint's range of its modeled error about its own axis, the
+    transmission error, rad or m) and 'backlash' (mean half difference between the two approach directions)."""
+    axis, axis_b = axis_errors(model, samples)
+    ang = (axis - axis.mean(0)).pow(2).mean(0).sqrt()
+    back = (0.5 * (axis - axis_b)).abs().mean(0)
     return {"angle error": ang, "backlash": back}
 
 
@@ -123,5 +129,5 @@ def parameter_outliers(fit, threshold: float = 5.0, min_ratio: float = OUTLIER_M
     return score, found
 
 
-__all__ = ["FeatureScores", "OUTLIER_MIN_RATIO", "Outlier", "feature_scores", "joint_features", "parameter_outliers",
-           "scores_from_values"]
+__all__ = ["FeatureScores", "OUTLIER_MIN_RATIO", "Outlier", "axis_errors", "feature_scores", "joint_features",
+           "parameter_outliers", "scores_from_values"]

@@ -48,15 +48,12 @@ def baseline_units(cfg, label: str) -> tuple[Path, list[str]] | None:
 def baseline_model(run: Path, names: list[str], label: str):
     """The first readable unit model of the baseline ``run`` (its structure and backlash orders are the fleet's;
     a broken one is said per unit after the solve); ConfigError naming the key where none is readable."""
-    from ..io.rundir import load_model
+    from ..io.rundir import RunDirError, first_readable_model
 
-    why = []
-    for name in names:
-        try:
-            return load_model(run / "units" / name, torch.device("cpu"))
-        except Exception as exc:
-            why.append(str(exc))
-    raise ConfigError(f"{label}: key '{KEY}': no unit model of {run} is readable ({why[0]})")
+    try:
+        return first_readable_model((run / "units" / name for name in names), torch.device("cpu"))
+    except RunDirError as exc:
+        raise ConfigError(f"{label}: key '{KEY}': {run}: {exc}") from None
 
 
 def check_structure(run: Path, theirs, model, label: str) -> None:

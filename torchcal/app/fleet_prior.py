@@ -96,20 +96,18 @@ def fleet_backlash_orders(run_dir) -> list[int]:
     orders its own few poses would suggest, so that its model has the structure the prior describes."""
     import pandas as pd
 
-    from ..io.rundir import load_model
+    from ..io.rundir import RunDirError, first_readable_model
 
     run_dir = Path(run_dir)
     table = pd.read_csv(run_dir / "summary.csv")
     fitted = [str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]]
     if not fitted:
         raise ConfigError(f"prior.fleet: {run_dir} has no fitted unit")
-    why = []
-    for name in fitted:  # the first readable unit: one broken file does not hide the fleet's structure
-        try:
-            return [int(b) for b in load_model(run_dir / "units" / name).joint_errors.backlash_orders.tolist()]
-        except Exception as exc:
-            why.append(str(exc))
-    raise ConfigError(f"prior.fleet: no unit model of {run_dir} is readable ({why[0]})")
+    try:
+        model = first_readable_model(run_dir / "units" / name for name in fitted)
+    except RunDirError as exc:
+        raise ConfigError(f"prior.fleet: {run_dir}: {exc}") from None
+    return [int(b) for b in model.joint_errors.backlash_orders.tolist()]
 
 
 __all__ = ["FleetRunPrior", "fleet_backlash_orders", "prior_from_fleet_run"]

@@ -261,6 +261,19 @@ def load_model(run_dir, device=None, robot=None):
     return model.to(device) if device is not None else model
 
 
+def first_readable_model(run_dirs, device=None):
+    """The model of the first of ``run_dirs`` (e.g. a fleet run's ``units/<name>`` folders) that
+    :func:`load_model` reads, or RunDirError naming the first one's reason where none is: one broken file
+    does not hide a fleet's structure (every unit has it)."""
+    why = []
+    for run_dir in run_dirs:
+        try:
+            return load_model(run_dir, device)
+        except Exception as exc:  # a truncated file, or a spec or state this torchcal cannot rebuild: the next one
+            why.append(str(exc))
+    raise RunDirError(f"no model is readable ({why[0] if why else 'none given'})")
+
+
 def load_run_config(run_dir) -> dict:
     """The resolved config a run was made with, as plain containers (the typed, checked view of it is the
     application layer's: :func:`torchcal.app.config.run_config`)."""
@@ -330,6 +343,7 @@ __all__ = [
     "RunDirError",
     "RUN_MARKERS",
     "collect_versions",
+    "first_readable_model",
     "git_commit",
     "is_run_dir",
     "load_model",

@@ -283,6 +283,29 @@ def _integers(df: pd.DataFrame, column: str, problems: list[Problem]) -> tuple[n
     return np.where(ok, values, 0.0).astype(np.int64), ok
 
 
+def _file_limits(robot) -> np.ndarray:
+    """(n, 2) the controller range of every joint in file units (deg / mm)."""
+    prismatic = robot.joint_map.prismatic.cpu()
+    return units.joints_from_si(robot.joint_map.limits.cpu().T, prismatic).T.numpy()
+
+
+def _to_measurements(q, tool, xyz, direction, pose, has_direction: bool, source: str, extra: dict,
+                     prismatic) -> Measurements:
+    """Checked columns in file units (numpy: q, direction (R, n), tool, pose (R,) int64, xyz (R, 3) mm) -> SI
+    :class:`Measurements`, rows numbered from 1."""
+    return Measurements(
+        q=units.joints_to_si(torch.from_numpy(q), prismatic),
+        tool=torch.from_numpy(tool),
+        xyz=units.mm_to_m(torch.from_numpy(xyz)),
+        direction=torch.from_numpy(direction),
+        pose=torch.from_numpy(pose),
+        rows=torch.arange(1, len(q) + 1),
+        has_direction=has_direction,
+        source=source,
+        extra=extra,
+    )
+
+
 def parse_table(
     df: pd.DataFrame,
     path,
@@ -337,7 +360,7 @@ def parse_table(
 
     # joints: numbers inside the controller range
     q = np.zeros((R, n))
-    limits = units.joints_from_si(robot.joint_map.limits.cpu().T, prismatic).T.numpy()  # (n, 2) deg / mm
+    limits = _file_limits(robot)
     for i, c in enumerate(qcols):
         if c not in cols:
             continue
@@ -412,17 +435,7 @@ def parse_table(
     interpreted |= set(dcols) if has_direction else set()
     interpreted |= set(XYZ) if has_xyz else set()
     extra = {c: df[c].to_numpy(dtype=object) for c in df.columns if c not in interpreted}
-    return Measurements(
-        q=units.joints_to_si(torch.from_numpy(q), prismatic),
-        tool=torch.from_numpy(tool),
-        xyz=units.mm_to_m(torch.from_numpy(xyz)),
-        direction=torch.from_numpy(direction),
-        pose=torch.from_numpy(pose),
-        rows=torch.arange(1, R + 1),
-        has_direction=has_direction,
-        source=path,
-        extra=extra,
-    )
+    return _to_measurements(q, tool, xyz, direction, pose, has_direction, path, extra, prismatic)
 
 
 def read_table(path, robot, n_tools: int | None, require_xyz: bool = True, require_pose: bool | None = None
@@ -485,7 +498,7 @@ def _read_clean(path: Path, robot, n_tools: int) -> Measurements | None:
     if not all(np.isfinite(v).all() and not (np.signbit(v) & (v == 0)).any() for v in num.values()):
         return None
     prismatic = robot.joint_map.prismatic.cpu()
-    limits = units.joints_from_si(robot.joint_map.limits.cpu().T, prismatic).T.numpy()  # (n, 2) deg / mm
+    limits = _file_limits(robot)
     q = np.stack([num[c] for c in qcols], 1)
     if ((q < limits[:, 0] - LIMIT_TOL) | (q > limits[:, 1] + LIMIT_TOL)).any():
         return None
@@ -498,13 +511,10 @@ def _read_clean(path: Path, robot, n_tools: int) -> Measurements | None:
     tool, pose = tool.astype(np.int64), pose.astype(np.int64)
     if pd.DataFrame({"pose": pose, "tool": tool}).duplicated().any():
         return None
-    R = len(df)
     xyz = np.stack([num[c] for c in XYZ], 1)
     extra = {c: df[c].to_numpy(dtype=object) for c in names if c not in numeric}
-    return Measurements(q=units.joints_to_si(torch.from_numpy(q), prismatic), tool=torch.from_numpy(tool),
-                        xyz=units.mm_to_m(torch.from_numpy(xyz)),
-                        direction=torch.from_numpy(np.ascontiguousarray(direction)), pose=torch.from_numpy(pose),
-                        rows=torch.arange(1, R + 1), has_direction=has_direction, source=str(path), extra=extra)
+    return _to_measurements(q, tool, xyz, np.ascontiguousarray(direction), pose, has_direction, str(path), extra,
+                            prismatic)
 
 
 def read_measurements(path, robot, n_tools: int | None, require_xyz: bool = True) -> Measurements:

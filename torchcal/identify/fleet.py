@@ -157,7 +157,8 @@ class FleetProblem(BatchedProblem):
             raise ValueError("fit_fleet: every unit needs an isotropic tracker sigma (noise.sigma_m); per-row "
                              "covariances are not stacked")
         self.layout, self.instrument, self.data = p.layout, p.instrument, p.data
-        self.stack = st = stack_units(units)
+        st = stack_units(units)
+        self.stack = st
         M, R, n = st["q"].shape
         self.M, self.R, self.n, self.d = M, R, n, p.dim
         self._set_weights(noises, list(st["direction"]), st["rows"], "fit_fleet: every unit")
@@ -168,7 +169,8 @@ class FleetProblem(BatchedProblem):
         # geodesic acceleration (solve_batched): measured on the CPU only, so off elsewhere until it is
         self.accelerate = dev.type == "cpu"
         # the factored Jacobian (torchcal.identify.structured) where the model has one, else dense A
-        self.structure, self.dense_normal = None, False
+        self.structure = None
+        self.dense_normal = False
         if structured and RobotStructure.supports(superset, p.instrument, self.layout):
             self.structure = RobotStructure(superset, self.layout)
             self.dense_normal = bool(dense_normal)

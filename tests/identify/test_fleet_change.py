@@ -97,12 +97,13 @@ def test_changed_units_by_the_tool_or_a_transmission_error_seen_there():
     tool[9] *= 1.2
     te[10, 1] *= 10.0  # unit 10: joint 2's transmission error, nothing at the tool: the fits' own scatter
     names = [f"joint{j + 1}" for j in range(n)]
-    _, _, found = changed_units(tool, {"transmission error change": te, "backlash change": back}, names, ["deg"] * n)
+    revolute = torch.zeros(n, dtype=torch.bool)
+    _, _, found = changed_units(tool, {"transmission error change": te, "backlash change": back}, names, revolute)
     assert [c.unit for c in found] == [3, 9]  # largest z at the tool first
     assert [(j, f) for j, f, *_ in found[0].joints] == [("joint3", "transmission error change")]
     assert [(j, f) for j, f, *_ in found[1].joints] == [("joint6", "transmission error change")]
     assert found[0].joints[0][2] == float(te[3, 2]) / U.DEG  # stated in degrees
-    _, _, none = changed_units(tool[:3].clone().fill_(1e-4), {"transmission error change": te[:3]}, names, ["deg"] * n)
+    _, _, none = changed_units(tool[:3].clone().fill_(1e-4), {"transmission error change": te[:3]}, names, revolute)
     assert none == []
 
 

@@ -78,9 +78,8 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
     gain ``change_rms_mm``, ``change_max_mm``, ``changed`` and ``change``; ``changes.csv`` is written. ->
     the changed units (:class:`~torchcal.identify.fleet_change.UnitChange`, named)."""
     from ..identify.fleet_change import changed_units, joint_changes, tool_change
-    from ..io.rundir import load_model
-
     from ..identify.layout import ParameterLayout
+    from ..io.rundir import load_model
 
     earlier = set(names)
     now = {u["name"] for u, _ in fitted}
@@ -113,15 +112,14 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
         rows[n].update(change_rms_mm=units.m_to_mm(r), change_max_mm=units.m_to_mm(float(d.max())), changed=False)
     joints = joint_changes(old, [m for _, m in pairs])
     joint_names = list(pairs[0][1].joint_errors.joint_names)
-    value_units = units.joint_unit_names(robot.joint_map.prismatic.cpu())
+    prismatic = robot.joint_map.prismatic.cpu()
     if len(pairs) < 3:
         warn(f"{KEY}: {len(pairs)} unit(s) compared with {run.name}; at least 3 are needed to judge a change against "
              "the fleet's: the changes are reported, none judged")
-        _write_changes(run_dir, [n for n, _ in pairs], rms, joints, joint_names, value_units, None, None, threshold)
+        _write_changes(run_dir, [n for n, _ in pairs], rms, joints, joint_names, prismatic, None, None, threshold)
         return []
-    tool_sc, joint_sc, found = changed_units(rms, joints, joint_names, value_units, threshold)
-    _write_changes(run_dir, [n for n, _ in pairs], rms, joints, joint_names, value_units, tool_sc, joint_sc,
-                   threshold)
+    tool_sc, joint_sc, found = changed_units(rms, joints, joint_names, prismatic, threshold)
+    _write_changes(run_dir, [n for n, _ in pairs], rms, joints, joint_names, prismatic, tool_sc, joint_sc, threshold)
     median = units.m_to_mm(float(tool_sc.median["tool change"][0]))
     log.info(f"{KEY}: {len(pairs)} unit(s) compared with {run}; the fleet's median change at the tool "
              f"{median:.4f} mm RMS; {len(found)} changed")
@@ -132,7 +130,7 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
     return found
 
 
-def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_units, tool_sc, joint_sc,
+def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, prismatic, tool_sc, joint_sc,
                    threshold: float) -> None:
     """changes.csv: per compared unit its change at the tool (mm, RMS) and per joint and feature its change (deg,
     mm for a prismatic joint); where judged, the fleet's median, the ratio, the robust z, the level above which
@@ -141,7 +139,11 @@ def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_u
 
     from ..identify.fleet_change import CHANGE_MIN_RATIO
 
-    scale = [units.m_to_mm(1.0) if u == "mm" else 1.0 / units.DEG for u in value_units]
+    value_units = units.joint_unit_names(prismatic)
+    file_units = {key: units.joints_from_si(value, prismatic) for key, value in joints.items()}  # (M, n) deg / mm
+    if joint_sc is not None:
+        medians = {key: units.joints_from_si(joint_sc.median[key], prismatic) for key in joints}
+        levels = {key: units.joints_from_si(joint_sc.flag_level(key, threshold), prismatic) for key in joints}
     out = []
     for m, name in enumerate(names):
         row = {"unit": name, "joint": "tool", "feature": "tool change", "change": units.m_to_mm(float(rms[m])),
@@ -153,14 +155,13 @@ def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, value_u
                        flag_level=units.m_to_mm(float(tool_sc.flag_level(key, threshold, CHANGE_MIN_RATIO)[0])),
                        beyond=bool(tool_sc.flagged(key, threshold, CHANGE_MIN_RATIO)[m, 0]))
         out.append(row)
-        for key, value in joints.items():
+        for key in joints:
             for j, joint in enumerate(joint_names):
-                row = {"unit": name, "joint": joint, "feature": key, "change": float(value[m, j]) * scale[j],
+                row = {"unit": name, "joint": joint, "feature": key, "change": float(file_units[key][m, j]),
                        "value_unit": value_units[j]}
                 if joint_sc is not None:
-                    row.update(fleet_median=float(joint_sc.median[key][j]) * scale[j],
-                               ratio=float(joint_sc.ratio[key][m, j]), robust_z=float(joint_sc.z[key][m, j]),
-                               flag_level=float(joint_sc.flag_level(key, threshold)[j]) * scale[j],
+                    row.update(fleet_median=float(medians[key][j]), ratio=float(joint_sc.ratio[key][m, j]),
+                               robust_z=float(joint_sc.z[key][m, j]), flag_level=float(levels[key][j]),
                                beyond=bool(joint_sc.flagged(key, threshold)[m, j]))
                 out.append(row)
     with atomic_path(run_dir / "changes.csv") as tmp:

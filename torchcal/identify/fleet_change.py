@@ -119,7 +119,7 @@ class UnitChange:
                 f"change (robust z {self.z:.1f}){where}")
 
 
-def changed_units(tool_rms: torch.Tensor, joint: dict[str, torch.Tensor], joints, value_units: list[str],
+def changed_units(tool_rms: torch.Tensor, joint: dict[str, torch.Tensor], joints, prismatic,
                   threshold: float = 5.0, min_ratio: float = CHANGE_MIN_RATIO):
     """The units that changed far beyond the fleet: their change at the tool ``tool_rms`` (M,) (m, RMS of
     :func:`tool_change`) above ``threshold`` in robust z and at least ``min_ratio`` x the fleet's median; or
@@ -130,13 +130,13 @@ def changed_units(tool_rms: torch.Tensor, joint: dict[str, torch.Tensor], joints
     two calibrations of one unchanged unit scatter most in the least determined terms (a wrist's backlash),
     which move no point.
 
-    joint: {feature: (M, n)} as :func:`joint_changes` gives; joints: the n joint names; value_units: 'deg' or
-    'mm' per joint (the findings' units). -> (tool scores, joint scores (:class:`FeatureScores`), the changed
+    joint: {feature: (M, n)} as :func:`joint_changes` gives; joints: the n joint names; prismatic: (n,) bool, the
+    joints whose findings are stated in mm (the others in deg). -> (tool scores, joint scores (:class:`FeatureScores`), the changed
     units (:class:`UnitChange`, largest z at the tool first)).
     """
     tool_sc = scores_from_values({"tool change": tool_rms[:, None]}, ["tool"])
     joint_sc = scores_from_values(joint, list(joints))
-    scale = [units.m_to_mm(1.0) if u == "mm" else 1.0 / units.DEG for u in value_units]
+    value_units = units.joint_unit_names(prismatic)
     hit = tool_sc.flagged("tool change", threshold, min_ratio)[:, 0]
     if SOLE_FEATURE in joint_sc.value:  # confirmed at the tool: its points moved beyond the fleet's scatter
         hit = hit | (joint_sc.flagged(SOLE_FEATURE, threshold).any(1) & (tool_sc.z["tool change"][:, 0] > threshold))
@@ -144,10 +144,10 @@ def changed_units(tool_rms: torch.Tensor, joint: dict[str, torch.Tensor], joints
     for m in hit.nonzero()[:, 0].tolist():
         where = []
         for key in joint_sc.value:
-            z, ratio, value = joint_sc.z[key][m], joint_sc.ratio[key][m], joint_sc.value[key][m]
+            z, ratio = joint_sc.z[key][m], joint_sc.ratio[key][m]
+            value = units.joints_from_si(joint_sc.value[key][m], prismatic)  # deg / mm
             for j in joint_sc.flagged(key, threshold)[m].nonzero()[:, 0].tolist():
-                where.append((joint_sc.joints[j], key, float(value[j]) * scale[j], value_units[j], float(ratio[j]),
-                              float(z[j])))
+                where.append((joint_sc.joints[j], key, float(value[j]), value_units[j], float(ratio[j]), float(z[j])))
         where.sort(key=lambda w: -w[5])
         out.append(UnitChange(m, units.m_to_mm(float(tool_rms[m])), float(tool_sc.ratio["tool change"][m, 0]),
                               float(tool_sc.z["tool change"][m, 0]), where))

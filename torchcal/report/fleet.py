@@ -33,31 +33,52 @@ def is_fleet_run(run_dir) -> bool:
     return (Path(run_dir) / FLEET_FILE).is_file()
 
 
-def _features(path: Path):
-    """features.csv -> list of rows (floats parsed, 'flagged' a bool), or Missing."""
+def _csv_rows(path: Path, need: set, numbers: tuple, flag: str, absent: str):
+    """A table the run wrote (features.csv, changes.csv) -> list of rows, the ``numbers`` columns present parsed
+    as floats and ``flag`` a bool (False where absent), or Missing (``absent``: why the file may not be there)."""
     if not path.is_file():
-        return Missing(f"{path.name} not in the run directory (fewer than 3 units with data enough to judge, or a "
-                       "run before torchcal wrote it)")
+        return Missing(f"{path.name} not in the run directory ({absent})")
     rows = []
     try:
         with path.open(newline="", encoding="utf-8") as f:
             reader = csv.DictReader(f)
-            need = {"unit", "joint", "feature", "value", "value_unit", "fleet_median", "robust_z", "flag_level",
-                    "flagged"}
             if not need <= set(reader.fieldnames or ()):
                 return Missing(f"{path.name} lacks the columns {sorted(need - set(reader.fieldnames or ()))}")
             for line, row in enumerate(reader, start=2):
                 try:
-                    for k in ("value", "fleet_median", "ratio", "robust_z", "flag_level"):
+                    for k in numbers:
                         if k in row:
                             row[k] = float(row[k])
                 except (TypeError, ValueError):
                     return Missing(f"{path.name}, row {line}: a value that is not a number")
-                row["flagged"] = str(row["flagged"]).strip().lower() == "true"
+                row[flag] = str(row.get(flag, "")).strip().lower() == "true"
                 rows.append(row)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         return Missing(f"{path.name} is not readable ({type(exc).__name__}: {exc})")
     return rows
+
+
+def _features(path: Path):
+    """features.csv -> list of rows (floats parsed, 'flagged' a bool), or Missing."""
+    return _csv_rows(path, {"unit", "joint", "feature", "value", "value_unit", "fleet_median", "robust_z",
+                            "flag_level", "flagged"}, ("value", "fleet_median", "ratio", "robust_z", "flag_level"),
+                     "flagged", "fewer than 3 units with data enough to judge, or a run before torchcal wrote it")
+
+
+def _strip_charts(rows: list, value: str, hot, titles: dict) -> list[str]:
+    """One strip chart per feature of ``rows`` (features.csv's or changes.csv's), a column per joint, a dot per
+    unit (its ``value``, red where ``hot(row)``), the fleet's median and flag level drawn."""
+    out = []
+    for feature in dict.fromkeys(r["feature"] for r in rows):
+        mine = [r for r in rows if r["feature"] == feature]
+        groups = []
+        for joint in dict.fromkeys(r["joint"] for r in mine):
+            pts = [r for r in mine if r["joint"] == joint]
+            groups.append((joint, [(r["unit"], r[value], hot(r)) for r in pts], pts[0].get("fleet_median"),
+                           pts[0].get("flag_level")))
+        unit_names = sorted({r["value_unit"] for r in mine})
+        out.append(strip_svg(groups, titles.get(feature, feature), f"{feature} ({', '.join(unit_names)})"))
+    return out
 
 
 def _float(x):
@@ -180,47 +201,25 @@ CHANGE_TITLES = {"tool change": "Change at the tool since the baseline (RMS over
 def _change_strips(run: FleetFiles, compared: list) -> str:
     """changes.csv as strip charts: a dot per unit, the fleet's median and the level beyond which a change lies;
     red: the changed units' changes beyond the fleet's."""
-    path = run.folder / "changes.csv"
-    if not path.is_file():
-        return not_available("the fleet's changes per joint", "changes.csv not in the run directory")
-    try:
-        with path.open(newline="", encoding="utf-8") as f:
-            rows = list(csv.DictReader(f))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        return not_available("the fleet's changes per joint", f"changes.csv is not readable ({type(exc).__name__})")
+    rows = _csv_rows(run.folder / "changes.csv", {"unit", "joint", "feature", "change", "value_unit"},
+                     ("change", "fleet_median", "ratio", "robust_z", "flag_level"), "beyond",
+                     "a run before torchcal wrote it")
+    if isinstance(rows, Missing):
+        return not_available("the fleet's changes per joint", rows.reason)
     changed = {str(u.get("unit")) for u in compared if u.get("changed")}
-    out = ["<p>Each dot is one unit's change; the grey bar is the fleet's median change, the dashed red bar the "
-           "level beyond which a change lies far from the fleet's; the changed units' changes beyond it are red "
-           "and named.</p>"]
-    for feature in dict.fromkeys(r.get("feature") for r in rows):
-        mine = [r for r in rows if r.get("feature") == feature]
-        groups = []
-        for joint in dict.fromkeys(r.get("joint") for r in mine):
-            pts = [r for r in mine if r.get("joint") == joint]
-            hot = [(r["unit"], _float(r.get("change")) if _float(r.get("change")) is not None else float("nan"),
-                    r["unit"] in changed and str(r.get("beyond", "")).strip().lower() == "true") for r in pts]
-            groups.append((joint, hot, _float(pts[0].get("fleet_median")), _float(pts[0].get("flag_level"))))
-        unit_names = sorted({r.get("value_unit", "") for r in mine})
-        out.append(strip_svg(groups, CHANGE_TITLES.get(feature, feature), f"{feature} ({', '.join(unit_names)})"))
-    return "".join(out)
+    intro = ("<p>Each dot is one unit's change; the grey bar is the fleet's median change, the dashed red bar the "
+             "level beyond which a change lies far from the fleet's; the changed units' changes beyond it are red "
+             "and named.</p>")
+    return intro + "".join(_strip_charts(rows, "change", lambda r: r["unit"] in changed and r["beyond"],
+                                         CHANGE_TITLES))
 
 
 def _distributions(run: FleetFiles) -> str:
     if isinstance(run.features, Missing):
         return not_available("the fleet's joint features", run.features.reason)
-    out = ["<p>Each dot is one unit's feature of one joint; the grey bar is the fleet median, the dashed red bar the "
-           "level above which a unit is flagged; flagged units are red and named.</p>"]
-    for feature in dict.fromkeys(r["feature"] for r in run.features):
-        rows = [r for r in run.features if r["feature"] == feature]
-        joints = list(dict.fromkeys(r["joint"] for r in rows))
-        unit_names = sorted({r["value_unit"] for r in rows})
-        groups = []
-        for j in joints:
-            pts = [r for r in rows if r["joint"] == j]
-            groups.append((j, [(r["unit"], r["value"], r["flagged"]) for r in pts], pts[0]["fleet_median"],
-                           pts[0]["flag_level"]))
-        out.append(strip_svg(groups, FEATURE_TITLES.get(feature, feature), f"{feature} ({', '.join(unit_names)})"))
-    return "".join(out)
+    intro = ("<p>Each dot is one unit's feature of one joint; the grey bar is the fleet median, the dashed red bar the "
+             "level above which a unit is flagged; flagged units are red and named.</p>")
+    return intro + "".join(_strip_charts(run.features, "value", lambda r: r["flagged"], FEATURE_TITLES))
 
 
 def _accuracy(run: FleetFiles) -> str:

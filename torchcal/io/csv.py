@@ -125,6 +125,11 @@ def _delimiter(path: Path) -> str:
             first = fh.readline()
     except (OSError, UnicodeDecodeError):
         return ","  # _scan reports it
+    return _header_delimiter(first)
+
+
+def _header_delimiter(first: str) -> str:
+    """:func:`_delimiter` of a file whose header line is ``first``."""
     counts = {",": first.count(","), ";": first.count(";"), "\t": first.count("\t")}
     best = max(counts, key=lambda k: counts[k])
     return best if counts[best] > counts[","] else ","
@@ -463,10 +468,10 @@ def _read_clean(path: Path, robot, n_tools: int) -> Measurements | None:
     100 units' files took longer than their batched solve."""
     n = robot.joint_map.n
     try:
-        if _delimiter(path) != "," or not path.is_file():
-            return None
         text = path.read_text(encoding="utf-8-sig")  # universal newlines: CRLF files read as the csv module reads them
     except (OSError, UnicodeDecodeError):
+        return None
+    if _header_delimiter(text.split("\n", 1)[0]) != ",":
         return None
     if '"' in text or _PADDING.search(text) is not None or _ODD_BREAKS.search(text) is not None:
         return None

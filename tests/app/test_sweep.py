@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 
 import pytest
@@ -49,3 +50,72 @@ def test_cells_that_cannot_be_stacked_run_alone(sim, tmp_path):
     auto = [r for r in res.rows if r["model.order"] == "auto"][0]
     assert (res.run_dir / "cells" / f"{auto['cell']:02d}" / "metrics.json").exists()
     assert auto["validation_mean_mm"] > 0
+
+
+def _broken_copy(src, dst, row=5, column="y"):
+    """A copy of the measurement file ``src`` with one cell of ``column`` (data row ``row``, 1-based) not a number."""
+    lines = src.read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[row].split(",")
+    cells[header.index(column)] = "n/a"
+    lines[row] = ",".join(cells)
+    dst.write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_a_failing_cell_is_reported_and_the_others_finish(sim, tmp_path):
+    """A cell whose data file is broken gets status 'failed' with the reason naming the file, row and column;
+    the other cells are fitted and written, results.csv holds every cell."""
+    import pandas as pd
+
+    cfg = load_config(sim)
+    good = cfg.data.identification
+    from pathlib import Path
+
+    bad = _broken_copy(Path(good), tmp_path / "broken.csv")
+    res = run_sweep(sim, [f"data.identification={good},{bad}", "model.order=1", "data.truth=null"],
+                    out=tmp_path / "sw")
+    by_file = {r["data.identification"]: r for r in res.rows}
+    assert by_file[str(good)]["status"] == "fitted" and by_file[str(good)]["validation_mean_mm"] > 0
+    failed = by_file[str(bad)]
+    assert failed["status"] == "failed"
+    assert "broken.csv" in failed["reason"] and "row 5" in failed["reason"] and "'y'" in failed["reason"]
+    table = pd.read_csv(res.run_dir / "results.csv")
+    assert sorted(table["status"]) == ["failed", "fitted"]
+    assert (res.run_dir / "cells" / f"{by_file[str(good)]['cell']:02d}" / "model.pt").exists()
+    assert "1 of 2 cells failed" in (res.run_dir / "run.log").read_text()
+
+
+def test_the_engine_is_not_a_grid_axis(sim, tmp_path):
+    with pytest.raises(ConfigError, match="sweep.engine"):
+        run_sweep(sim, ["model.order=1,2", "sweep.engine=local,ray"], out=tmp_path / "sw")
+    with pytest.raises(ConfigError, match="sweep.engine"):
+        run_sweep(sim, ["model.order=1,2", "sweep.engine=spark"], out=tmp_path / "sw2")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray not installed (pip install 'torchcal[ray]')")
+def test_ray_engine_matches_local(sim, tmp_path):
+    """sweep.engine=ray (a local Ray, 2 workers) computes what the local engine computes, bit for bit: the
+    stacked groups and a cell fitted alone (automatic orders)."""
+    import ray
+    import torch
+
+    from torchcal.io.rundir import load_model
+
+    grid = ["model.order=1,2,auto", "data.n_poses=25,40", "data.truth=null", "model.candidates=[1,2]"]
+    local = run_sweep(sim, grid, out=tmp_path / "local")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = run_sweep(sim, grid + ["sweep.engine=ray"], out=tmp_path / "ray")
+    finally:
+        ray.shutdown()
+    assert len(local.rows) == len(remote.rows) == 6
+    for a, b in zip(local.rows, remote.rows):
+        assert a["status"] == b["status"] == "fitted"
+        for key in ("iterations", "cost", "identification_mean_mm", "validation_mean_mm"):
+            assert a[key] == b[key], (a["cell"], key)
+        ma = load_model(local.run_dir / "cells" / f"{a['cell']:02d}")
+        mb = load_model(remote.run_dir / "cells" / f"{b['cell']:02d}")
+        for (k, x), (_, y) in zip(ma.state_dict().items(), mb.state_dict().items()):
+            assert torch.equal(x, y), (a["cell"], k)
+    assert "engine ray" in (remote.run_dir / "run.log").read_text()

@@ -37,6 +37,7 @@ from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBas
 
 from ..core import units
 from ..core.exceptions import ConfigError  # defined low (torchcal.core.exceptions) so that any layer can raise it
+from .engines import ENGINES
 from ..error_models.joint import MAX_ORDER
 from ..identify import SOLVERS, Prior
 
@@ -200,8 +201,8 @@ class CompensationConfig:
     """Fixed-Jacobian iterations before a command goes to the damped solver; null = the default."""
 
 
-FLEET_ENGINES = ("local", "ray")
-"""``fleet.engine``: where the fleet's cells of units are fitted."""
+FLEET_ENGINES = ENGINES
+"""``fleet.engine`` / ``sweep.engine``: where the cells are fitted (:mod:`torchcal.app.engines`)."""
 
 
 @dataclass(frozen=True)
@@ -226,6 +227,18 @@ class FleetConfig:
     """An earlier ``torchcal fleet`` run directory of the same units: each unit fitted in both is compared with
     its earlier model (the change at the tool, the joints that changed), and the units that changed far beyond
     the fleet's own changes are named (torchcal.identify.fleet_change: a crash, a gearbox swap)."""
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """``torchcal sweep CONFIG key=a,b,c``: where the grid's independent cells run."""
+
+    engine: str = "local"
+    """local (this process, one cell group after the other) or ray (each group of cells a Ray task: ``pip install
+    torchcal[ray]``). On a cluster, the data files and the sweep's run directory must be on storage every node
+    reaches (as Ray Tune's storage_path): the cells write their own folders."""
+    address: Optional[str] = None
+    """engine: ray: the cluster's address (null: a local Ray started for the run, or RAY_ADDRESS)."""
 
 
 @dataclass(frozen=True)
@@ -254,6 +267,7 @@ class FitConfig:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     compensation: CompensationConfig = field(default_factory=CompensationConfig)
     fleet: FleetConfig = field(default_factory=FleetConfig)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
     seed: int = 0
     device: str = "cpu"
     """torch device, e.g. cpu, cuda, cuda:1."""
@@ -618,8 +632,9 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
         if value in (MISSING, None, ""):
             fail(key, "is required but not set")
     fleet = cfg.fleet
-    if fleet.engine not in FLEET_ENGINES:
-        fail("fleet.engine", f"must be one of {', '.join(FLEET_ENGINES)}, got {fleet.engine!r}")
+    for key, engine in (("fleet.engine", fleet.engine), ("sweep.engine", cfg.sweep.engine)):
+        if engine not in FLEET_ENGINES:
+            fail(key, f"must be one of {', '.join(FLEET_ENGINES)}, got {engine!r}")
     if int(fleet.cell) < 1:
         fail("fleet.cell", f"must be a positive number of units, got {fleet.cell}")
     if not float(fleet.threshold) > 0:

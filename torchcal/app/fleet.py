@@ -165,38 +165,17 @@ def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -
 
 def _run_cells(cfg, cells: list[list], config_yaml: str) -> list:
     """Every cell through the configured engine -> per cell its list of unit dicts, or the exception it raised."""
+    from .engines import run_cells
+
     n_threads = _solve_threads(cfg)
-    if cfg.fleet.engine == "local":
-        out = []
-        for cell in cells:
-            try:
-                out.append(fit_cell(config_yaml, cell, n_threads))
-            except Exception as exc:  # a failing cell is reported; the others go on
-                log.warning("cell of %s failed: %s: %s", [n for n, _ in cell], type(exc).__name__, exc)
-                out.append(exc)
-        return out
-    try:
-        import ray
-    except ImportError:
-        raise ConfigError(f"{cfg.config_file or 'config'}: key 'fleet.engine': ray needs Ray installed "
-                          "(pip install 'torchcal[ray]')") from None
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address=cfg.fleet.address, include_dashboard=False, log_to_driver=False)
-    try:
-        task = ray.remote(max_retries=0, num_cpus=1)(fit_cell)
-        refs = [task.remote(config_yaml, cell, n_threads) for cell in cells]
-        out = []
-        for cell, ref in zip(cells, refs):
-            try:
-                out.append(ray.get(ref))
-            except Exception as exc:  # a cell that failed on its worker is reported; the others go on
-                log.warning("cell of %s failed on Ray: %s", [n for n, _ in cell], exc)
-                out.append(exc)
-        return out
-    finally:
-        if started:
-            ray.shutdown()
+
+    def done(i, got):
+        if isinstance(got, Exception):  # reported per unit in summary.csv; the others go on
+            log.warning("cell of %s failed (%s): %s: %s", [n for n, _ in cells[i]], cfg.fleet.engine,
+                        type(got).__name__, got)
+
+    return run_cells(fit_cell, [(config_yaml, cell, n_threads) for cell in cells], cfg.fleet.engine,
+                     cfg.fleet.address, where=f"{cfg.config_file or 'config'}: key 'fleet.engine'", on_done=done)
 
 
 def run_fleet(config, overrides: list[str] | None = None, out=None, console=None) -> FleetRunResult:

@@ -35,6 +35,7 @@ import torch
 from ..core import units
 from ..io.atomic import atomic_path, atomic_write_text
 from .config import ConfigError, load_config, to_yaml
+from .engines import run_cells
 
 log = logging.getLogger("torchcal")
 
@@ -91,6 +92,10 @@ def parse_grid(specs: list[str]) -> tuple[list[str], list[tuple[str, list[str]]]
             plain.append(f"{key}={value}")
     if len({k for k, _ in axes}) != len(axes):
         raise ConfigError("sweep: a key is given twice as a grid axis")
+    engine_axes = [k for k, _ in axes if k.startswith("sweep.")]
+    if engine_axes:
+        raise ConfigError(f"sweep item '{engine_axes[0]}=...': where the sweep runs is one value for the whole grid, "
+                          "not a grid axis")
     return plain, axes
 
 
@@ -151,22 +156,70 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     for i, cfg in enumerate(cfgs):
         groups.setdefault(_group_key(cfg) if _stackable(cfg) else f"cell {i}", []).append(i)
     rows: list[dict | None] = [None] * len(cells)
+    members_of = list(groups.values())
+    jobs = [("stacked" if _stackable(cfgs[m[0]]) else "alone", [to_yaml(cfgs[i]) for i in m], str(run_dir), m,
+             cfgs[m[0]].threads) for m in members_of]
+    engine = base.sweep.engine
     with run_log(run_dir):
-        log.info(f"sweep of {len(cells)} cells over {', '.join(keys)}: {len(groups)} batched solve(s); {run_dir}")
+        log.info(f"sweep of {len(cells)} cells over {', '.join(keys)}: {len(groups)} batched solve(s), engine "
+                 f"{engine}; {run_dir}")
         with task("sweep: cell groups", total=len(groups)) as bar:
-            for members in groups.values():
-                if _stackable(cfgs[members[0]]):
-                    for i, row in zip(members, _fit_stacked([cfgs[i] for i in members], run_dir, members)):
-                        rows[i] = row
-                else:
-                    for i in members:
-                        rows[i] = _fit_alone(cfgs[i], run_dir, i, console)
+            def done(g, got):
+                members = members_of[g]
+                if isinstance(got, Exception):  # this group's cells are reported; the others go on
+                    log.warning(f"cells {members} failed ({engine}): {type(got).__name__}: {got}")
+                    got = [{"status": "failed", "reason": f"{type(got).__name__}: {got}"}] * len(members)
+                for i, row in zip(members, got):
+                    rows[i] = row
+                    if engine != "local" and row["status"] == "fitted":  # a worker's log stays on the worker
+                        log.info(f"cell {i}: {_row_line(row)}")
                 bar.advance(note=f"{sum(r is not None for r in rows)} of {len(cells)} cells")
+
+            run_cells(sweep_group, jobs, engine, base.sweep.address,
+                      where=f"{base.config_file or 'config'}: key 'sweep.engine'", on_done=done)
         result.rows = [{"cell": i, **cells[i], **rows[i]} for i in range(len(cells))]
         result.time = time.perf_counter() - t0
         _write_results(run_dir, result)
+        failed = [r["cell"] for r in result.rows if r["status"] != "fitted"]
+        if failed:
+            log.warning(f"{len(failed)} of {len(cells)} cells failed ({', '.join(map(str, failed))}): results.csv "
+                        "says why")
         log.info(f"sweep done in {result.time:.1f} s: {run_dir / 'results.csv'}")
     return result
+
+
+def sweep_group(kind: str, config_yamls: list[str], run_dir: str, cells: list[int], n_threads: int | None) -> list[dict]:
+    """One independent group of a sweep's cells, what an engine runs: ``kind`` 'stacked' (one batched solve,
+    :func:`_fit_stacked`) or 'alone' (one cell, its own ``torchcal fit``). config_yamls: each cell's resolved
+    config; run_dir: the sweep's run directory, where the cells write ``cells/NN`` (on a Ray cluster it must be
+    on storage this node reaches); n_threads: the config's ``threads`` (None: chosen by work size, the same
+    choice on any engine of one machine). -> one row per cell (status 'fitted', convergence, residuals in mm)."""
+    import socket
+
+    from ..core import threads
+    from ..io.rundir import RunDirError
+    from .config import config_from_text
+
+    root = Path(run_dir)
+    if not root.is_dir():
+        raise RunDirError(f"{root}: the sweep's run directory is not visible on {socket.gethostname()}, where this "
+                          "cell runs: with sweep.engine=ray on a cluster, put the run directory (--out) and the data "
+                          "on storage every node reaches")
+    cfgs = [config_from_text(y, f"cell {c} of the sweep's config") for y, c in zip(config_yamls, cells)]
+    old = threads.get_override()
+    threads.set_threads(n_threads)
+    try:
+        if kind == "stacked":
+            return _fit_stacked(cfgs, root, cells)
+        return [_fit_alone(cfgs[0], root, cells[0], None)]
+    finally:
+        threads.set_threads(old)
+
+
+def _row_line(row: dict) -> str:
+    if "validation_mean_mm" in row:
+        return f"validation {row['validation_mean_mm']:.4f} mm ({row['iterations']} iterations)"
+    return f"identification {row.get('identification_mean_mm', float('nan')):.4f} mm ({row['iterations']} iterations)"
 
 
 def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
@@ -214,7 +267,7 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
             model = models[i]
             data = inp.ident.subset(rows[i])
             ident = residual_stats(point_residuals(model, data).cpu()).scaled(units.m_to_mm(1.0))
-            row = {"converged": bool(r.success), "iterations": int(r.nit), "cost": float(r.fun),
+            row = {"status": "fitted", "converged": bool(r.success), "iterations": int(r.nit), "cost": float(r.fun),
                    "identification_mean_mm": ident.mean, "identification_max_mm": ident.max, "poses": data.n_poses,
                    "orders": structures[i][0], "backlash_orders": structures[i][1]}
             if inp.val is not None:
@@ -246,8 +299,8 @@ def _fit_alone(cfg, run_dir: Path, cell: int, console) -> dict:
     cfg = updated(cfg, {"out": str(run_dir / "cells" / f"{cell:02d}")})
     res = run_fit(cfg, console=None)
     sets = res.metrics.get("sets", {})
-    row = {"converged": bool(res.fit.success), "iterations": int(res.fit.nit), "cost": float(res.fit.fun),
-           "orders": res.metrics.get("orders")}
+    row = {"status": "fitted", "converged": bool(res.fit.success), "iterations": int(res.fit.nit),
+           "cost": float(res.fit.fun), "orders": res.metrics.get("orders")}
     ident = sets.get("identification", {}).get("modeled")
     if ident:
         row.update(identification_mean_mm=ident["mean"], identification_max_mm=ident["max"])

@@ -1,0 +1,89 @@
+"""Where the independent cells of a fleet or a sweep run: this process, or Ray tasks.
+
+An engine runs ``fn(*args)`` for every cell and hands back, per cell, what it
+returned or the exception it raised: a cell that fails is the caller's to
+report, and never stops the others. ``local`` runs the cells one after the
+other in this process; ``ray`` sends each to a Ray task (a local Ray started
+for the call, the cluster at ``address``, or the Ray already initialized by
+the caller), with Ray's own scheduling and transport and no retries (a cell
+that failed once fails the same way again: its reason is what the user needs).
+
+Both engines run the same function on the same arguments, so the callers
+make a Ray run compute what a local run computes: they pass every cell the
+CPU thread count of its solve (a different count sums in another order, and a
+Ray worker starts with one thread).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+
+from ..core.exceptions import ConfigError
+
+log = logging.getLogger("torchcal")
+
+ENGINES = ("local", "ray")
+"""``fleet.engine`` / ``sweep.engine``: where the cells are fitted."""
+
+
+def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", address: str | None = None,
+              where: str = "key 'engine'", on_done: Callable[[int, object], None] | None = None) -> list:
+    """``fn(*a)`` for every ``a`` in ``args`` on ``engine`` -> per cell its result or the exception it raised.
+
+    fn: a module-level function (Ray pickles it by reference); args: one tuple per cell, plain data;
+    address: engine ray: the cluster (None: the Ray this process has initialized, else a local one started
+    for the call, or RAY_ADDRESS); where: the config file and key named when Ray is missing; on_done(i, result or
+    exception): called as each cell finishes (the progress bar), in the order they finish.
+
+    Example:
+        >>> run_cells(divmod, [(7, 2), (1, 0)])[0]
+        (3, 1)
+    """
+    if engine not in ENGINES:
+        raise ConfigError(f"{where}: must be one of {', '.join(ENGINES)}, got {engine!r}")
+    done = on_done or (lambda i, r: None)
+    if engine == "local":
+        out: list = []
+        for i, a in enumerate(args):
+            try:
+                out.append(fn(*a))
+            except Exception as exc:  # a failing cell is reported by the caller; the others go on
+                out.append(exc)
+            done(i, out[-1])
+        return out
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError(f"{where}: ray needs Ray installed (pip install 'torchcal[ray]')") from None
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+    try:
+        task = ray.remote(max_retries=0, num_cpus=1)(fn)
+        refs = [task.remote(*a) for a in args]
+        place = {ref: i for i, ref in enumerate(refs)}
+        out = [None] * len(refs)
+        pending = list(refs)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            i = place[ready[0]]
+            try:
+                out[i] = ray.get(ready[0])
+            except Exception as exc:  # a cell that failed on its worker: its own exception where Ray kept it
+                out[i] = task_error(exc)
+            done(i, out[i])
+        return out
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def task_error(exc: Exception) -> Exception:
+    """The exception a Ray task raised, unwrapped from Ray's RayTaskError where Ray kept it (its message would
+    otherwise carry the worker's whole traceback); anything else (a worker that died) as Ray raised it."""
+    cause = getattr(exc, "cause", None)
+    return cause if isinstance(cause, Exception) else exc
+
+
+__all__ = ["ENGINES", "run_cells", "task_error"]

@@ -277,7 +277,8 @@ def sweep_cmd(
     config: Annotated[Path, typer.Argument(help="YAML config: the base every cell starts from.")],
     grid: Annotated[list[str], typer.Argument(
         help="Grid axes key=a,b,c or key=lo:hi (integers, inclusive), and plain key=value overrides; "
-             "e.g. model.order=1:10 data.n_poses=150,250,350 (Paper II, Figure 11).")],
+             "e.g. model.order=1:10 data.n_poses=150,250,350 (Paper II, Figure 11); sweep.engine=ray "
+             "[sweep.address=HOST:PORT] fits the independent groups of cells on Ray.")],
     out: Annotated[Optional[Path], typer.Option("--out", help="Run directory (default: 'sweeps' beside the config's out).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ):
@@ -289,13 +290,17 @@ def sweep_cmd(
         with _progress(console):
             result = run_sweep(config, grid, out=out, console=console)
     t = Table(title=f"Sweep: {len(result.rows)} cells ({result.time:.1f} s)")
-    cols = [*result.keys, "converged", "iterations", "identification_mean_mm", "validation_mean_mm", "validation_max_mm"]
+    cols = [*result.keys, "status", "converged", "iterations", "identification_mean_mm", "validation_mean_mm",
+            "validation_max_mm"]
     cols = [c for c in cols if any(c in r for r in result.rows)]
     for c in cols:
         t.add_column(c.replace("_mm", " (mm)").replace("_", " "), justify="right")
     for r in result.rows:
         t.add_row(*[f"{r[c]:.4f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
     _console().print(t)
+    for r in result.rows:
+        if r["status"] != "fitted":
+            _console().print(f"warning: cell {r['cell']} not fitted: {r['reason']}", markup=False)
     typer.echo(f"run directory: {result.run_dir}")
 
 

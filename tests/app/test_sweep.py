@@ -36,6 +36,8 @@ def test_sweep_cells_equal_their_own_fits(sim, tmp_path):
     assert (res.run_dir / "results.csv").exists() and (res.run_dir / "plots" / "sweep.png").exists()
     assert json.loads((res.run_dir / "sweep.json").read_text())["cells"] == 4
     assert (res.run_dir / "cells" / "03" / "model.pt").exists()
+    # what an engine sends out: one group per model structure (each the batched solve of its pose counts)
+    assert "4 cells over model.order, data.n_poses: 2 independent group(s)" in (res.run_dir / "run.log").read_text()
     for row in res.rows:
         cfg = load_config(sim, [f"model.order={row['model.order']}", f"data.n_poses={row['data.n_poses']}",
                                 "data.truth=null", f"out={tmp_path / ('alone' + str(row['cell']))}"])

@@ -14,6 +14,12 @@ converged fits on Figure 11's 30 cells). Any other
 difference (a model kind, a constraint, automatic orders, a sensor run) runs
 the cell as a ``torchcal fit`` of its own inside the sweep's folder.
 
+The independent groups (one per model structure of the stacked cells, one per
+cell fitted alone) run on ``sweep.engine``: ``local`` (this process) or
+``ray`` (:mod:`torchcal.app.engines`, as ``torchcal fleet``'s cells), with the
+same results either way. A group that fails is reported in ``results.csv``
+(``status`` failed, ``reason``) and the others finish.
+
 The run directory holds ``config.yaml`` (the base config), ``sweep.json`` (the
 grid), ``versions.json``, ``run.log``, ``results.csv`` / ``results.json`` (one
 row per cell: its grid values, convergence, identification and validation
@@ -152,16 +158,20 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
                                         "cells": len(cells)})
     write_json(run_dir / "versions.json", collect_versions(torch.device(base.device)))
     result = SweepResult(run_dir, keys)
+    # the independent groups an engine runs: one per model structure of the stacked cells (each its own batched
+    # solve; backlash: true may still split a group by what each cell's data choose), one per cell fitted alone
     groups: dict[str, list[int]] = {}
     for i, cfg in enumerate(cfgs):
-        groups.setdefault(_group_key(cfg) if _stackable(cfg) else f"cell {i}", []).append(i)
+        key = (_group_key(cfg) + json.dumps([cfg.model.order, cfg.model.backlash], default=str)
+               if _stackable(cfg) else f"cell {i}")
+        groups.setdefault(key, []).append(i)
     rows: list[dict | None] = [None] * len(cells)
     members_of = list(groups.values())
     jobs = [("stacked" if _stackable(cfgs[m[0]]) else "alone", [to_yaml(cfgs[i]) for i in m], str(run_dir), m,
              cfgs[m[0]].threads) for m in members_of]
     engine = base.sweep.engine
     with run_log(run_dir):
-        log.info(f"sweep of {len(cells)} cells over {', '.join(keys)}: {len(groups)} batched solve(s), engine "
+        log.info(f"sweep of {len(cells)} cells over {', '.join(keys)}: {len(groups)} independent group(s), engine "
                  f"{engine}; {run_dir}")
         with task("sweep: cell groups", total=len(groups)) as bar:
             def done(g, got):

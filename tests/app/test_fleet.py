@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 
 import pytest
 import torch
@@ -434,3 +435,71 @@ def test_plan_poses_designed_for_a_fleet_prior(tmp_path, robot):
         with torch.no_grad():
             errors[name] = float((run.model.points(qv, tool) - truth.points(qv, tool)).norm(dim=1).mean())
     assert errors["designed"] < errors["plain"]
+
+
+def _moved(data, k):
+    """``data`` seen from a tracker that stood elsewhere for unit k: its points under a rigid move (turned about z
+    by 90-300 deg and tilted, 1-2 m away) -> (moved Measurements, R (3, 3), t (3,))."""
+    import math
+    from dataclasses import replace
+
+    a, b = math.radians(90 + 70 * k), math.radians(3 + k)
+    Rz = torch.tensor([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]], dtype=torch.float64)
+    Rx = torch.tensor([[1, 0, 0], [0, math.cos(b), -math.sin(b)], [0, math.sin(b), math.cos(b)]], dtype=torch.float64)
+    R, t = Rz @ Rx, torch.tensor([1.2 + 0.2 * k, -0.8 + 0.4 * k, -0.3], dtype=torch.float64)
+    return replace(data, xyz=data.xyz @ R.T + t), R, t
+
+
+def test_fleet_estimates_each_units_measurement_frame(tmp_path, robot):
+    """Each unit measured from wherever its tracker stood (its own rigid move of the points, which the fleet in the
+    base frame lacks), with measurement_frame: estimate: every unit's frame from its own data; its model predicts
+    the measured points where the same unit measured in its base frame predicts them, moved by the tracker's true
+    placement, with the same residuals; alignment.json holds the placement. With the frame left at the base, a
+    unit the fit cannot bring home is flagged naming the measurement frame, judged for no outlier and left out
+    of the fleet prior."""
+    from torchcal.app.fleet import run_fleet
+    from torchcal.app.fleet_prior import prior_from_fleet_run
+    from torchcal.io.csv import write_measurements
+    from torchcal.io.rundir import load_model
+
+    _, units, _ = _units(robot, 4, poses=40)
+    moves = []
+    for sub in ("base", "moved"):
+        (tmp_path / sub).mkdir()
+    for k, d in enumerate(units):
+        m, R, t = _moved(d, k)
+        moves.append((R, t))
+        write_measurements(tmp_path / "base" / f"unit{k:02d}.csv", d, robot)
+        write_measurements(tmp_path / "moved" / f"unit{k:02d}.csv", m, robot)
+    tools = ", ".join(f"[{x * 1000:.2f}, {y * 1000:.2f}, {z * 1000:.2f}]" for x, y, z in TOOLS.tolist())
+    cfg = tmp_path / "fleet.yaml"
+    cfg.write_text(f"robot: fanuc_lrmate200i\ntools: [{tools}]\ndata: {{identification: moved}}\n"
+                   "model: {order: 2, backlash: true}\nmeasurement_frame: estimate\nout: runs\nreport: false\n")
+    home = run_fleet(cfg, ["data.identification=" + str(tmp_path / "base"), "measurement_frame=base"],
+                     out=tmp_path / "home")
+    away = run_fleet(cfg, out=tmp_path / "away")
+    for k, (a, b) in enumerate(zip(away.rows, home.rows)):
+        assert a["status"] == b["status"] == "fitted" and not a["flagged"], a
+        assert a["identification_mean_mm"] == pytest.approx(b["identification_mean_mm"], rel=0.01)
+        R, t = moves[k]
+        d = units[k]
+        with torch.no_grad():
+            pa = load_model(away.run_dir / "units" / a["unit"]).points(d.q, d.tool, d.direction)
+            pb = load_model(home.run_dir / "units" / b["unit"]).points(d.q, d.tool, d.direction) @ R.T + t
+        assert float((pa - pb).norm(dim=1).max()) < 1e-5  # m
+        placed = json.loads((away.run_dir / "units" / a["unit"] / "alignment.json").read_text())
+        assert torch.allclose(torch.tensor(placed["frame"]["xyz_mm"], dtype=torch.float64), t * 1000, atol=5.0)
+    # the same files with the frame left at the robot base
+    lost = run_fleet(cfg, ["measurement_frame=base"], out=tmp_path / "lost")
+    far = [r for r in lost.rows if r["identification_mean_mm"] > 20.0]
+    assert far, "no unit stayed lost: the case is not exercised"
+    for r in far:
+        assert r["flagged"] and "measurement frame" in r["findings"] and r["outlier_score"] != r["outlier_score"]
+    if len(lost.rows) - len(far) >= 3:
+        assert {r["unit"] for r in far} <= set(prior_from_fleet_run(lost.run_dir).left_out)
+    else:  # too few left for a spread: refused, counting only the units that were not flagged
+        from torchcal.core.exceptions import ConfigError
+
+        with pytest.raises(ConfigError, match=f"has {len(lost.rows) - len(far)} fitted, unflagged units"):
+            prior_from_fleet_run(lost.run_dir)
+    assert f"{len(far)} flagged" in (lost.run_dir / "run.log").read_text()

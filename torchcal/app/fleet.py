@@ -35,6 +35,7 @@ import torch
 
 from ..core import units
 from ..core.exceptions import ConfigError
+from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
 from .config import SolverConfig, config_from_text, load_config, to_yaml, updated
@@ -184,7 +185,6 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     from ..io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
     from ..kinematics import load_robot
     from .fit import config_tool_count, read_sets
-    from ..core.progress import task
 
     t0 = time.perf_counter()
     cfg = load_config(config, list(overrides or []))  # checked: every key's value; the robot's joints below
@@ -236,6 +236,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if not loaded:
             raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
         loaded = _same_format(loaded, rows, robot)
+        loaded, frames, alignments = _align_units(cfg, robot, loaded, rows, label)
         theirs = baseline_model(*baseline, label) if baseline is not None else None
         if theirs is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
             cfg = updated(cfg, {"model.backlash": [int(b) for b in theirs.joint_errors.backlash_orders.tolist()]})
@@ -246,7 +247,10 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 config_orders(cfg, robot.joint_map.n)), label)
         thin = _data_checks(cfg, robot, T, loaded, warn)  # {unit: why}: fewer equations than parameters
         size = int(cfg.fleet.cell)
-        cells = [[(n, i) for n, i, _ in loaded[c:c + size]] for c in range(0, len(loaded), size)]
+        # with measurement_frame: estimate each unit is solved in its own robot base frame (its points moved by
+        # its alignment), its model then given that alignment as the nominal measurement frame
+        cells = [[(n, _in_base(i, frames.get(n))) for n, i, _ in loaded[c:c + size]]
+                 for c in range(0, len(loaded), size)]
         config_yaml = to_yaml(cfg)
         ts = time.perf_counter()
         with task(f"fitting {len(loaded)} units in {len(cells)} batched solve(s) ({cfg.fleet.engine})", total=None):
@@ -263,12 +267,16 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             for u in got:
                 model = _factory(cfg, robot, device, u["backlash"])(u["orders"])
                 model.load_state_dict(u["state"])
+                if u["name"] in frames:
+                    with torch.no_grad():
+                        model.base.nominal.copy_(frames[u["name"]].to(model.base.nominal))
                 fitted.append((u, model))
         from ..core import threads
 
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
                 _evaluate(u, model, idents, vals, rows, device)
+        implausible = _implausible(fitted, rows, robot, frames, warn)
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
         for u, _ in fitted:
@@ -276,7 +284,9 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             rows[name]["determined"] = name not in thin
             if name in thin:
                 rows[name].update(outlier_score=float("nan"), flagged=False, findings=f"not scored: {thin[name]}")
-        scored = [(u, m) for u, m in fitted if u["name"] not in thin]
+        scored = [(u, m) for u, m in fitted if u["name"] not in thin and u["name"] not in implausible]
+        for name, why in implausible.items():  # flagged: a look is needed, and the fleet prior leaves it out
+            rows[name].update(outlier_score=float("nan"), flagged=True, findings=why)
         if len(scored) >= 3:
             fake = FleetFit([m for _, m in scored], None)
             scores = feature_scores(fake.models)
@@ -310,13 +320,15 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             save_model(d, model, orders=u["orders"], config_file=str(d / "config.yaml"), fit=u["fit"])
             write_json(d / "metrics.json", {"units": "mm", "unit": name, **{k2: v for k2, v in rows[name].items()
                                                                             if k2 != "unit"}})
+            if name in alignments:
+                write_json(d / "alignment.json", alignments[name])
         result.rows = [rows[name] for name, _, _ in files]
         result.time = time.perf_counter() - t0
         _write_summary(run_dir, result, cfg)
         failed = [r["unit"] for r in result.rows if r["status"] == "failed"]
         log.info(f"fleet done in {result.time:.1f} s (solve {result.solve_time:.1f} s): {len(fitted)} fitted, "
                  f"{len(failed)} failed{' ' + str(failed) if failed else ''}, "
-                 f"{len({f.unit for f in result.findings})} flagged; {run_dir / 'summary.csv'}")
+                 f"{sum(bool(r.get('flagged')) for r in result.rows)} flagged; {run_dir / 'summary.csv'}")
     if cfg.report:  # after run_log: the log is whole
         from ..report import write_report
 
@@ -350,6 +362,67 @@ def _write_features(run_dir: Path, names: list[str], scores, robot, threshold: f
                              "flag_level": float(level[j]), "flagged": bool(flagged[m, j])})
     with atomic_path(run_dir / "features.csv") as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.9g")
+
+
+def _align_units(cfg, robot, loaded: list, rows: dict, label: str) -> tuple[list, dict, dict]:
+    """With ``measurement_frame: estimate`` (each unit measured from wherever its tracker stood): every unit's
+    measurement frame from its own identification data on the nominal robot, as ``torchcal fit`` estimates
+    it. -> (the units aligned, {unit: (4, 4) robot base in the measurement frame, SI}, {unit: the
+    alignment's summary, alignment.json}); a unit whose data cannot determine its frame is failed in ``rows``.
+    Other modes: the units unchanged and no frames (one frame, the config's, for every unit)."""
+    from .fit import config_alignment, config_frame
+
+    if config_frame(cfg)[0] != "estimate":
+        return loaded, {}, {}
+    kept, frames, summaries = [], {}, {}
+    with task("estimating each unit's measurement frame", total=len(loaded)) as bar:
+        for name, ident, val in loaded:
+            try:
+                _, frame, res = config_alignment(cfg, robot, ident, f"{label}: unit {name}")
+            except Exception as exc:  # this unit's failure, not the fleet's
+                rows[name] = {"unit": name, "status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+                log.warning("unit %s: not fitted: %s", name, exc)
+            else:
+                frames[name], summaries[name] = frame.detach().cpu(), res.summary()
+                a = summaries[name]
+                log.info(f"unit {name}: measurement frame: robot base at xyz "
+                         + ", ".join(f"{v:.3f}" for v in a["frame"]["xyz_mm"]) + " mm, rpy "
+                         + ", ".join(f"{v:.4f}" for v in a["frame"]["rpy_deg"]) + " deg (alignment residual rms "
+                         f"{a['residual_mm']['rms']:.4f} mm)")
+                kept.append((name, ident, val))
+            bar.advance(note=name)
+    return kept, frames, summaries
+
+
+def _in_base(data, frame: torch.Tensor | None):
+    """A unit's measurements with the points moved from its measurement frame into its robot base frame
+    (``frame``: (4, 4) the base in the measurement frame; None: unchanged). A rigid move leaves every distance,
+    and so the fit's isotropic tracker weighting, as it was."""
+    if frame is None:
+        return data
+    from dataclasses import replace
+
+    R, t = frame[:3, :3].to(data.xyz), frame[:3, 3].to(data.xyz)
+    return replace(data, xyz=(data.xyz - t) @ R)
+
+
+def _implausible(fitted: list, rows: dict, robot, frames: dict, warn) -> dict:
+    """{unit: why} for the fitted units whose identification residual after the fit is beyond any plausible
+    calibration error (:data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`): the robot description, the tools or the
+    measurement frame are not this unit's, and its parameters say nothing about its gearboxes."""
+    from .fit import NOMINAL_IMPLAUSIBLE_MM
+
+    out = {}
+    for u, _ in fitted:
+        name = u["name"]
+        mean = rows[name]["identification_mean_mm"]
+        if mean > NOMINAL_IMPLAUSIBLE_MM:
+            hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
+            out[name] = (f"identification residual mean {mean:.1f} mm after the fit, beyond any plausible calibration "
+                         f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): check the robot description of '{robot.name}', "
+                         f"the tool vectors and the measurement frame{hint}")
+            warn(f"unit {name}: {out[name]}; not scored for outliers, left out of the fleet prior")
+    return out
 
 
 def _same_format(loaded: list, rows: dict, robot) -> list:

@@ -308,3 +308,21 @@ def test_keys_that_exclude_each_other_are_refused_when_the_config_is_read(values
     merged = {**base, **values}
     with pytest.raises(ConfigError, match=f"key '{key}'"):
         make_config(merged, base_dir=tmp_path)
+
+
+def test_fleet_run_paths_resolve_against_the_config_folder(tmp_path, monkeypatch):
+    """prior.fleet and fleet.baseline written in a file resolve against the file's folder, as the data paths do
+    (before, against the working directory); given as overrides, against the working directory."""
+    fleet = tmp_path / "fleets" / "one"
+    (fleet / "units").mkdir(parents=True)
+    (fleet / "summary.csv").write_text("unit,status\n")
+    folder = tmp_path / "new"
+    folder.mkdir()
+    p = folder / "fit.yaml"
+    p.write_text(MINIMAL + "prior: {fleet: ../fleets/one}\nfleet: {baseline: ../fleets/one}\n")
+    monkeypatch.chdir("/")
+    cfg = load_config(p)
+    assert Path(cfg.prior.fleet) == fleet.resolve() and Path(cfg.fleet.baseline) == fleet.resolve()
+    monkeypatch.chdir(tmp_path / "fleets")
+    cfg = load_config(p, ["prior.fleet=one"])
+    assert Path(cfg.prior.fleet) == fleet.resolve()

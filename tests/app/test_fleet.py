@@ -228,6 +228,21 @@ def test_fleet_command_names_what_it_does_not_use(tmp_path, robot):
     assert len(gap) == 1 and "unit01, unit02" in gap[0]
     assert any("unit77.csv" in w for w in res.warnings)
     assert "unit77.csv" in (res.run_dir / "run.log").read_text()
+    # a validation file is the unit's by its stem, whatever its extension's case; what is not a measurement file
+    # is named; a broken validation file costs the unit its held-out columns, not its fit
+    shutil.move(tmp_path / "ident" / "unit01.csv", tmp_path / "ident" / "unit01.CSV")
+    shutil.copy(tmp_path / "val" / "unit00.csv", tmp_path / "val" / "unit01.tsv")
+    (tmp_path / "ident" / "README.txt").write_text("campaign notes")
+    lines = (tmp_path / "val" / "unit00.csv").read_text().splitlines()
+    lines[3] = lines[3].replace(",", ",x", 1)
+    (tmp_path / "val" / "unit00.csv").write_text("\n".join(lines) + "\n")
+    res = run_fleet(cfg, out=tmp_path / "fleet-run-stems")
+    rows = {r["unit"]: r for r in res.rows}
+    assert rows["unit01"]["status"] == "fitted" and "validation_mean_mm" in rows["unit01"]
+    assert rows["unit00"]["status"] == "fitted" and "validation_mean_mm" not in rows["unit00"]
+    assert any("unit00" in w and "validation file not used" in w and "row 3" in w for w in res.warnings)
+    assert any("README.txt" in w for w in res.warnings)
+    shutil.move(tmp_path / "ident" / "unit01.CSV", tmp_path / "ident" / "unit01.csv")
     shutil.copy(tmp_path / "ident" / "unit02.csv", tmp_path / "ident" / "unit02.tsv")
     with pytest.raises(ConfigError, match="unit02.csv and unit02.tsv"):
         run_fleet(cfg, out=tmp_path / "fleet-run-2")
@@ -388,6 +403,21 @@ def test_fit_with_the_prior_of_a_fleet_run(tmp_path, robot):
     assert "Prior from a fleet" in page and "left out: unit03" in page and "fitted alone" in page
     with pytest.raises(ConfigError, match="prior.fleet"):
         run_fit(load_config(tmp_path / "new.yaml", common + [f"prior.fleet={fleet_run}", "model.order=1"]))
+    with pytest.raises(ConfigError, match="prior.enabled=false"):
+        load_config(tmp_path / "new.yaml", [f"prior.fleet={fleet_run}", "prior.enabled=false"])
+    # a sweep cell with the fleet prior is the prior's fit, whatever else the grid varies (before, a batched cell
+    # silently left the prior out)
+    from torchcal.app.sweep import run_sweep
+
+    sw = run_sweep(tmp_path / "new.yaml", common[:2] + [f"prior.fleet={fleet_run}", "solver.method=lm,lbfgs"],
+                   out=tmp_path / "sweep")
+    lm = next(r for r in sw.rows if r["solver.method"] == "lm")
+    assert lm["identification_mean_mm"] == pytest.approx(mine["mean"], rel=1e-12)
+    # and a fleet is fitted under its config's own prior: a fleet prior there is refused, as is another solver
+    for bad, key in ((f"prior.fleet={fleet_run}", "prior.fleet"), ("solver.method=lbfgs", "solver.method")):
+        with pytest.raises(ConfigError, match=key):
+            run_fleet(cfg, [bad], out=tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()
 
 
 def test_plan_poses_designed_for_a_fleet_prior(tmp_path, robot):
@@ -503,3 +533,61 @@ def test_fleet_estimates_each_units_measurement_frame(tmp_path, robot):
         with pytest.raises(ConfigError, match=f"has {len(lost.rows) - len(far)} fitted, unflagged units"):
             prior_from_fleet_run(lost.run_dir)
     assert f"{len(far)} flagged" in (lost.run_dir / "run.log").read_text()
+
+
+def test_fleet_interrupted_keeps_the_units_it_fitted(tmp_path, robot, monkeypatch):
+    """Ctrl-C during the second cell: the first cell's units are written with their models, summary.csv names
+    the others as interrupted, the run stays marked PARTIAL and the interrupt goes on to the caller."""
+    import pandas as pd
+
+    import torchcal.app.fleet as fleet_app
+
+    cfg = _write_fleet(tmp_path, robot, count=4)
+    real, calls = fleet_app.fit_cell, []
+
+    def stopped(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(fleet_app, "fit_cell", stopped)
+    with pytest.raises(KeyboardInterrupt) as info:
+        fleet_app.run_fleet(cfg, ["fleet.cell=2"], out=tmp_path / "cut")
+    run = tmp_path / "cut"
+    assert info.value.run_dir == run and (run / "PARTIAL").exists()
+    table = pd.read_csv(run / "summary.csv").set_index("unit")
+    assert list(table["status"]) == ["fitted", "fitted", "failed", "failed"]
+    assert table.loc["unit02", "reason"].startswith("Interrupted")
+    assert (run / "units" / "unit01" / "model.pt").exists() and not (run / "units" / "unit02").exists()
+
+
+def test_fleet_where_no_unit_can_be_fitted_says_why(tmp_path, robot):
+    """Every unit failing before its fit is one error with the first unit's reason (file, row, column), and
+    summary.csv holds every unit's."""
+    from torchcal.app.fleet import run_fleet
+    from torchcal.core.exceptions import ConfigError
+
+    cfg = _write_fleet(tmp_path, robot, count=2)
+    for p in (tmp_path / "ident").iterdir():
+        p.write_text(p.read_text().splitlines()[0] + "\n1,2\n")  # a row two cells short
+    with pytest.raises(ConfigError, match="no unit could be fitted; unit00: DataError") as info:
+        run_fleet(cfg, out=tmp_path / "none")
+    assert "unit00.csv" in str(info.value)
+    assert (tmp_path / "none" / "summary.csv").read_text().count("failed") == 2
+
+
+def test_baseline_measured_with_other_tools_is_refused(tmp_path, robot):
+    """A re-check compares campaigns measured with the same tool vectors: remounted targets would move every
+    unit's points by the targets' move, which is no change of the robot. Refused before the solve."""
+    from torchcal.app.fleet import run_fleet
+    from torchcal.core.exceptions import ConfigError
+
+    cfg = _write_fleet(tmp_path, robot, count=3)
+    first = run_fleet(cfg, ["report=false"], out=tmp_path / "first").run_dir
+    moved = cfg.read_text().replace("[33.00,", "[40.00,")
+    assert moved != cfg.read_text()
+    cfg.write_text(moved)
+    with pytest.raises(ConfigError, match="other tool vectors"):
+        run_fleet(cfg, [f"fleet.baseline={first}"], out=tmp_path / "second")
+    assert not (tmp_path / "second" / "units").exists()

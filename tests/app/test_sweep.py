@@ -121,3 +121,30 @@ def test_ray_engine_matches_local(sim, tmp_path):
         for (k, x), (_, y) in zip(ma.state_dict().items(), mb.state_dict().items()):
             assert torch.equal(x, y), (a["cell"], k)
     assert "engine ray" in (remote.run_dir / "run.log").read_text()
+
+
+def test_sweep_interrupted_keeps_the_cells_it_fitted(sim, tmp_path, monkeypatch):
+    """Ctrl-C during the second group: the first group's cells are in results.csv and cells/, the others are
+    named as interrupted, the run stays marked PARTIAL and the interrupt goes on to the caller."""
+    import pandas as pd
+
+    import torchcal.app.sweep as sweep_app
+
+    real, calls = sweep_app.sweep_group, []
+
+    def stopped(*args):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(sweep_app, "sweep_group", stopped)
+    with pytest.raises(KeyboardInterrupt) as info:
+        run_sweep(sim, ["model.order=1:2", "data.n_poses=25,40", "data.truth=null"], out=tmp_path / "cut")
+    run = tmp_path / "cut"
+    assert info.value.run_dir == run and (run / "PARTIAL").exists()
+    table = pd.read_csv(run / "results.csv")
+    done = table[table["status"] == "fitted"]
+    assert list(done["model.order"]) == [1, 1] and (table["status"] == "failed").sum() == 2
+    assert table[table["status"] == "failed"]["reason"].str.startswith("Interrupted").all()
+    assert all((run / "cells" / f"{c:02d}" / "model.pt").exists() for c in done["cell"])

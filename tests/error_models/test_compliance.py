@@ -267,3 +267,13 @@ def test_fit_recovers_compliance(fanuc, tools_m):
         err = (model.compliance.coef.detach() - c_true).abs().max()
         assert err <= rtol * c_true.abs().max(), (prior, err)
     assert (model.points(qq, tool, ss) - p).abs().max() < 1e-7
+
+
+def test_gravity_mode_without_inertials_is_a_clear_error(fanuc, tools_m):
+    """model.compliance: {mode: gravity} on a robot whose URDF has no inertials is a torchcal error (the CLI's
+    one-line 'error:'), still a ValueError for library callers, naming what is missing."""
+    from torchcal.core.exceptions import TorchcalError
+
+    with pytest.raises(TorchcalError, match="needs the URDF inertials") as info:
+        RobotModel(fanuc, tools_m, orders=1, compliance={"mode": "gravity"})
+    assert isinstance(info.value, ValueError)

@@ -289,7 +289,9 @@ FRAME_MODES = ("auto", "base", "estimate")
 WHOLE_VALUE_KEYS = ("tools", "measurement_frame", "sensor.mount", "constraint.c")
 """Keys whose override replaces the whole value (their values change type: list, mapping or word)."""
 
-PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out")
+PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out", "prior.fleet", "fleet.baseline")
+"""Config keys naming files or folders: relative values resolve against the config file's folder (overrides: the
+working directory)."""
 
 
 # ------------------------------------------------------------- parsing vs. the typed objects
@@ -844,6 +846,8 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
             fail("model.order", f"{cfg.model.order!r} with prior.fleet: the unit takes the fleet's orders (give them)")
         if cfg.constraint.c is not None:
             fail("prior.fleet", "not combined with constraint.c (the slope-constrained fit takes no prior blocks yet)")
+        if not cfg.prior.enabled:
+            fail("prior.fleet", "given with prior.enabled=false: the fleet's distribution is a prior; drop one of them")
 
     if cfg.solver.method not in SOLVERS:
         fail("solver.method", f"'{cfg.solver.method}' is not a solver; choose from {sorted(SOLVERS)}")

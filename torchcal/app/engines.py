@@ -27,6 +27,11 @@ ENGINES = ("local", "ray")
 """``fleet.engine`` / ``sweep.engine``: where the cells are fitted."""
 
 
+class Interrupted(Exception):
+    """What a cell that had not finished when the run was interrupted (Ctrl-C) hands back: the cells done by then
+    are kept, and the caller writes them before it lets the interrupt end the run."""
+
+
 def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", address: str | None = None,
               where: str = "key 'engine'", on_done: Callable[[int, object], None] | None = None) -> list:
     """``fn(*a)`` for every ``a`` in ``args`` on ``engine`` -> per cell its result or the exception it raised.
@@ -34,7 +39,8 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
     fn: a module-level function (Ray pickles it by reference); args: one tuple per cell, plain data;
     address: engine ray: the cluster (None: the Ray this process has initialized, else a local one started
     for the call, or RAY_ADDRESS); where: the config file and key named when Ray is missing; on_done(i, result or
-    exception): called as each cell finishes (the progress bar), in the order they finish.
+    exception): called as each cell finishes (the progress bar), in the order they finish. Ctrl-C: the cells
+    not finished by then hand back :class:`Interrupted` (Ray's are cancelled) and the finished ones their results.
 
     Example:
         >>> run_cells(divmod, [(7, 2), (1, 0)])[0]
@@ -45,12 +51,15 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
     done = on_done or (lambda i, r: None)
     if engine == "local":
         out: list = []
-        for i, a in enumerate(args):
-            try:
-                out.append(fn(*a))
-            except Exception as exc:  # a failing cell is reported by the caller; the others go on
-                out.append(exc)
-            done(i, out[-1])
+        try:
+            for i, a in enumerate(args):
+                try:
+                    out.append(fn(*a))
+                except Exception as exc:  # a failing cell is reported by the caller; the others go on
+                    out.append(exc)
+                done(i, out[-1])
+        except KeyboardInterrupt:
+            out += [_interrupted() for _ in range(len(args) - len(out))]
         return out
     try:
         import ray
@@ -58,25 +67,43 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
         raise ConfigError(f"{where}: ray needs Ray installed (pip install 'torchcal[ray]')") from None
     started = not ray.is_initialized()
     if started:
-        ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        except Exception as exc:  # an unreachable cluster: one line naming it, before any cell is sent
+            raise ConfigError(f"{where}: cannot start or reach Ray"
+                              + (f" at {address}" if address else "") + f": {type(exc).__name__}: {exc}") from None
     try:
         task = ray.remote(max_retries=0, num_cpus=1)(fn)
         refs = [task.remote(*a) for a in args]
         place = {ref: i for i, ref in enumerate(refs)}
         out = [None] * len(refs)
         pending = list(refs)
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
-            i = place[ready[0]]
-            try:
-                out[i] = ray.get(ready[0])
-            except Exception as exc:  # a cell that failed on its worker: its own exception where Ray kept it
-                out[i] = task_error(exc)
-            done(i, out[i])
+        try:
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                i = place[ready[0]]
+                try:
+                    out[i] = ray.get(ready[0])
+                except Exception as exc:  # a cell that failed on its worker: its own exception where Ray kept it
+                    out[i] = task_error(exc)
+                done(i, out[i])
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            out = [_interrupted() if r is None else r for r in out]
         return out
     finally:
         if started:
             ray.shutdown()
+
+
+def _interrupted() -> Interrupted:
+    return Interrupted("interrupted (Ctrl-C) before this cell finished")
+
+
+def interrupted(results: list) -> bool:
+    """Whether :func:`run_cells` was interrupted (some cell handed back :class:`Interrupted`)."""
+    return any(isinstance(r, Interrupted) for r in results)
 
 
 def task_error(exc: Exception) -> Exception:
@@ -86,4 +113,4 @@ def task_error(exc: Exception) -> Exception:
     return cause if isinstance(cause, Exception) else exc
 
 
-__all__ = ["ENGINES", "run_cells", "task_error"]
+__all__ = ["ENGINES", "Interrupted", "interrupted", "run_cells", "task_error"]

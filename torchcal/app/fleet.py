@@ -39,6 +39,7 @@ from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
 from .config import SolverConfig, config_from_text, load_config, to_yaml, updated
+from .engines import interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 
 log = logging.getLogger("torchcal")
@@ -65,26 +66,34 @@ def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
     if not ident.is_dir():
         raise ConfigError(f"{label}: key 'data.identification': a fleet needs a folder with one CSV per unit, "
                           f"got {ident} ({'a file' if ident.is_file() else 'not found'})")
-    files = sorted(p for p in ident.iterdir() if p.suffix.lower() in (".csv", ".tsv") and p.is_file())
+    files = _measurement_files(ident)
     if not files:
         raise ConfigError(f"{label}: key 'data.identification': {ident} holds no .csv files")
     val = Path(cfg.data.validation) if cfg.data.validation else None
     if val is not None and not val.is_dir():
         raise ConfigError(f"{label}: key 'data.validation': a fleet needs a folder with files named like the "
                           f"identification files, got {val}")
+    by_stem = _by_stem(files, label, "data.identification")
+    val_by_stem = _by_stem(_measurement_files(val), label, "data.validation") if val is not None else {}
+    return [(stem, f, val_by_stem.get(stem)) for stem, f in sorted(by_stem.items())]
+
+
+def _measurement_files(folder: Path) -> list[Path]:
+    """The measurement files of a folder: .csv / .tsv in any case, sorted."""
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in (".csv", ".tsv") and p.is_file())
+
+
+def _by_stem(files: list[Path], label: str, key: str) -> dict[str, Path]:
+    """{unit name (the file's stem): file}; two files of one stem are refused (one unit's run twice)."""
     stems: dict[str, list[Path]] = {}
     for f in files:
         stems.setdefault(f.stem, []).append(f)
     clash = {k: v for k, v in stems.items() if len(v) > 1}
-    if clash:  # a unit is named by its file's stem: two files of one name would be one unit's run twice
-        raise ConfigError(f"{label}: key 'data.identification': a unit is named by its file, and "
+    if clash:
+        raise ConfigError(f"{label}: key '{key}': a unit is named by its file, and "
                           + "; ".join(f"{' and '.join(p.name for p in v)} both name unit '{k}'" for k, v in clash.items())
                           + ": rename or remove one of each")
-    out = []
-    for f in files:
-        v = val / f.name if val is not None else None
-        out.append((f.stem, f, v if v is not None and v.is_file() else None))
-    return out
+    return {k: v[0] for k, v in stems.items()}
 
 
 def _validation_gaps(cfg, files: list) -> tuple[list[str], list[Path]]:
@@ -92,11 +101,20 @@ def _validation_gaps(cfg, files: list) -> tuple[list[str], list[Path]]:
     that name no unit (neither is used; both are worth a word, not silence)."""
     if not cfg.data.validation:
         return [], []
-    val = Path(cfg.data.validation)
-    names = {fi.name for _, fi, _ in files}
-    orphans = sorted(p for p in val.iterdir() if p.is_file() and p.suffix.lower() in (".csv", ".tsv")
-                     and p.name not in names)
+    names = {name for name, _, _ in files}
+    orphans = [p for p in _measurement_files(Path(cfg.data.validation)) if p.stem not in names]
     return [n for n, _, fv in files if fv is None], orphans
+
+
+def _ignored_files(cfg) -> list[str]:
+    """What the data folders hold besides measurement files (not read: a word in the log, not silence)."""
+    out = []
+    for key in ("identification", "validation"):
+        folder = getattr(cfg.data, key)
+        if folder and Path(folder).is_dir():
+            out += [f"{Path(folder).name}/{p.name}" for p in sorted(Path(folder).iterdir())
+                    if not p.name.startswith(".") and not (p.is_file() and p.suffix.lower() in (".csv", ".tsv"))]
+    return out
 
 
 def _check_fleet_config(cfg) -> None:
@@ -111,6 +129,12 @@ def _check_fleet_config(cfg) -> None:
                               "unconstrained LM fits)")
     if cfg.tools is None or isinstance(cfg.tools, Mapping):
         raise ConfigError(f"{label}: key 'tools': a fleet needs the tool vectors listed (mm)")
+    if cfg.prior.fleet is not None:
+        raise ConfigError(f"{label}: key 'prior.fleet': a fleet's units are fitted under the config's own prior; a "
+                          "fleet prior is for a new unit with few poses (`torchcal fit UNIT.yaml prior.fleet=RUN`)")
+    if cfg.solver.method != "lm":
+        raise ConfigError(f"{label}: key 'solver.method': a fleet's batched solve is Levenberg-Marquardt (lm), got "
+                          f"{cfg.solver.method!r}")
 
 
 def _factory(cfg, robot, device, backlash):
@@ -213,6 +237,9 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             warn(f"solver.ftol ({cfg.solver.ftol:g}) is a single fit's; the fleet's units stop at fleet.ftol "
                  f"({float(cfg.fleet.ftol):g}): set that one")
         no_val, orphans = _validation_gaps(cfg, files)
+        ignored = _ignored_files(cfg)
+        if ignored:
+            warn(f"not read (not .csv / .tsv files): {', '.join(ignored)}")
         if no_val:
             warn(f"data.validation: no file in {cfg.data.validation} for {len(no_val)} unit(s): {', '.join(no_val)} "
                  "(their validation columns stay empty)")
@@ -224,7 +251,15 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             for name, fi, fv in files:
                 notes: list[str] = []
                 try:
-                    ident, val = read_sets(cfg, robot, T, fi, fv, notes, torch.device("cpu"), label)
+                    try:
+                        ident, val = read_sets(cfg, robot, T, fi, fv, notes, torch.device("cpu"), label)
+                    except Exception as exc:
+                        if fv is None:
+                            raise
+                        # a broken validation file costs the unit its held-out check, not its fit
+                        notes = []
+                        ident, val = read_sets(cfg, robot, T, fi, None, notes, torch.device("cpu"), label)
+                        notes.append(f"validation file not used: {type(exc).__name__}: {exc}")
                 except Exception as exc:  # a broken file is this unit's failure, not the fleet's
                     rows[name] = {"unit": name, "status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
                     log.warning("unit %s: not fitted: %s", name, exc)
@@ -233,10 +268,15 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                         warn(f"unit {name}: {note}")
                     loaded.append((name, ident, val))
                 bar.advance(note=name)
-        if not loaded:
-            raise ConfigError(f"{label}: no unit's file could be read (summary.csv says why)")
-        loaded = _same_format(loaded, rows, robot)
-        loaded, frames, alignments = _align_units(cfg, robot, loaded, rows, label)
+        if loaded:
+            loaded = _same_format(loaded, rows, robot)
+            loaded, frames, alignments = _align_units(cfg, robot, loaded, rows, label)
+        if not loaded:  # every unit failed before its fit: one error, the first unit's reason, summary.csv written
+            result.rows = [rows[name] for name, _, _ in files]
+            _write_summary(run_dir, result, cfg)
+            first = result.rows[0]
+            raise ConfigError(f"{label}: no unit could be fitted; {first['unit']}: {first['reason']}\n(summary.csv in "
+                              f"{run_dir} has every unit's reason)")
         theirs = baseline_model(*baseline, label) if baseline is not None else None
         if theirs is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
             cfg = updated(cfg, {"model.backlash": [int(b) for b in theirs.joint_errors.backlash_orders.tolist()]})
@@ -325,6 +365,10 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         result.rows = [rows[name] for name, _, _ in files]
         result.time = time.perf_counter() - t0
         _write_summary(run_dir, result, cfg)
+        if interrupted(outs):  # the units fitted by then are written; the run ends as interrupted (PARTIAL stays)
+            log.warning(f"interrupted: {sum(r['status'] == 'fitted' for r in result.rows)} unit(s) fitted and written "
+                        "before Ctrl-C; summary.csv names the others")
+            raise KeyboardInterrupt
         failed = [r["unit"] for r in result.rows if r["status"] == "failed"]
         log.info(f"fleet done in {result.time:.1f} s (solve {result.solve_time:.1f} s): {len(fitted)} fitted, "
                  f"{len(failed)} failed{' ' + str(failed) if failed else ''}, "
@@ -420,7 +464,7 @@ def _implausible(fitted: list, rows: dict, robot, frames: dict, warn) -> dict:
             hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
             out[name] = (f"identification residual mean {mean:.1f} mm after the fit, beyond any plausible calibration "
                          f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): check the robot description of '{robot.name}', "
-                         f"the tool vectors and the measurement frame{hint}")
+                         f"the tool vectors, the measurement frame and the file's units (deg, mm){hint}")
             warn(f"unit {name}: {out[name]}; not scored for outliers, left out of the fleet prior")
     return out
 

@@ -69,6 +69,15 @@ def check_structure(run: Path, theirs, model, label: str) -> None:
         raise ConfigError(f"{label}: key '{KEY}': the units of {run} have another model structure (orders, backlash or "
                           "tool count) than this fleet's: compare like with like (the same model.order, model.backlash "
                           "and tools)")
+    a = theirs.tools.nominal.detach().cpu()
+    b = model.tools.nominal.detach().cpu().to(a)
+    if a.shape != b.shape or float((a - b).abs().max()) > 1e-6:  # 0.001 mm
+        def mm(t):
+            return "; ".join("[" + ", ".join(f"{v:.3f}" for v in r) + "]" for r in units.m_to_mm(t).tolist())
+
+        raise ConfigError(f"{label}: key '{KEY}': the units of {run} were measured with other tool vectors ({mm(a)} mm) "
+                          f"than this fleet's tools ({mm(b)} mm): every unit's points would differ by the targets' "
+                          "move, not by a change of the robot. The re-check compares campaigns with the same tools")
 
 
 def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dict, rows: dict, run_dir: Path,

@@ -41,7 +41,7 @@ import torch
 from ..core import units
 from ..io.atomic import atomic_path, atomic_write_text
 from .config import ConfigError, load_config, to_yaml
-from .engines import run_cells
+from .engines import Interrupted, interrupted, run_cells
 
 log = logging.getLogger("torchcal")
 
@@ -114,9 +114,14 @@ def _is_int(s: str) -> bool:
 
 
 def _stackable(cfg) -> bool:
-    """Whether a cell can join a batched solve (joint-dependent robot model, fixed orders, plain LM fit)."""
+    """Whether a cell can join a batched solve (joint-dependent robot model, fixed orders, plain LM fit on the
+    given tools and frame, the config's own prior): anything else is a ``torchcal fit`` of its own, which does
+    what the cell's config says (a fleet prior, an alignment, a constraint)."""
+    from .fit import config_frame, config_tools
+
     return (cfg.model.kind == "joint_dependent" and not isinstance(cfg.model.order, str) and cfg.constraint.c is None
-            and cfg.sensor.kind is None and cfg.solver.method == "lm" and cfg.model.fine is None)
+            and cfg.sensor.kind is None and cfg.solver.method == "lm" and cfg.model.fine is None
+            and cfg.prior.fleet is None and config_tools(cfg) is not None and config_frame(cfg)[0] != "estimate")
 
 
 def _group_key(cfg) -> str:
@@ -185,8 +190,11 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
                         log.info(f"cell {i}: {_row_line(row)}")
                 bar.advance(note=f"{sum(r is not None for r in rows)} of {len(cells)} cells")
 
-            run_cells(sweep_group, jobs, engine, base.sweep.address,
-                      where=f"{base.config_file or 'config'}: key 'sweep.engine'", on_done=done)
+            outs = run_cells(sweep_group, jobs, engine, base.sweep.address,
+                             where=f"{base.config_file or 'config'}: key 'sweep.engine'", on_done=done)
+            for g, got in enumerate(outs):
+                if isinstance(got, Interrupted):
+                    done(g, got)
         result.rows = [{"cell": i, **cells[i], **rows[i]} for i in range(len(cells))]
         result.time = time.perf_counter() - t0
         _write_results(run_dir, result)
@@ -194,6 +202,8 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
         if failed:
             log.warning(f"{len(failed)} of {len(cells)} cells failed ({', '.join(map(str, failed))}): results.csv "
                         "says why")
+        if interrupted(outs):  # the cells fitted by then are written; the run ends as interrupted (PARTIAL stays)
+            raise KeyboardInterrupt
         log.info(f"sweep done in {result.time:.1f} s: {run_dir / 'results.csv'}")
     return result
 

@@ -43,6 +43,7 @@ from typing import Any, Sequence
 import torch
 from torch import nn
 
+from ..core.exceptions import ConfigError  # a ValueError too (library callers): a compliance the robot cannot carry
 from ..kinematics.fk import chain_frames, joint_motion
 
 GRAVITY = (0.0, 0.0, -9.80665)
@@ -266,13 +267,13 @@ class GravityCompliance(nn.Module):
                  gravity: Sequence[float] | torch.Tensor | None = None, inertials: Inertials | dict | None = None):
         super().__init__()
         if mode not in MODES:
-            raise ValueError(f"compliance mode must be one of {MODES}, got {mode!r}")
+            raise ConfigError(f"compliance mode must be one of {MODES}, got {mode!r}")
         chain, jm = robot.chain, robot.joint_map
         n = chain.n
         self.joint_names = list(chain.joint_names)
         g = torch.as_tensor(GRAVITY if gravity is None else gravity, dtype=torch.float64).reshape(3)
         if float(g.norm()) == 0.0:
-            raise ValueError("compliance: the gravity vector is zero")
+            raise ConfigError("compliance: the gravity vector is zero")
         self.register_buffer("origins", chain.origins.detach().to(torch.float64).clone())
         self.register_buffer("axes", chain.axes.detach().to(torch.float64).clone())
         self.register_buffer("prismatic", chain.prismatic.detach().clone())
@@ -281,20 +282,20 @@ class GravityCompliance(nn.Module):
         if joints is None:
             idx = default_carrying_joints(self.origins, self.axes, self.prismatic, home, self.gravity)
             if not idx:
-                raise ValueError(f"compliance: no joint of {self.joint_names} has a horizontal axis at q = 0; pass joints=")
+                raise ConfigError(f"compliance: no joint of {self.joint_names} has a horizontal axis at q = 0; pass joints=")
         else:
             idx = []
             for j in joints:
                 if isinstance(j, str):
                     if j not in self.joint_names:
-                        raise ValueError(f"compliance: unknown joint '{j}' (joints: {self.joint_names})")
+                        raise ConfigError(f"compliance: unknown joint '{j}' (joints: {self.joint_names})")
                     idx.append(self.joint_names.index(j))
                 else:
                     if not 0 <= int(j) < n:
-                        raise ValueError(f"compliance: joint index {j} outside 0..{n - 1}")
+                        raise ConfigError(f"compliance: joint index {j} outside 0..{n - 1}")
                     idx.append(int(j))
             if len(set(idx)) != len(idx) or idx != sorted(idx) or not idx:
-                raise ValueError(f"compliance: joints must be distinct and root to tip, got {list(joints)}")
+                raise ConfigError(f"compliance: joints must be distinct and root to tip, got {list(joints)}")
         self.register_buffer("joints", torch.tensor(idx, dtype=torch.long, device=self.origins.device))
         m = len(idx)
         if isinstance(inertials, dict):
@@ -303,7 +304,7 @@ class GravityCompliance(nn.Module):
             path = robot_urdf_path(robot)
             inertials, why = read_inertials(path, chain) if path is not None else (None, f"robot '{robot.name}': URDF file unknown")
             if inertials is None and mode == "gravity":
-                raise ValueError(f"compliance mode 'gravity' needs the URDF inertials: {why}")
+                raise ConfigError(f"compliance mode 'gravity' needs the URDF inertials: {why}")
         self.mode = "gravity" if (mode != "functions" and inertials is not None) else "functions"
         if self.mode == "gravity":
             self.links = list(inertials.links)
@@ -316,14 +317,14 @@ class GravityCompliance(nn.Module):
             self.function_names = ["tau"]
         else:
             if bool(self.prismatic[self.joints].any()):
-                raise ValueError("compliance mode 'functions' needs revolute carrying joints; use 'gravity' (URDF inertials)")
+                raise ConfigError("compliance mode 'functions' needs revolute carrying joints; use 'gravity' (URDF inertials)")
             jR, _, _ = chain_frames(self.origins, self.axes, self.prismatic, home[None])
             z = (jR[0] @ self.axes[:, :, None])[..., 0][self.joints]
             dots = z @ z[0]
             # 5e-5 = 1 - cos(0.57 deg): the axes of a calibrated URDF are parallel only to its identified errors
             if bool((dots.abs() < 1.0 - 5e-5).any()):
                 bad = [self.joint_names[i] for i, d in zip(idx, dots.tolist()) if abs(d) < 1.0 - 5e-5]
-                raise ValueError(f"compliance: joints {bad} are not parallel to '{self.joint_names[idx[0]]}'; "
+                raise ConfigError(f"compliance: joints {bad} are not parallel to '{self.joint_names[idx[0]]}'; "
                                  "the arm-angle functions need parallel axes (pass joints= or use URDF inertials)")
             self.register_buffer("signs", torch.sign(dots))
             K = 2 * m
@@ -414,6 +415,6 @@ def build_compliance(robot, option) -> GravityCompliance | None:
     if isinstance(option, dict):
         unknown = set(option) - {"mode", "joints", "gravity", "inertials"}
         if unknown:
-            raise ValueError(f"compliance: unknown keys {sorted(unknown)}")
+            raise ConfigError(f"compliance: unknown keys {sorted(unknown)}")
         return GravityCompliance(robot, **option)
     raise TypeError(f"compliance must be a bool, a mode string or a dict, got {type(option).__name__}")

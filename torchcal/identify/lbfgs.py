@@ -81,7 +81,8 @@ def lbfgs(
         nfev += 1
         return loss
 
-    history = [float(objective(z.detach()))]
+    with torch.no_grad():  # the model's own parameters require grad too: a first value, not a graph
+        history = [float(objective(z.detach()))]
     success, message, it = False, "maximum number of iterations reached", 0
     while it < max_iter:
         opt.step(closure)

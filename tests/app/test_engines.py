@@ -1,0 +1,61 @@
+"""Engines: a cell that fails or is interrupted is handed back as such, and the finished ones are kept."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import types
+
+import pytest
+
+from torchcal.app.engines import Interrupted, interrupted, run_cells
+from torchcal.core.exceptions import ConfigError
+
+
+def _cell(k: int) -> int:
+    if k == 2:
+        raise ValueError("cell 2 is broken")
+    if k == 4:
+        raise KeyboardInterrupt
+    return k * k
+
+
+def test_local_engine_reports_failures_and_keeps_cells_done_before_ctrl_c():
+    seen = []
+    out = run_cells(_cell, [(k,) for k in range(6)], on_done=lambda i, r: seen.append(i))
+    assert out[:2] == [0, 1] and out[3] == 9
+    assert isinstance(out[2], ValueError) and "broken" in str(out[2])
+    assert all(isinstance(r, Interrupted) for r in out[4:]) and interrupted(out)
+    assert seen == [0, 1, 2, 3]  # the interrupted ones never finished
+    assert not interrupted(run_cells(_cell, [(0,), (1,)]))
+
+
+def test_unknown_engine_and_unreachable_ray_name_the_key(monkeypatch):
+    with pytest.raises(ConfigError, match="fleet.yaml: key 'fleet.engine': must be one of local, ray"):
+        run_cells(_cell, [(0,)], "spark", where="fleet.yaml: key 'fleet.engine'")
+    fake = types.ModuleType("ray")
+    fake.is_initialized = lambda: False
+
+    def init(**kw):
+        raise ConnectionError(f"Failed to connect to Ray cluster at {kw['address']}")
+
+    fake.init = init
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    with pytest.raises(ConfigError, match="cannot start or reach Ray at 10.0.0.9:6379: ConnectionError"):
+        run_cells(_cell, [(0,)], "ray", "10.0.0.9:6379", where="fleet.yaml: key 'fleet.engine'")
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray not installed (pip install 'torchcal[ray]')")
+def test_ray_engine_unwraps_a_cells_own_error():
+    """A cell that raised on its worker comes back as its own exception (Ray wraps it with the worker's traceback)."""
+    import statistics
+
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:  # a function the workers can import (this test module is not on their path)
+        out = run_cells(statistics.mean, [([1, 1],), ([],), ([3, 5],)], "ray")
+    finally:
+        ray.shutdown()
+    assert out[0] == 1 and out[2] == 4
+    assert type(out[1]) is statistics.StatisticsError and "at least one data point" in str(out[1])

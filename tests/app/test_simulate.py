@@ -45,3 +45,22 @@ def test_joint_truth_and_bad_options(fanuc, tmp_path):
         simulate_dataset(tmp_path / "y", identification=5, validation_tool=3)
     fwd, bwd = default_joint_variances(6)
     assert len(fwd) == len(bwd) == 6 and default_joint_variances(3)[0] == [sorted(fwd)[3]] * 3
+
+
+def test_a_robot_is_simulated_with_its_own_repeatability(tmp_path):
+    """The simulated joints repeat as the robot's YAML declares (the ABB's own 1.16e-7 deg², not the FANUC's
+    Table 5), and fit.yaml states those variances; a robot without one gets the documented defaults."""
+    import yaml
+
+    import torchcal
+    from torchcal.core import units
+
+    abb = torchcal.load_robot("abb_irb120")
+    paths = simulate_dataset(tmp_path / "abb", robot="abb_irb120", identification=12, validation=0, order=1)
+    noise = yaml.safe_load(paths["config"].read_text())["noise"]
+    scale2 = units.joint_scale(abb.joint_map.prismatic) ** 2
+    assert noise["joint_var_fwd"] == pytest.approx((abb.repeatability.var_fwd / scale2).tolist(), rel=1e-10)
+    assert noise["joint_var_bwd"] == pytest.approx((abb.repeatability.var_bwd / scale2).tolist(), rel=1e-10)
+    assert noise["joint_var_fwd"] != default_joint_variances(6)[0]
+    truth = truth_noise(paths["truth"])
+    assert torch.allclose(truth.joint_var_fwd, abb.repeatability.var_fwd, rtol=1e-10)

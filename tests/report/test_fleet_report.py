@@ -134,6 +134,19 @@ def test_a_fleet_run_missing_files_says_so(fleet_run, tmp_path):
     assert f"unit{DAMAGED:02d}: joint3" in text  # the findings fleet.json keeps are still listed
 
 
+def test_a_fleet_run_that_stopped_early_gets_the_fleet_report(fleet_run, tmp_path):
+    """A fleet killed before it wrote fleet.json (config.yaml, run.log, PARTIAL left) is still reported as a
+    fleet, saying what is missing, not as one robot's calibration without a model."""
+    copy = tmp_path / "cut"
+    copy.mkdir()
+    for name in ("config.yaml", "run.log", "versions.json"):
+        shutil.copy(fleet_run.run_dir / name, copy / name)
+    (copy / "PARTIAL").write_text("did not finish")
+    text = render_report(copy)
+    assert "Fleet calibration report" in text and "Calibration report —" not in text
+    assert "fleet summary: not available" in text
+
+
 def test_report_command_on_a_fleet_run(fleet_run, tmp_path):
     out = tmp_path / "again.html"
     res = CliRunner().invoke(app, ["report", str(fleet_run.run_dir), "--out", str(out)])

@@ -570,6 +570,8 @@ def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
     from ..io.rundir import write_json
 
     df = pd.DataFrame(result.rows)
+    # one column order whatever unit comes first (a failed first unit put 'reason' third): the reason last
+    df = df[[c for c in df.columns if c != "reason"] + (["reason"] if "reason" in df.columns else [])]
     with atomic_path(run_dir / "summary.csv") as tmp:
         df.to_csv(tmp, index=False, float_format="%.6g")
     write_json(run_dir / "fleet.json", {"time_s": result.time, "solve_time_s": result.solve_time,

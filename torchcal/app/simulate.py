@@ -27,6 +27,21 @@ def default_joint_variances(n: int) -> tuple[list[float], list[float]]:
     return [med_f] * n, [med_b] * n
 
 
+def simulated_joint_variances(robot) -> tuple[list[float], list[float]]:
+    """Joint variances (deg², mm² for prismatic joints) the simulated robot repeats with: its own
+    ``repeatability:`` where its YAML declares one, else :func:`default_joint_variances` (written into fit.yaml
+    either way, so the fit uses what the simulation used)."""
+    rep = getattr(robot, "repeatability", None)
+    if rep is None:
+        return default_joint_variances(robot.joint_map.n)
+    from ..core import units
+
+    scale2 = units.joint_scale(robot.joint_map.prismatic.cpu()) ** 2
+    # back in the YAML's units, at the digits a YAML holds (SI and back leaves the last bit off)
+    return ([float(f"{v:.12g}") for v in (rep.var_fwd.cpu() / scale2).tolist()],
+            [float(f"{v:.12g}") for v in (rep.var_bwd.cpu() / scale2).tolist()])
+
+
 def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: int = 250, validation: int = 300,
                      validation_tool: int = 2, seed: int = 0, order: int = 6, force: bool = False,
                      error_variable="command", pose_order: str = "shuffled") -> dict[str, Path]:
@@ -35,7 +50,8 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     Paper II's protocol (5.2, 5.5): quasi-random commands over the controller
     range, each identification pose measured with all three tools of Table 4,
     disjoint validation commands measured with ``validation_tool``; tracker
-    sigma 0.005 mm and Table 5 joint variances. The truth is Paper II's FANUC
+    sigma 0.005 mm and the robot's own joint repeatability (its YAML's; Table 5 for the
+    FANUC; without one, :func:`default_joint_variances`). The truth is Paper II's FANUC
     (:meth:`TruthRobot.fanuc_paper2`) for the bundled FANUC, else
     :meth:`TruthRobot.random`, with its gear errors following
     ``error_variable`` ('command', Paper II (24), or 'joint'; one word or one
@@ -92,7 +108,7 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     robot_spec = str(Path(rob.source).resolve()) if Path(rob.source).suffix else (rob.source or rob.name)
     make = TruthRobot.fanuc_paper2 if kind == "fanuc_paper2" else TruthRobot.random
     truth = make(rob, tools_m, seed, error_variable=error_variable)
-    var_f, var_b = default_joint_variances(n)
+    var_f, var_b = simulated_joint_variances(rob)
     sigma_mm = TRACKER_SIGMA_MM
     noise = NoiseModel.from_file_units(sigma_mm, var_f, var_b, rob.joint_map.prismatic)
     limits = rob.joint_map.limits
@@ -128,4 +144,4 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     return paths
 
 
-__all__ = ["PAPER2_TOOLS_MM", "TRACKER_SIGMA_MM", "default_joint_variances", "simulate_dataset"]
+__all__ = ["PAPER2_TOOLS_MM", "TRACKER_SIGMA_MM", "default_joint_variances", "simulate_dataset", "simulated_joint_variances"]

@@ -30,7 +30,15 @@ FEATURE_TITLES = {"angle error": "Transmission error (RMS over the joint's range
 
 
 def is_fleet_run(run_dir) -> bool:
-    return (Path(run_dir) / FLEET_FILE).is_file()
+    """A ``torchcal fleet`` run directory: its fleet.json, or, where the run stopped before writing it, a
+    config whose identification data are a folder and no model of its own (a fit's run has model.pt)."""
+    folder = Path(run_dir)
+    if (folder / FLEET_FILE).is_file():
+        return True
+    if (folder / "model.pt").is_file() or not (folder / "config.yaml").is_file():
+        return False
+    ident = get(_yaml(_text(folder / "config.yaml")), "data", "identification", default=None)
+    return isinstance(ident, str) and Path(ident).is_dir()
 
 
 def _csv_rows(path: Path, need: set, numbers: tuple, flag: str, absent: str):

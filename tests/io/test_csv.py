@@ -395,3 +395,25 @@ def test_a_clean_windows_file_reads_the_same_by_the_fast_path(tmp_path):
     path.write_bytes(("\r\n".join(lines) + "\r\n").encode())
     fast = _read_clean(path, robot, 2)
     assert fast is not None and _same_measurements(fast, read_table(path, robot, 2)[0])
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda r: r.replace("0,1,10,20,", "0,1,20,20,"), ["row 2 (pose 0, tool 1) against row 1", "q1 20 against 10"]),
+    (lambda r: r.replace(",1,1,1,1,1,1,101,", ",1,1,-1,1,1,1,101,"), ["row 2 (pose 0, tool 1)", "approach directions"]),
+])
+def test_rows_of_one_pose_that_differ_are_named(tmp_path, fanuc, caplog, edit, words):
+    """Rows of one pose are one robot position measured with several tools: a row whose joint command or
+    approach direction differs from its pose's first row (a pose number used twice) is warned about, naming the
+    file and the rows, whichever reading path the file takes; consistent files say nothing."""
+    with caplog.at_level("WARNING", logger="torchcal"):
+        read_measurements(write(tmp_path, [HEADER, *GOOD], "ok.csv"), fanuc, n_tools=2)
+    assert not caplog.records
+    bad = [GOOD[0], edit(GOOD[1]), GOOD[2]]
+    assert bad[1] != GOOD[1]
+    for name, lines in (("clean.csv", [HEADER, *bad]), ("padded.csv", [HEADER, *[r.replace(",", ", ") for r in bad]])):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="torchcal"):
+            data = read_measurements(write(tmp_path, lines, name), fanuc, n_tools=2)
+        notes = [r.getMessage() for r in caplog.records if "pose's first row" in r.getMessage()]
+        assert len(notes) == 1 and name in notes[0] and all(w in notes[0] for w in words), notes
+        assert len(data) == 3  # fitted as they are: nothing dropped

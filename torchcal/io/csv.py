@@ -294,10 +294,39 @@ def _file_limits(robot) -> np.ndarray:
     return units.joints_from_si(robot.joint_map.limits.cpu().T, prismatic).T.numpy()
 
 
+POSE_COMMAND_TOLERANCE = 1e-3
+"""deg (mm): how far a row's joint command may lie from its pose's first row's before the file is warned about
+(rows of one pose are one robot position measured with several tools; encoders repeat far closer)."""
+
+
+def _pose_consistency(q: np.ndarray, direction: np.ndarray, pose: np.ndarray, tool: np.ndarray, source) -> None:
+    """Warn (the run's log and warnings) where rows of one pose differ in their joint commands or approach
+    directions: a pose number used twice, or rows pasted from another session. Their measurements are fitted
+    as they are, and a far-off row reads as a robot error, so the file and the rows are named."""
+    if len(pose) < 2:
+        return
+    _, first_of, inverse = np.unique(pose, return_index=True, return_inverse=True)
+    ref = first_of[inverse]
+    dq = np.abs(q - q[ref])
+    bad_dir = (direction != direction[ref]).any(axis=1)
+    bad = (dq.max(axis=1) > POSE_COMMAND_TOLERANCE) | bad_dir
+    if not bad.any():
+        return
+    rows = np.flatnonzero(bad)
+    r = int(rows[np.argmax(dq[rows].max(axis=1))])
+    j = int(np.argmax(dq[r]))
+    what = (f"q{j + 1} {q[r, j]:.6g} against {q[ref[r], j]:.6g}" if dq[r, j] > POSE_COMMAND_TOLERANCE
+            else "the approach directions")
+    log.warning(f"{source}: {len(rows)} row(s) differ from their pose's first row, which one robot position "
+                f"measured with several tools shares: e.g. row {r + 1} (pose {pose[r]}, tool {tool[r]}) against "
+                f"row {ref[r] + 1}, {what}; a pose number used twice? The rows are fitted as they are")
+
+
 def _to_measurements(q, tool, xyz, direction, pose, has_direction: bool, source: str, extra: dict,
                      prismatic) -> Measurements:
     """Checked columns in file units (numpy: q, direction (R, n), tool, pose (R,) int64, xyz (R, 3) mm) -> SI
     :class:`Measurements`, rows numbered from 1."""
+    _pose_consistency(q, direction, pose, tool, source)
     return Measurements(
         q=units.joints_to_si(torch.from_numpy(q), prismatic),
         tool=torch.from_numpy(tool),

@@ -575,6 +575,9 @@ def test_fleet_where_no_unit_can_be_fitted_says_why(tmp_path, robot):
         run_fleet(cfg, out=tmp_path / "none")
     assert "unit00.csv" in str(info.value)
     assert (tmp_path / "none" / "summary.csv").read_text().count("failed") == 2
+    with pytest.raises(ConfigError, match="inside data.identification"):  # a run among the units' files: refused
+        run_fleet(cfg, out=tmp_path / "ident" / "run")
+    assert not (tmp_path / "ident" / "run").exists()
 
 
 def test_baseline_measured_with_other_tools_is_refused(tmp_path, robot):

@@ -417,3 +417,15 @@ def test_rows_of_one_pose_that_differ_are_named(tmp_path, fanuc, caplog, edit, w
         notes = [r.getMessage() for r in caplog.records if "pose's first row" in r.getMessage()]
         assert len(notes) == 1 and name in notes[0] and all(w in notes[0] for w in words), notes
         assert len(data) == 3  # fitted as they are: nothing dropped
+
+
+def test_a_header_in_another_case_is_one_problem(tmp_path, fanuc):
+    """Q1, X, ... instead of q1, x: one line saying the names are lower case, not 'missing' for every column; a
+    direction column in capitals is named too (not read as an extra column, leaving the file without directions)."""
+    upper = HEADER.replace("pose,tool,", "POSE,Tool,").replace("q", "Q").replace(",x,y,z,", ",X,Y,Z,")
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, [upper, *GOOD]), fanuc, n_tools=2)
+    text = str(err.value)
+    assert "lower case" in text and "Q1" in text and "X, Y, Z" in text and "missing" not in text
+    with pytest.raises(DataError, match="names DIR1, DIR2"):
+        read_measurements(write(tmp_path, [HEADER.replace("dir", "DIR"), *GOOD], "dirs.csv"), fanuc, n_tools=2)

@@ -222,7 +222,13 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     check_config(cfg, label, robot.joint_map.n)
     T = config_tool_count(cfg)
     device = torch.device(cfg.device)
-    run_dir = make_run_dir(Path(out) if out is not None else Path(cfg.out).with_name("fleets"))
+    target = Path(out) if out is not None else Path(cfg.out).with_name("fleets")
+    for key in ("identification", "validation"):  # a run inside a data folder would be read as units next time
+        folder = getattr(cfg.data, key)
+        if folder and Path(folder).resolve() in (target.resolve(), *target.resolve().parents):
+            raise ConfigError(f"{label}: the run directory {target} lies inside data.{key} ({folder}): choose an "
+                              "'out' beside the data")
+    run_dir = make_run_dir(target)
     atomic_write_text(run_dir / "config.yaml", to_yaml(cfg))
     write_json(run_dir / "versions.json", collect_versions(device))
     result = FleetRunResult(run_dir)

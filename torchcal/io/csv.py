@@ -377,8 +377,16 @@ def parse_table(
     required = qcols + (["tool"] if n_tools is not None else []) + (["pose"] if require_pose else [])
     required += list(XYZ) if require_xyz else []
     found = ", ".join(df.columns)
+    # a header in another case (Q1, X, DIR1): one line naming those columns, not 'missing' for each one, and never
+    # a direction column silently taken for an extra one
+    misnamed = [str(c) for c in df.columns
+                if not CONTRACT_COLUMN.match(str(c)) and CONTRACT_COLUMN.match(str(c).strip().lower())]
+    if misnamed:
+        problems.append(Problem(None, None, "the contract's column names are lower case (pose, tool, q1.., dir1.., x, "
+                                            f"y, z); this file names {', '.join(misnamed)}: rename them"))
+    renamed = {c.strip().lower() for c in misnamed}
     for c in required:
-        if c not in cols:
+        if c not in cols and c not in renamed:
             problems.append(Problem(None, c, f"missing (the robot '{robot.name}' has {n} joints; columns found: {found})"))
     for prefix in ("q", "dir"):
         extra_joint = f"{prefix}{n + 1}"
@@ -517,7 +525,8 @@ def _read_clean(path: Path, robot, n_tools: int) -> Measurements | None:
     cols = set(names)
     has_direction = all(c in cols for c in dcols)
     if (len(cols) != len(names) or "" in cols or not {*qcols, "tool", "pose", *XYZ} <= cols
-            or (any(c in cols for c in dcols) and not has_direction) or f"q{n + 1}" in cols or f"dir{n + 1}" in cols):
+            or (any(c in cols for c in dcols) and not has_direction) or f"q{n + 1}" in cols or f"dir{n + 1}" in cols
+            or any(not CONTRACT_COLUMN.match(c) and CONTRACT_COLUMN.match(c.lower()) for c in names)):
         return None
     numeric = qcols + (dcols if has_direction else []) + ["tool", "pose", *XYZ]
     try:

@@ -43,12 +43,12 @@ def axis_errors(model, samples: int = 101) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:
-    """Per joint (n,): 'angle error' (RMS over the joint's range of its modeled error about its own axis, the
+    """Per joint (n,): 'transmission error' (RMS over the joint's range of its modeled error about its own axis, the
     transmission error, rad or m) and 'backlash' (mean half difference between the two approach directions)."""
     axis, axis_b = axis_errors(model, samples)
     ang = (axis - axis.mean(0)).pow(2).mean(0).sqrt()
     back = (0.5 * (axis - axis_b)).abs().mean(0)
-    return {"angle error": ang, "backlash": back}
+    return {"transmission error": ang, "backlash": back}
 
 
 OUTLIER_MIN_RATIO = 3.0

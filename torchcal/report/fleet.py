@@ -25,7 +25,8 @@ from .rundata import Missing, _json, _text, _yaml, get, log_warnings
 FLEET_FILE = "fleet.json"
 """The file that makes a run directory a fleet's (``torchcal fleet`` writes it last)."""
 
-FEATURE_TITLES = {"angle error": "Transmission error (RMS over the joint's range, about its own axis)",
+FEATURE_TITLES = {"transmission error": "Transmission error (RMS over the joint's range, about its own axis)",
+                  "angle error": "Transmission error (RMS over the joint's range, about its own axis)",  # features.csv of earlier runs
                   "backlash": "Backlash (half the difference between the two approach directions)"}
 
 

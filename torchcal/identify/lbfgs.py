@@ -81,13 +81,16 @@ def lbfgs(
         nfev += 1
         return loss
 
-    with torch.no_grad():  # the model's own parameters require grad too: a first value, not a graph
-        history = [float(objective(z.detach()))]
+    def value() -> float:
+        with torch.no_grad():  # the model's own parameters require grad too: a value, not a graph
+            return float(objective(z.detach()))
+
+    history = [value()]
     success, message, it = False, "maximum number of iterations reached", 0
     while it < max_iter:
         opt.step(closure)
         it = opt.state[opt._params[0]]["n_iter"]
-        cost = float(objective(z.detach()))
+        cost = value()
         history.append(cost)
         if callback is not None:
             callback(it, cost)

@@ -294,7 +294,8 @@ def sweep_cmd(
             "validation_max_mm"]
     cols = [c for c in cols if any(c in r for r in result.rows)]
     for c in cols:
-        t.add_column(c.replace("_mm", " (mm)").replace("_", " "), justify="right")
+        # grid keys as given (data.n_poses), the result columns in words
+        t.add_column(c if c in result.keys else c.replace("_mm", " (mm)").replace("_", " "), justify="right")
     for r in result.rows:
         t.add_row(*[f"{r[c]:.4f}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
     _console().print(t)
@@ -315,7 +316,8 @@ def fleet_cmd(
                                                 "with one CSV per unit (data.validation: a folder of the same names).")],
     overrides: Annotated[Optional[list[str]], typer.Argument(
         help="Dotted overrides, e.g. fleet.engine=ray fleet.cell=25 model.order=4 "
-             "fleet.baseline=runs/fleets/2026-11-26_10-40-01.")] = None,
+             "fleet.baseline=fleets (an earlier run: a config's first goes to 'fleets' beside it, the next to "
+             "'fleets-2').")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Run directory (default: 'fleets' beside the config's out).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ):

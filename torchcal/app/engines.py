@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 
-from ..core.exceptions import ConfigError
+from ..core.exceptions import ConfigError, TorchcalError
 
 log = logging.getLogger("torchcal")
 
@@ -27,7 +27,7 @@ ENGINES = ("local", "ray")
 """``fleet.engine`` / ``sweep.engine``: where the cells are fitted."""
 
 
-class Interrupted(Exception):
+class Interrupted(TorchcalError):
     """What a cell that had not finished when the run was interrupted (Ctrl-C) hands back: the cells done by then
     are kept, and the caller writes them before it lets the interrupt end the run."""
 

@@ -172,7 +172,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
         groups.setdefault(key, []).append(i)
     rows: list[dict | None] = [None] * len(cells)
     members_of = list(groups.values())
-    jobs = [("stacked" if _stackable(cfgs[m[0]]) else "alone", [to_yaml(cfgs[i]) for i in m], str(run_dir), m,
+    jobs = [("stacked" if _stackable(cfgs[m[0]]) else "alone", [cfgs[i] for i in m], str(run_dir), m,
              cfgs[m[0]].threads) for m in members_of]
     engine = base.sweep.engine
     with run_log(run_dir):
@@ -208,24 +208,22 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     return result
 
 
-def sweep_group(kind: str, config_yamls: list[str], run_dir: str, cells: list[int], n_threads: int | None) -> list[dict]:
+def sweep_group(kind: str, cfgs: list, run_dir: str, cells: list[int], n_threads: int | None) -> list[dict]:
     """One independent group of a sweep's cells, what an engine runs: ``kind`` 'stacked' (one batched solve,
-    :func:`_fit_stacked`) or 'alone' (one cell, its own ``torchcal fit``). config_yamls: each cell's resolved
-    config; run_dir: the sweep's run directory, where the cells write ``cells/NN`` (on a Ray cluster it must be
+    :func:`_fit_stacked`) or 'alone' (one cell, its own ``torchcal fit``). cfgs: each cell's resolved
+    :class:`~torchcal.app.config.FitConfig` (frozen and picklable: Ray carries it as it is); run_dir: the sweep's run directory, where the cells write ``cells/NN`` (on a Ray cluster it must be
     on storage this node reaches); n_threads: the config's ``threads`` (None: chosen by work size, the same
     choice on any engine of one machine). -> one row per cell (status 'fitted', convergence, residuals in mm)."""
     import socket
 
     from ..core import threads
     from ..io.rundir import RunDirError
-    from .config import config_from_text
 
     root = Path(run_dir)
     if not root.is_dir():
         raise RunDirError(f"{root}: the sweep's run directory is not visible on {socket.gethostname()}, where this "
                           "cell runs: with sweep.engine=ray on a cluster, put the run directory (--out) and the data "
                           "on storage every node reaches")
-    cfgs = [config_from_text(y, f"cell {c} of the sweep's config") for y, c in zip(config_yamls, cells)]
     old = threads.get_override()
     threads.set_threads(n_threads)
     try:

@@ -45,6 +45,7 @@ from torch import nn
 
 from ..core.exceptions import ConfigError  # a ValueError too (library callers): a compliance the robot cannot carry
 from ..kinematics.fk import chain_frames, joint_motion
+from ..io import yamlio
 
 GRAVITY = (0.0, 0.0, -9.80665)
 """Default gravity vector in the URDF root frame (m/s^2): -z is down."""
@@ -177,8 +178,6 @@ class Inertials:
 
 def robot_urdf_path(robot) -> Path | None:
     """Path of the URDF a :class:`~torchcal.kinematics.robot.Robot` was loaded from (None if unknown)."""
-    import yaml
-
     from ..kinematics.robot import urdf_dir
 
     src = str(getattr(robot, "source", "") or "")
@@ -193,7 +192,7 @@ def robot_urdf_path(robot) -> Path | None:
         except FileNotFoundError:
             return None
     if path.suffix.lower() in (".yaml", ".yml") and path.is_file():
-        spec = yaml.safe_load(path.read_text())
+        spec = yamlio.safe_load(path.read_text())
         if isinstance(spec, dict) and "urdf" in spec:
             p = path.parent / spec["urdf"]
             return p if p.is_file() else None

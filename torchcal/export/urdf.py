@@ -33,6 +33,7 @@ from ..analysis.stats import ResidualStats, point_residuals, residual_stats, sta
 from ..kinematics.robot import Robot, load_robot, urdf_dir
 from ..kinematics.transforms import homogeneous, invert, matrix_to_rpy, rpy_to_matrix, twist_to_transform
 from ..kinematics.urdf import URDFError, validate_urdf
+from ..io import yamlio
 
 
 # ------------------------------------------------------------------ transforms
@@ -92,7 +93,7 @@ def _source_files(robot: Robot, source_urdf=None) -> tuple[Path, dict | None, Pa
     if path.suffix.lower() == ".urdf":
         return path, None, None
     if path.suffix.lower() in (".yaml", ".yml") and path.is_file():
-        spec = yaml.safe_load(path.read_text())
+        spec = yamlio.safe_load(path.read_text())
         return (path.parent / spec["urdf"]).resolve(), spec, path
     raise URDFError(f"export: cannot find the source URDF of robot '{robot.name}' (source {src!r}); pass source_urdf=")
 

@@ -38,6 +38,7 @@ from pathlib import Path
 import torch
 
 from ..core.exceptions import TorchcalError
+from . import yamlio
 
 MODEL_FILE = "model.pt"
 MODEL_FORMAT = "torchcal.RobotModel"
@@ -283,7 +284,7 @@ def load_run_config(run_dir) -> dict:
     if not path.is_file():
         raise RunDirError(f"{path}: no config.yaml; is {run_dir} a run directory?")
     try:
-        cfg = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        cfg = yamlio.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
         raise RunDirError(f"{path}: not valid YAML: {exc}") from None
     if not isinstance(cfg, dict):

@@ -7,12 +7,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-import yaml
 
 from ..core import units
 from .chain import Chain
 from .joint_map import JointMap
 from .urdf import URDFError, load_urdf
+from ..io import yamlio
 
 
 @dataclass
@@ -169,7 +169,7 @@ def load_robot(spec: str | Path) -> Robot:
     if not path.is_file():
         raise URDFError(f"{path}: " + ("is a directory, not a robot file (joint-map .yaml or .urdf)" if path.is_dir()
                                        else "robot file not found"))
-    spec_d = yaml.safe_load(path.read_text())
+    spec_d = yamlio.safe_load(path.read_text())
     if not isinstance(spec_d, dict) or "urdf" not in spec_d:
         raise URDFError(f"{path}: a joint-map YAML needs a 'urdf' key")
     chain = load_urdf(path.parent / spec_d["urdf"], end_link=spec_d.get("end_link"), root_link=spec_d.get("root_link"))

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..core.exceptions import TorchcalError
+from ..io import yamlio
 
 PLOT_TITLES = {
     "joint_errors": "Identified error terms per joint (rotation and translation against the joint command; Figure 12)",
@@ -74,7 +75,7 @@ def _yaml(text):
     import yaml
 
     try:
-        cfg = yaml.safe_load(text)
+        cfg = yamlio.safe_load(text)
     except yaml.YAMLError as exc:
         return Missing(f"config.yaml is not readable YAML ({exc})")
     return cfg if isinstance(cfg, dict) else Missing("config.yaml holds no mapping")

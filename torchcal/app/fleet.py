@@ -41,6 +41,8 @@ from .common import config_backlash, config_orders
 from .config import SolverConfig, config_from_text, load_config, to_yaml, updated
 from .engines import interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
+from .fleet_files import ignored_files, unit_files, validation_gaps
+from .fleet_frames import align_units, in_base
 
 log = logging.getLogger("torchcal")
 
@@ -57,64 +59,6 @@ class FleetRunResult:
     solve_time: float = 0.0
     warnings: list[str] = field(default_factory=list)  # what the data leave open, also in run.log
     changes: list = field(default_factory=list)  # fleet.baseline: the units that changed since it
-
-
-def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
-    """(name, identification file, validation file or None) per unit, sorted by name."""
-    label = cfg.config_file or "config"
-    ident = Path(cfg.data.identification)
-    if not ident.is_dir():
-        raise ConfigError(f"{label}: key 'data.identification': a fleet needs a folder with one CSV per unit, "
-                          f"got {ident} ({'a file' if ident.is_file() else 'not found'})")
-    files = _measurement_files(ident)
-    if not files:
-        raise ConfigError(f"{label}: key 'data.identification': {ident} holds no .csv files")
-    val = Path(cfg.data.validation) if cfg.data.validation else None
-    if val is not None and not val.is_dir():
-        raise ConfigError(f"{label}: key 'data.validation': a fleet needs a folder with files named like the "
-                          f"identification files, got {val}")
-    by_stem = _by_stem(files, label, "data.identification")
-    val_by_stem = _by_stem(_measurement_files(val), label, "data.validation") if val is not None else {}
-    return [(stem, f, val_by_stem.get(stem)) for stem, f in sorted(by_stem.items())]
-
-
-def _measurement_files(folder: Path) -> list[Path]:
-    """The measurement files of a folder: .csv / .tsv in any case, sorted."""
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in (".csv", ".tsv") and p.is_file())
-
-
-def _by_stem(files: list[Path], label: str, key: str) -> dict[str, Path]:
-    """{unit name (the file's stem): file}; two files of one stem are refused (one unit's run twice)."""
-    stems: dict[str, list[Path]] = {}
-    for f in files:
-        stems.setdefault(f.stem, []).append(f)
-    clash = {k: v for k, v in stems.items() if len(v) > 1}
-    if clash:
-        raise ConfigError(f"{label}: key '{key}': a unit is named by its file, and "
-                          + "; ".join(f"{' and '.join(p.name for p in v)} both name unit '{k}'" for k, v in clash.items())
-                          + ": rename or remove one of each")
-    return {k: v[0] for k, v in stems.items()}
-
-
-def _validation_gaps(cfg, files: list) -> tuple[list[str], list[Path]]:
-    """With ``data.validation``: the units without a validation file of their name, and the validation files
-    that name no unit (neither is used; both are worth a word, not silence)."""
-    if not cfg.data.validation:
-        return [], []
-    names = {name for name, _, _ in files}
-    orphans = [p for p in _measurement_files(Path(cfg.data.validation)) if p.stem not in names]
-    return [n for n, _, fv in files if fv is None], orphans
-
-
-def _ignored_files(cfg) -> list[str]:
-    """What the data folders hold besides measurement files (not read: a word in the log, not silence)."""
-    out = []
-    for key in ("identification", "validation"):
-        folder = getattr(cfg.data, key)
-        if folder and Path(folder).is_dir():
-            out += [f"{Path(folder).name}/{p.name}" for p in sorted(Path(folder).iterdir())
-                    if not p.name.startswith(".") and not (p.is_file() and p.suffix.lower() in (".csv", ".tsv"))]
-    return out
 
 
 def _check_fleet_config(cfg) -> None:
@@ -242,8 +186,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if float(cfg.solver.ftol) != SolverConfig.ftol:
             warn(f"solver.ftol ({cfg.solver.ftol:g}) is a single fit's; the fleet's units stop at fleet.ftol "
                  f"({float(cfg.fleet.ftol):g}): set that one")
-        no_val, orphans = _validation_gaps(cfg, files)
-        ignored = _ignored_files(cfg)
+        no_val, orphans = validation_gaps(cfg, files)
+        ignored = ignored_files(cfg)
         if ignored:
             warn(f"not read (not .csv / .tsv files): {', '.join(ignored)}")
         if no_val:
@@ -274,9 +218,10 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                         warn(f"unit {name}: {note}")
                     loaded.append((name, ident, val))
                 bar.advance(note=name)
+        frames, alignments = {}, {}  # measurement_frame: estimate: each unit's own (_align_units)
         if loaded:
             loaded = _same_format(loaded, rows, robot)
-            loaded, frames, alignments = _align_units(cfg, robot, loaded, rows, label)
+            loaded, frames, alignments = align_units(cfg, robot, loaded, rows, label)
         if not loaded:  # every unit failed before its fit: one error, the first unit's reason, summary.csv written
             result.rows = [rows[name] for name, _, _ in files]
             _write_summary(run_dir, result, cfg)
@@ -295,7 +240,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         size = int(cfg.fleet.cell)
         # with measurement_frame: estimate each unit is solved in its own robot base frame (its points moved by
         # its alignment), its model then given that alignment as the nominal measurement frame
-        cells = [[(n, _in_base(i, frames.get(n))) for n, i, _ in loaded[c:c + size]]
+        cells = [[(n, in_base(i, frames.get(n))) for n, i, _ in loaded[c:c + size]]
                  for c in range(0, len(loaded), size)]
         config_yaml = to_yaml(cfg)
         ts = time.perf_counter()
@@ -412,48 +357,6 @@ def _write_features(run_dir: Path, names: list[str], scores, robot, threshold: f
                              "flag_level": float(level[j]), "flagged": bool(flagged[m, j])})
     with atomic_path(run_dir / "features.csv") as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.9g")
-
-
-def _align_units(cfg, robot, loaded: list, rows: dict, label: str) -> tuple[list, dict, dict]:
-    """With ``measurement_frame: estimate`` (each unit measured from wherever its tracker stood): every unit's
-    measurement frame from its own identification data on the nominal robot, as ``torchcal fit`` estimates
-    it. -> (the units aligned, {unit: (4, 4) robot base in the measurement frame, SI}, {unit: the
-    alignment's summary, alignment.json}); a unit whose data cannot determine its frame is failed in ``rows``.
-    Other modes: the units unchanged and no frames (one frame, the config's, for every unit)."""
-    from .fit import config_alignment, config_frame
-
-    if config_frame(cfg)[0] != "estimate":
-        return loaded, {}, {}
-    kept, frames, summaries = [], {}, {}
-    with task("estimating each unit's measurement frame", total=len(loaded)) as bar:
-        for name, ident, val in loaded:
-            try:
-                _, frame, res = config_alignment(cfg, robot, ident, f"{label}: unit {name}")
-            except Exception as exc:  # this unit's failure, not the fleet's
-                rows[name] = {"unit": name, "status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
-                log.warning("unit %s: not fitted: %s", name, exc)
-            else:
-                frames[name], summaries[name] = frame.detach().cpu(), res.summary()
-                a = summaries[name]
-                log.info(f"unit {name}: measurement frame: robot base at xyz "
-                         + ", ".join(f"{v:.3f}" for v in a["frame"]["xyz_mm"]) + " mm, rpy "
-                         + ", ".join(f"{v:.4f}" for v in a["frame"]["rpy_deg"]) + " deg (alignment residual rms "
-                         f"{a['residual_mm']['rms']:.4f} mm)")
-                kept.append((name, ident, val))
-            bar.advance(note=name)
-    return kept, frames, summaries
-
-
-def _in_base(data, frame: torch.Tensor | None):
-    """A unit's measurements with the points moved from its measurement frame into its robot base frame
-    (``frame``: (4, 4) the base in the measurement frame; None: unchanged). A rigid move leaves every distance,
-    and so the fit's isotropic tracker weighting, as it was."""
-    if frame is None:
-        return data
-    from dataclasses import replace
-
-    R, t = frame[:3, :3].to(data.xyz), frame[:3, 3].to(data.xyz)
-    return replace(data, xyz=(data.xyz - t) @ R)
 
 
 def _implausible(fitted: list, rows: dict, robot, frames: dict, warn) -> dict:

@@ -211,9 +211,10 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
 def sweep_group(kind: str, cfgs: list, run_dir: str, cells: list[int], n_threads: int | None) -> list[dict]:
     """One independent group of a sweep's cells, what an engine runs: ``kind`` 'stacked' (one batched solve,
     :func:`_fit_stacked`) or 'alone' (one cell, its own ``torchcal fit``). cfgs: each cell's resolved
-    :class:`~torchcal.app.config.FitConfig` (frozen and picklable: Ray carries it as it is); run_dir: the sweep's run directory, where the cells write ``cells/NN`` (on a Ray cluster it must be
-    on storage this node reaches); n_threads: the config's ``threads`` (None: chosen by work size, the same
-    choice on any engine of one machine). -> one row per cell (status 'fitted', convergence, residuals in mm)."""
+    :class:`~torchcal.app.config.FitConfig` (frozen and picklable: Ray carries it as it is); run_dir: the
+    sweep's run directory, where the cells write ``cells/NN`` (on a Ray cluster it must be on storage this node
+    reaches); n_threads: the config's ``threads`` (None: chosen by work size, the same choice on any engine of
+    one machine). -> one row per cell (status 'fitted', convergence, residuals in mm)."""
     import socket
 
     from ..core import threads
@@ -225,7 +226,8 @@ def sweep_group(kind: str, cfgs: list, run_dir: str, cells: list[int], n_threads
                           "cell runs: with sweep.engine=ray on a cluster, put the run directory (--out) and the data "
                           "on storage every node reaches")
     old = threads.get_override()
-    threads.set_threads(n_threads)
+    if n_threads is not None:
+        threads.set_threads(n_threads)
     try:
         if kind == "stacked":
             return _fit_stacked(cfgs, root, cells)

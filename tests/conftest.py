@@ -168,6 +168,20 @@ ALPHA_DEG = [-90.0, 90.0, 90.0, -90.0, -90.0, 90.0, 0.0]
 LIMIT_DEG = [170, 120, 170, 120, 170, 120, 175]
 
 
+def ctrl_c_on_call(monkeypatch, module, name: str, call: int = 2) -> None:
+    """Replace ``module.name`` by a wrapper that raises KeyboardInterrupt (Ctrl-C) on its ``call``-th call and
+    runs the real function otherwise: an interrupted run, reproducibly."""
+    real, calls = getattr(module, name), []
+
+    def stopped(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == call:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, stopped)
+
+
 def _urdf_from_dh(path):
     """A user's URDF of the KUKA LBR iiwa 14 R820 written from its datasheet's standard DH table (joint i's
     origin carries link i-1's a, d and alpha): a 7-axis robot torchcal does not bundle."""

@@ -541,17 +541,10 @@ def test_fleet_interrupted_keeps_the_units_it_fitted(tmp_path, robot, monkeypatc
     import pandas as pd
 
     import torchcal.app.fleet as fleet_app
+    from conftest import ctrl_c_on_call
 
     cfg = _write_fleet(tmp_path, robot, count=4)
-    real, calls = fleet_app.fit_cell, []
-
-    def stopped(*args):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(*args)
-
-    monkeypatch.setattr(fleet_app, "fit_cell", stopped)
+    ctrl_c_on_call(monkeypatch, fleet_app, "fit_cell")
     with pytest.raises(KeyboardInterrupt) as info:
         fleet_app.run_fleet(cfg, ["fleet.cell=2"], out=tmp_path / "cut")
     run = tmp_path / "cut"

@@ -129,16 +129,9 @@ def test_sweep_interrupted_keeps_the_cells_it_fitted(sim, tmp_path, monkeypatch)
     import pandas as pd
 
     import torchcal.app.sweep as sweep_app
+    from conftest import ctrl_c_on_call
 
-    real, calls = sweep_app.sweep_group, []
-
-    def stopped(*args):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(*args)
-
-    monkeypatch.setattr(sweep_app, "sweep_group", stopped)
+    ctrl_c_on_call(monkeypatch, sweep_app, "sweep_group")
     with pytest.raises(KeyboardInterrupt) as info:
         run_sweep(sim, ["model.order=1:2", "data.n_poses=25,40", "data.truth=null"], out=tmp_path / "cut")
     run = tmp_path / "cut"

@@ -38,10 +38,10 @@ from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBas
 
 from ..core import units
 from ..core.exceptions import ConfigError  # defined low (torchcal.core.exceptions) so that any layer can raise it
-from .engines import ENGINES
 from ..error_models.joint import MAX_ORDER
 from ..identify import SOLVERS, Prior
 from ..io import yamlio
+from .engines import ENGINES
 
 
 _PRIOR = Prior()

@@ -16,12 +16,9 @@ Ray worker starts with one thread).
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable, Sequence
 
 from ..core.exceptions import ConfigError, TorchcalError
-
-log = logging.getLogger("torchcal")
 
 ENGINES = ("local", "ray")
 """``fleet.engine`` / ``sweep.engine``: where the cells are fitted."""
@@ -36,7 +33,7 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
               where: str = "key 'engine'", on_done: Callable[[int, object], None] | None = None) -> list:
     """``fn(*a)`` for every ``a`` in ``args`` on ``engine`` -> per cell its result or the exception it raised.
 
-    fn: a module-level function (Ray pickles it by reference); args: one tuple per cell, plain data;
+    fn: a module-level function (Ray pickles it by reference); args: one tuple per cell, picklable;
     address: engine ray: the cluster (None: the Ray this process has initialized, else a local one started
     for the call, or RAY_ADDRESS); where: the config file and key named when Ray is missing; on_done(i, result or
     exception): called as each cell finishes (the progress bar), in the order they finish. Ctrl-C: the cells

@@ -587,3 +587,31 @@ def test_baseline_measured_with_other_tools_is_refused(tmp_path, robot):
     with pytest.raises(ConfigError, match="other tool vectors"):
         run_fleet(cfg, [f"fleet.baseline={first}"], out=tmp_path / "second")
     assert not (tmp_path / "second" / "units").exists()
+
+
+def test_a_gross_row_is_named_and_noise_is_not(tmp_path, robot):
+    """One row 5 mm off (a reflector off its nest) is warned about by its unit, file row and residual; the
+    units measured with tracker noise alone raise no such warning."""
+    from torchcal.app.fleet import run_fleet
+
+    cfg = _write_fleet(tmp_path, robot, count=4)
+    p = tmp_path / "ident" / "unit01.csv"
+    lines = p.read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[31].split(",")
+    cells[header.index("x")] = f"{float(cells[header.index('x')]) + 5.0:.6f}"
+    lines[31] = ",".join(cells)
+    p.write_text("\n".join(lines) + "\n")
+    res = run_fleet(cfg, ["report=false"], out=tmp_path / "run")
+    far = [w for w in res.warnings if "far beyond the rest" in w]
+    assert len(far) == 1 and "unit unit01" in far[0] and "row 31 (" in far[0], far
+
+
+def test_far_rows_leave_gaussian_noise_alone():
+    from torchcal.analysis.stats import far_rows
+
+    g = torch.Generator().manual_seed(0)
+    noise = torch.randn(20000, 3, generator=g, dtype=torch.float64).norm(dim=1)  # Maxwell: tracker noise alone
+    assert far_rows(noise).numel() == 0
+    noise[123] = 16.0  # ~10x the median norm (1.54)
+    assert far_rows(noise).tolist() == [123]

@@ -17,6 +17,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from ..core import units
 from ..core.measurements import Measurements
 
 GAMMA_QUANTILE = 0.99
@@ -148,6 +149,40 @@ def grouped_stats(residuals, groups) -> dict[int, ResidualStats]:
     if g.shape != x.shape:
         raise ValueError(f"groups has {g.size} labels for {x.size} residuals")
     return {int(k): residual_stats(x[g == k]) for k in np.unique(g)}
+
+
+FAR_ROW_FACTOR = 10.0
+"""A row whose residual after the fit is this many times the set's median residual or more lies far beyond the
+rest: for Gaussian tracker noise (the residual's norm ~ Maxwell, median 1.54 sigma) that is beyond 15 sigma,
+so a gross error (a reflector off its nest, a beam break, a pose number used twice), not noise."""
+
+
+def far_rows(residuals: torch.Tensor, factor: float = FAR_ROW_FACTOR) -> torch.Tensor:
+    """Positions (K,) of the rows whose residual (R,) is ``factor`` x the median residual or more, largest first.
+
+    Example:
+        >>> far_rows(torch.tensor([1.0, 1.2, 0.9, 30.0, 1.1])).tolist()
+        [3]
+    """
+    r = residuals.detach().cpu()
+    if r.numel() < 5:  # a median of a few rows says nothing
+        return torch.zeros(0, dtype=torch.long)
+    idx = (r >= factor * r.median()).nonzero()[:, 0]
+    return idx[r[idx].argsort(descending=True)]
+
+
+def far_rows_message(residuals: torch.Tensor, data: Measurements, what: str) -> str | None:
+    """One warning naming ``what`` (the set and its file) and its far rows by their file row, or None."""
+    idx = far_rows(residuals)
+    if idx.numel() == 0:
+        return None
+    mm = units.m_to_mm(residuals.detach().cpu())
+    rows = data.rows.cpu()[idx].tolist()
+    shown = ", ".join(f"row {r} ({v:.3f} mm)" for r, v in zip(rows[:5], mm[idx][:5].tolist()))
+    return (f"{what}: {idx.numel()} row(s) lie far beyond the rest after the fit (>= {FAR_ROW_FACTOR:g}x the median "
+            f"residual {float(mm.median()):.4f} mm): {shown}{', ...' if idx.numel() > 5 else ''}; a gross "
+            "measurement error (a reflector off its nest, a beam break) or a pose number used twice? They are "
+            "fitted as they are")
 
 
 def percent_decrease(before: float, after: float) -> float:

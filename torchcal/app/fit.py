@@ -47,7 +47,7 @@ import torch
 from collections.abc import Mapping
 
 from ..core import threads, units
-from ..analysis.stats import percent_decrease, point_residuals, residual_stats
+from ..analysis.stats import far_rows_message, percent_decrease, point_residuals, residual_stats
 from ..identify import FitResult, NoiseModel, Prior, fit
 from .config import ConfigError, check_config
 from ..kinematics.transforms import homogeneous, rpy_to_matrix
@@ -668,6 +668,9 @@ def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict
         s = ev["modeled_stats"]
         progress.info(f"{name.lower()}: mean {ev['nominal_stats'].mean:.4f} -> {s.mean:.4f} mm "
                       f"({ev['decrease']['mean']:.2f} % decrease), max {s.max:.4f} mm, Gamma 99 % {s.gamma99:.4f} mm")
+    for name, ev in evaluations.items():
+        if far := far_rows_message(ev["modeled"], sets[name], f"{name.lower()} set ({sets[name].source})"):
+            progress.warn(far)
     nominal = evaluations["Identification"]["nominal_stats"].mean
     if nominal > NOMINAL_IMPLAUSIBLE_MM:
         progress.warn(f"the nominal residual (identification mean {nominal:.1f} mm) is far beyond any plausible calibration "

@@ -266,7 +266,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
 
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
-                _evaluate(u, model, idents, vals, rows, device)
+                _evaluate(u, model, idents, vals, rows, device, warn)
         implausible = _implausible(fitted, rows, robot, frames, warn)
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
@@ -452,15 +452,19 @@ def _data_checks(cfg, robot, T: int, loaded: list, warn) -> dict:
     return out
 
 
-def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device) -> None:
-    """A fitted unit's row: identification (and validation) residual statistics in mm."""
-    from ..analysis.stats import point_residuals, residual_stats
+def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device, warn) -> None:
+    """A fitted unit's row: identification (and validation) residual statistics in mm; rows far beyond the rest
+    are warned about (:func:`~torchcal.analysis.stats.far_rows`)."""
+    from ..analysis.stats import far_rows_message, point_residuals, residual_stats
 
     name = u["name"]
     ident = idents[name].to(device)
     # by the compiled flange where it applies: the fleet has numba loaded already, and torch's batched 3 x 3
     # products made this 11 ms a unit
-    s = residual_stats(point_residuals(model, ident, compiled=True).cpu()).scaled(units.m_to_mm(1.0))
+    res = point_residuals(model, ident, compiled=True).cpu()
+    if far := far_rows_message(res, ident, f"unit {name}: identification ({ident.source})"):
+        warn(far)
+    s = residual_stats(res).scaled(units.m_to_mm(1.0))
     row = {"unit": name, "status": "fitted", "rows": len(ident), "converged": bool(u["fit"]["converged"]),
            "iterations": int(u["fit"]["iterations"]), "identification_mean_mm": s.mean,
            "identification_max_mm": s.max}

@@ -20,7 +20,7 @@ def align_units(cfg, robot, loaded: list, rows: dict, label: str) -> tuple[list,
     it. -> (the units aligned, {unit: (4, 4) robot base in the measurement frame, SI}, {unit: the
     alignment's summary, alignment.json}); a unit whose data cannot determine its frame is failed in ``rows``.
     Other modes: the units unchanged and no frames (one frame, the config's, for every unit)."""
-    from .fit import config_alignment, config_frame
+    from .fit import config_alignment, config_frame, placement_text
 
     if config_frame(cfg)[0] != "estimate":
         return loaded, {}, {}
@@ -34,11 +34,8 @@ def align_units(cfg, robot, loaded: list, rows: dict, label: str) -> tuple[list,
                 log.warning("unit %s: not fitted: %s", name, exc)
             else:
                 frames[name], summaries[name] = frame.detach().cpu(), res.summary()
-                a = summaries[name]
-                log.info(f"unit {name}: measurement frame: robot base at xyz "
-                         + ", ".join(f"{v:.3f}" for v in a["frame"]["xyz_mm"]) + " mm, rpy "
-                         + ", ".join(f"{v:.4f}" for v in a["frame"]["rpy_deg"]) + " deg (alignment residual rms "
-                         f"{a['residual_mm']['rms']:.4f} mm)")
+                log.info(f"unit {name}: measurement frame: {placement_text(summaries[name])} (alignment residual "
+                         f"rms {summaries[name]['residual_mm']['rms']:.4f} mm)")
                 kept.append((name, ident, val))
             bar.advance(note=name)
     return kept, frames, summaries

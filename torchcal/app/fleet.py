@@ -38,7 +38,7 @@ from ..core.exceptions import ConfigError
 from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
-from .config import SolverConfig, config_from_text, load_config, to_yaml, updated
+from .config import SolverConfig, load_config, to_yaml, updated
 from .engines import interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 from .fleet_files import ignored_files, unit_files, validation_gaps
@@ -100,18 +100,19 @@ def _solve_threads(cfg) -> int:
     return int(cfg.threads) if cfg.threads is not None else threads.usable_cpus()
 
 
-def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -> list[dict]:
-    """One cell's batched solve: what an engine runs. config_yaml: the fleet's resolved config; cell: (name,
-    :class:`Measurements`) per unit; n_threads: the CPU threads of the solve, the same wherever it runs (the
-    driver's choice: a different count sums in another order, and a Ray worker starts with one). -> per unit {'name', 'state' (the model's state dict on the CPU),
-    'fit' (FitResult.summary()), 'orders', 'backlash'}: plain data, so that any transport carries it."""
+def fit_cell(cfg, cell: list[tuple[str, object]], n_threads: int) -> list[dict]:
+    """One cell's batched solve: what an engine runs. cfg: the fleet's resolved
+    :class:`~torchcal.app.config.FitConfig` (frozen and picklable: Ray carries it as it is, as a sweep's);
+    cell: (name, :class:`Measurements`) per unit; n_threads: the CPU threads of the solve, the same wherever it
+    runs (the driver's choice: a different count sums in another order, and a Ray worker starts with one). ->
+    per unit {'name', 'state' (the model's state dict on the CPU), 'fit' (FitResult.summary()), 'orders',
+    'backlash'}: plain data, so that any transport carries it."""
     from ..identify.fleet import fit_fleet
     from ..kinematics import load_robot
     from .fit import config_noise, config_prior
     from .common import solver_options
     from ..core import threads
 
-    cfg = config_from_text(config_yaml, "the fleet's config")
     robot = load_robot(cfg.robot)
     device = torch.device(cfg.device)
     make = _factory(cfg, robot, device, config_backlash(cfg))
@@ -132,7 +133,7 @@ def fit_cell(config_yaml: str, cell: list[tuple[str, object]], n_threads: int) -
             for (name, _), m, r in zip(cell, out.models, out.results)]
 
 
-def _run_cells(cfg, cells: list[list], config_yaml: str) -> list:
+def _run_cells(cfg, cells: list[list]) -> list:
     """Every cell through the configured engine -> per cell its list of unit dicts, or the exception it raised."""
     from .engines import run_cells
 
@@ -143,7 +144,7 @@ def _run_cells(cfg, cells: list[list], config_yaml: str) -> list:
             log.warning("cell of %s failed (%s): %s: %s", [n for n, _ in cells[i]], cfg.fleet.engine,
                         type(got).__name__, got)
 
-    return run_cells(fit_cell, [(config_yaml, cell, n_threads) for cell in cells], cfg.fleet.engine,
+    return run_cells(fit_cell, [(cfg, cell, n_threads) for cell in cells], cfg.fleet.engine,
                      cfg.fleet.address, where=f"{cfg.config_file or 'config'}: key 'fleet.engine'", on_done=done)
 
 
@@ -242,10 +243,9 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         # its alignment), its model then given that alignment as the nominal measurement frame
         cells = [[(n, in_base(i, frames.get(n))) for n, i, _ in loaded[c:c + size]]
                  for c in range(0, len(loaded), size)]
-        config_yaml = to_yaml(cfg)
         ts = time.perf_counter()
         with task(f"fitting {len(loaded)} units in {len(cells)} batched solve(s) ({cfg.fleet.engine})", total=None):
-            outs = _run_cells(cfg, cells, config_yaml)
+            outs = _run_cells(cfg, cells)
         result.solve_time = time.perf_counter() - ts
         vals = {n: v for n, _, v in loaded}
         idents = {n: i for n, i, _ in loaded}

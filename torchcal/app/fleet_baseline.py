@@ -72,11 +72,11 @@ def check_structure(run: Path, theirs, model, label: str) -> None:
     a = theirs.tools.nominal.detach().cpu()
     b = model.tools.nominal.detach().cpu().to(a)
     if a.shape != b.shape or float((a - b).abs().max()) > 1e-6:  # 0.001 mm
-        def mm(t):
-            return "; ".join("[" + ", ".join(f"{v:.3f}" for v in r) + "]" for r in units.m_to_mm(t).tolist())
+        from .fit import tools_text
 
-        raise ConfigError(f"{label}: key '{KEY}': the units of {run} were measured with other tool vectors ({mm(a)} mm) "
-                          f"than this fleet's tools ({mm(b)} mm): every unit's points would differ by the targets' "
+        theirs_mm, ours_mm = (tools_text(units.m_to_mm(t).tolist()) for t in (a, b))
+        raise ConfigError(f"{label}: key '{KEY}': the units of {run} were measured with other tool vectors "
+                          f"({theirs_mm} mm) than this fleet's tools ({ours_mm} mm): every unit's points would differ by the targets' "
                           "move, not by a change of the robot. The re-check compares campaigns with the same tools")
 
 

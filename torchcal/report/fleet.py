@@ -25,8 +25,9 @@ from .rundata import Missing, _json, _text, _yaml, get, log_warnings
 FLEET_FILE = "fleet.json"
 """The file that makes a run directory a fleet's (``torchcal fleet`` writes it last)."""
 
+# 'angle error': the same feature in the features.csv of runs before it was named 'transmission error'
 FEATURE_TITLES = {"transmission error": "Transmission error (RMS over the joint's range, about its own axis)",
-                  "angle error": "Transmission error (RMS over the joint's range, about its own axis)",  # features.csv of earlier runs
+                  "angle error": "Transmission error (RMS over the joint's range, about its own axis)",
                   "backlash": "Backlash (half the difference between the two approach directions)"}
 
 

@@ -278,6 +278,17 @@ def write_run_report(run_dir: Path, files: dict, progress: Progress) -> None:
                       f"run `torchcal report {run_dir}` to retry")
 
 
+def placement_text(summary: dict) -> str:
+    """'robot base at xyz x, y, z mm, rpy r, p, y deg' from an alignment's summary (alignment.json)."""
+    return ("robot base at xyz " + ", ".join(f"{v:.3f}" for v in summary["frame"]["xyz_mm"]) + " mm, rpy "
+            + ", ".join(f"{v:.4f}" for v in summary["frame"]["rpy_deg"]) + " deg")
+
+
+def tools_text(tools_mm) -> str:
+    """'[x, y, z]; [x, y, z]' of tool vectors in mm ((T, 3) nested lists)."""
+    return "; ".join("[" + ", ".join(f"{v:.3f}" for v in t) + "]" for t in tools_mm)
+
+
 __all__ = [
     "write_run_report",
     "STAT_KEYS",
@@ -289,6 +300,8 @@ __all__ = [
     "config_orders",
     "config_prior",
     "joint_variance_source",
+    "placement_text",
     "solver_options",
+    "tools_text",
     "write_preamble_files",
 ]

@@ -71,7 +71,9 @@ from .common import (  # shared with app.sensor; re-exported here under the old 
     config_orders,
     config_prior,
     joint_variance_source,
+    placement_text,
     solver_options,
+    tools_text,
     write_preamble_files,
 )
 
@@ -372,17 +374,6 @@ def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: Prog
     progress.info(f"alignment: {placement_text(a)}; tools {tools_text(a['tools_mm'])} mm")
     if not alignment.converged:
         progress.warn("the alignment refinement did not converge; see alignment.json")
-
-
-def placement_text(summary: dict) -> str:
-    """'robot base at xyz x, y, z mm, rpy r, p, y deg' from an alignment's summary (alignment.json)."""
-    return ("robot base at xyz " + ", ".join(f"{v:.3f}" for v in summary["frame"]["xyz_mm"]) + " mm, rpy "
-            + ", ".join(f"{v:.4f}" for v in summary["frame"]["rpy_deg"]) + " deg")
-
-
-def tools_text(tools_mm) -> str:
-    """'[x, y, z]; [x, y, z]' of tool vectors in mm ((T, 3) nested lists)."""
-    return "; ".join("[" + ", ".join(f"{v:.3f}" for v in t) + "]" for t in tools_mm)
 
 
 def choose_orders(cfg, inp: FitInputs, make, run_dir: Path, progress: Progress, files: dict):

@@ -72,7 +72,7 @@ def check_structure(run: Path, theirs, model, label: str) -> None:
     a = theirs.tools.nominal.detach().cpu()
     b = model.tools.nominal.detach().cpu().to(a)
     if a.shape != b.shape or float((a - b).abs().max()) > 1e-6:  # 0.001 mm
-        from .fit import tools_text
+        from .common import tools_text
 
         theirs_mm, ours_mm = (tools_text(units.m_to_mm(t).tolist()) for t in (a, b))
         raise ConfigError(f"{label}: key '{KEY}': the units of {run} were measured with other tool vectors "

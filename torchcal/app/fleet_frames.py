@@ -20,7 +20,8 @@ def align_units(cfg, robot, loaded: list, rows: dict, label: str) -> tuple[list,
     it. -> (the units aligned, {unit: (4, 4) robot base in the measurement frame, SI}, {unit: the
     alignment's summary, alignment.json}); a unit whose data cannot determine its frame is failed in ``rows``.
     Other modes: the units unchanged and no frames (one frame, the config's, for every unit)."""
-    from .fit import config_alignment, config_frame, placement_text
+    from .common import placement_text
+    from .fit import config_alignment, config_frame
 
     if config_frame(cfg)[0] != "estimate":
         return loaded, {}, {}

@@ -148,6 +148,14 @@ def _user_errors():
         raise typer.Exit(USER_ERROR) from None
 
 
+def _warn_repeated(items) -> None:
+    """A key given twice among the overrides: said on stderr (the last one is used), before the run starts."""
+    from .app.config import repeated_overrides
+
+    for w in repeated_overrides(items or []):
+        _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
+
+
 def _device(name: str):
     """A usable torch device, or a ConfigError naming the option."""
     import torch
@@ -248,6 +256,7 @@ def fit_cmd(
         from .app.config import load_config, to_yaml
         from .app.fit import run_fit
 
+        _warn_repeated(overrides)
         cfg = load_config(config, [*(overrides or []), *(["data.units_checked=true"] if units_checked else [])])
         if dry_run:
             typer.echo(to_yaml(cfg), nl=False)
@@ -284,8 +293,9 @@ def sweep_cmd(
 ):
     """Fit a grid of configs into one run directory: results table, models and the Figure 11 plot."""
     with _user_errors():
-        from .app.sweep import run_sweep
+        from .app.sweep import parse_grid, run_sweep
 
+        _warn_repeated(parse_grid(grid)[0])
         console = None if quiet else _console(stderr=True)
         with _progress(console):
             result = run_sweep(config, grid, out=out, console=console)
@@ -326,6 +336,7 @@ def fleet_cmd(
     with _user_errors():
         from .app.fleet import run_fleet
 
+        _warn_repeated(overrides)
         console = None if quiet else _console(stderr=True)
         with _progress(console):
             result = run_fleet(config, overrides or [], out=out, console=console)

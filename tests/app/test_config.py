@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from torchcal.app.config import ConfigError, check_config, load_config, make_config
+from torchcal.app.config import ConfigError, check_config, load_config, make_config, repeated_overrides
 
 MINIMAL = """\
 robot: fanuc_lrmate200i
@@ -97,6 +97,28 @@ def test_unknown_key_in_override_names_override(cfg_file):
 def test_bad_values_name_the_key(cfg_file, override, key):
     with pytest.raises(ConfigError, match=f"key '{key}'"):
         load_config(cfg_file, [override])
+
+
+@pytest.mark.parametrize("override, key", [("model.order=11", "model.order"), ("fleet.cell=0", "fleet.cell"),
+                                           ("noise.sigma_m=0", "noise.sigma_m"), ("model={order: 12}", "model.order")])
+def test_a_bad_value_from_an_override_names_the_override_not_the_file(cfg_file, override, key):
+    """The file holds a valid value; the message must send the user to the command line, where the bad one is."""
+    with pytest.raises(ConfigError) as err:
+        load_config(cfg_file, ["seed=1", override])
+    assert str(err.value).startswith(f"override '{override}' (over {cfg_file}): key '{key}'")
+    # the same bad value written in the file names the file
+    cfg_file.write_text(MINIMAL.replace("order: 3", "order: 11"))
+    with pytest.raises(ConfigError) as err:
+        load_config(cfg_file, ["seed=1"])
+    assert str(err.value).startswith(f"{cfg_file}: key 'model.order'")
+
+
+def test_repeated_overrides_are_said_and_the_last_one_wins(cfg_file):
+    items = ["model.order=3", "seed=2", "model.order=4", "model.order=5"]
+    assert load_config(cfg_file, items).model.order == 5
+    said = repeated_overrides(items)
+    assert len(said) == 1 and "'model.order' is given 3 times" in said[0] and "'model.order=5'" in said[0]
+    assert repeated_overrides(["model.order=3", "model.backlash=false", "seed=1"]) == []
 
 
 def test_order_selection_keys(cfg_file):

@@ -21,6 +21,9 @@ def test_parse_grid_axes_ranges_and_plain_overrides():
         parse_grid(["model.order=5:2"])
     with pytest.raises(ConfigError):
         parse_grid(["model.order"])
+    # one key as an axis and as one value: which would win is not obvious, so neither does
+    with pytest.raises(ConfigError, match="'model.order' is given both as a grid axis and as one value"):
+        parse_grid(["model.order=1:3", "seed=1", "model.order=5"])
 
 
 @pytest.fixture(scope="module")

@@ -283,6 +283,9 @@ class FitConfig:
     """Write report.html (torchcal.report: a self-contained calibration report) at the end of the run."""
     config_file: Optional[str] = None
     """Set by load_config: the YAML this config came from (provenance)."""
+    overrides: tuple[str, ...] = ()
+    """Set by load_config / make_config: the ``key=value`` overrides applied over the file, in order
+    (provenance; a check that fails on one of their keys names the override, not the file)."""
 
 
 FRAME_MODES = ("auto", "base", "estimate")
@@ -430,6 +433,27 @@ def _resolve_paths(cfg: DictConfig, base: Path, keys: Sequence[str]) -> None:
             node[name] = _resolve_path(node[name], base)
 
 
+def source_of(cfg: "FitConfig", key: str, label: str) -> str:
+    """Where ``key``'s value came from, for a message: the last override setting it (or a key above or below
+    it), else ``label`` (the file)."""
+    for item in reversed(tuple(getattr(cfg, "overrides", ()) or ())):
+        k = item.partition("=")[0].strip()
+        if k == key or key.startswith(k + ".") or k.startswith(key + "."):
+            return f"override '{item}' (over {label})"
+    return label
+
+
+def repeated_overrides(overrides: Sequence[str]) -> list[str]:
+    """One sentence per key given more than once in ``overrides``: the last one is used (a script appending to
+    a common list relies on that), but a command line typed twice over reads the same, so it is said."""
+    seen: dict[str, list[str]] = {}
+    for item in overrides:
+        if "=" in item:
+            seen.setdefault(item.partition("=")[0].strip(), []).append(item)
+    return [f"override key '{k}' is given {len(v)} times ({', '.join(repr(i) for i in v)}): the last one is used"
+            for k, v in seen.items() if len(v) > 1]
+
+
 def _split_override(item: str) -> tuple[str, str]:
     if "=" not in item:
         raise ConfigError(f"override '{item}': expected key=value (e.g. model.order=4)")
@@ -479,6 +503,7 @@ def make_config(values: dict | None = None, overrides: Sequence[str] = (), base_
         raise _explain(exc, label) from None
     _resolve_paths(cfg, base, ("robot",) + PATH_KEYS)
     cfg = apply_overrides(cfg, overrides)
+    cfg.overrides = [*cfg.overrides, *overrides]  # a run's config.yaml read back keeps its own
     return _finish(cfg, label, check_device)
 
 
@@ -605,6 +630,7 @@ def load_config(path, overrides: Sequence[str] = ()) -> FitConfig:
     _resolve_paths(cfg, path.parent.resolve(), ("robot",) + PATH_KEYS)
     cfg = apply_overrides(cfg, overrides)
     cfg.config_file = str(path.resolve())
+    cfg.overrides = list(overrides)  # only these: the file itself is the source of the rest
     return _finish(cfg, str(path))
 
 
@@ -637,7 +663,7 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
     Raises :class:`ConfigError` naming ``label`` and the key.
     """
     def fail(key, msg):
-        raise ConfigError(f"{label}: key '{key}': {msg}")
+        raise ConfigError(f"{source_of(cfg, key, label)}: key '{key}': {msg}")
 
     for key, value in (("robot", cfg.robot), ("data.identification", cfg.data.identification)):
         if value in (MISSING, None, ""):
@@ -907,6 +933,8 @@ __all__ = [
     "PriorConfig",
     "SolverConfig",
     "apply_overrides",
+    "repeated_overrides",
+    "source_of",
     "check_config",
     "config_from_text",
     "load_config",

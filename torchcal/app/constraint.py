@@ -25,7 +25,7 @@ from ..core import units
 from ..identify import FitResult
 from ..identify.constrained import ConstraintError, auto_constraint, fit_constrained
 from ..identify.slope import slope_model
-from .config import ConfigError
+from .config import ConfigError, source_of
 from ..io.rundir import save_model, write_json
 
 log = logging.getLogger("torchcal")
@@ -42,7 +42,7 @@ def border_axes(cfg, robot, data) -> tuple[int, int]:
     if given is not None:
         missing = [a for a in given if a not in names]
         if missing:
-            raise ConfigError(f"{cfg.config_file or 'config'}: key 'constraint.border_axes': {missing} "
+            raise ConfigError(f"{source_of(cfg, 'constraint.border_axes', cfg.config_file or 'config')}: key 'constraint.border_axes': {missing} "
                               f"{'is not an axis' if len(missing) == 1 else 'are not axes'} of '{robot.name}' "
                               f"(axes: {', '.join(names)})")
         return names.index(given[0]), names.index(given[1])
@@ -80,7 +80,7 @@ def identify_constrained(cfg, inp, make, orders, run_dir: Path, progress, files:
         if c_cfg.reference != "nominal":
             inner = slope_model(m)[0]
             if not hasattr(inner, "joint_errors"):
-                raise ConfigError(f"{cfg.config_file or 'config'}: key 'constraint.reference': 'constant' is for robot "
+                raise ConfigError(f"{source_of(cfg, 'constraint.reference', cfg.config_file or 'config')}: key 'constraint.reference': 'constant' is for robot "
                                   "models (model.kind: joint_dependent)")
             inner.slope_reference = c_cfg.reference
         return m

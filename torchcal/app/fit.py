@@ -49,7 +49,7 @@ from collections.abc import Mapping
 from ..core import threads, units
 from ..analysis.stats import far_rows_message, percent_decrease, point_residuals, residual_stats
 from ..identify import FitResult, NoiseModel, Prior, fit
-from .config import ConfigError, check_config
+from .config import ConfigError, check_config, source_of
 from ..kinematics.transforms import homogeneous, rpy_to_matrix
 from ..io.csv import DataError, read_measurements, write_table
 from ..io.rundir import make_run_dir, run_log, save_model, write_json
@@ -328,7 +328,7 @@ def read_sets(cfg, robot, T: int, identification, validation, notes: list[str], 
         ident = read_measurements(identification, robot, T).to(device)
         val = read_measurements(validation, robot, T).to(device) if validation else None
     if cfg.data.n_poses is not None:
-        ident = first_poses(ident, int(cfg.data.n_poses), label)
+        ident = first_poses(ident, int(cfg.data.n_poses), source_of(cfg, "data.n_poses", label))
     if not cfg.data.units_checked:
         from ..io.unit_checks import check_point_scale, radian_columns, radian_message
 
@@ -493,7 +493,7 @@ def fleet_prior_for(cfg, model, progress: Progress):
     if layout.names() != fleet.names:
         mine, theirs = set(layout.names()), set(fleet.names)
         diff = sorted(mine ^ theirs)[:3]
-        raise ConfigError(f"{cfg.config_file or 'config'}: key 'prior.fleet': the fleet's units have another model "
+        raise ConfigError(f"{source_of(cfg, 'prior.fleet', cfg.config_file or 'config')}: key 'prior.fleet': the fleet's units have another model "
                           f"structure ({len(theirs)} entries, this model {len(mine)}; e.g. {diff}): give model.order "
                           f"and model.backlash as in a unit's config.yaml there (units/<name>/config.yaml)")
     layout.set(fleet.mean.to(model.dtype))

@@ -38,7 +38,7 @@ from ..core.exceptions import ConfigError
 from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
-from .config import SolverConfig, load_config, to_yaml, updated
+from .config import SolverConfig, load_config, source_of, to_yaml, updated
 from .engines import interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 from .fleet_files import ignored_files, unit_files, validation_gaps
@@ -64,7 +64,7 @@ class FleetRunResult:
 def _check_fleet_config(cfg) -> None:
     label = cfg.config_file or "config"
     if isinstance(cfg.model.order, str):
-        raise ConfigError(f"{label}: key 'model.order': a fleet fits one structure for every unit; give the order "
+        raise ConfigError(f"{source_of(cfg, 'model.order', label)}: key 'model.order': a fleet fits one structure for every unit; give the order "
                           "(choose it with `torchcal fit` on one unit, model.order: auto)")
     for key, bad in (("constraint.c", cfg.constraint.c is not None), ("sensor.kind", cfg.sensor.kind is not None),
                      ("model.kind", cfg.model.kind != "joint_dependent"), ("data.truth", bool(cfg.data.truth))):
@@ -72,12 +72,12 @@ def _check_fleet_config(cfg) -> None:
             raise ConfigError(f"{label}: key '{key}': not supported by `torchcal fleet` (robots of Paper II, "
                               "unconstrained LM fits)")
     if cfg.tools is None or isinstance(cfg.tools, Mapping):
-        raise ConfigError(f"{label}: key 'tools': a fleet needs the tool vectors listed (mm)")
+        raise ConfigError(f"{source_of(cfg, 'tools', label)}: key 'tools': a fleet needs the tool vectors listed (mm)")
     if cfg.prior.fleet is not None:
-        raise ConfigError(f"{label}: key 'prior.fleet': a fleet's units are fitted under the config's own prior; a "
+        raise ConfigError(f"{source_of(cfg, 'prior.fleet', label)}: key 'prior.fleet': a fleet's units are fitted under the config's own prior; a "
                           "fleet prior is for a new unit with few poses (`torchcal fit UNIT.yaml prior.fleet=RUN`)")
     if cfg.solver.method != "lm":
-        raise ConfigError(f"{label}: key 'solver.method': a fleet's batched solve is Levenberg-Marquardt (lm), got "
+        raise ConfigError(f"{source_of(cfg, 'solver.method', label)}: key 'solver.method': a fleet's batched solve is Levenberg-Marquardt (lm), got "
                           f"{cfg.solver.method!r}")
 
 
@@ -145,7 +145,7 @@ def _run_cells(cfg, cells: list[list]) -> list:
                         type(got).__name__, got)
 
     return run_cells(fit_cell, [(cfg, cell, n_threads) for cell in cells], cfg.fleet.engine,
-                     cfg.fleet.address, where=f"{cfg.config_file or 'config'}: key 'fleet.engine'", on_done=done)
+                     cfg.fleet.address, where=f"{source_of(cfg, 'fleet.engine', cfg.config_file or 'config')}: key 'fleet.engine'", on_done=done)
 
 
 def run_fleet(config, overrides: list[str] | None = None, out=None, console=None) -> FleetRunResult:
@@ -229,14 +229,14 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             first = result.rows[0]
             raise ConfigError(f"{label}: no unit could be fitted; {first['unit']}: {first['reason']}\n(summary.csv in "
                               f"{run_dir} has every unit's reason)")
-        theirs = baseline_model(*baseline, label) if baseline is not None else None
+        theirs = baseline_model(*baseline, source_of(cfg, "fleet.baseline", label)) if baseline is not None else None
         if theirs is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
             cfg = updated(cfg, {"model.backlash": [int(b) for b in theirs.joint_errors.backlash_orders.tolist()]})
             log.info("backlash orders %s (model.backlash: true), the baseline's (%s)", cfg.model.backlash, KEY)
         cfg = _fleet_backlash(cfg, robot, loaded, warn)
         if theirs is not None:
             check_structure(baseline[0], theirs, _factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(
-                config_orders(cfg, robot.joint_map.n)), label)
+                config_orders(cfg, robot.joint_map.n)), source_of(cfg, "fleet.baseline", label))
         thin = _data_checks(cfg, robot, T, loaded, warn)  # {unit: why}: fewer equations than parameters
         size = int(cfg.fleet.cell)
         # with measurement_frame: estimate each unit is solved in its own robot base frame (its points moved by

@@ -17,6 +17,7 @@ import torch
 
 from ..core import units
 from ..core.exceptions import ConfigError
+from .config import source_of
 from ..io.atomic import atomic_path
 
 log = logging.getLogger("torchcal")
@@ -34,14 +35,14 @@ def baseline_units(cfg, label: str) -> tuple[Path, list[str]] | None:
     run = Path(cfg.fleet.baseline)
     summary = run / "summary.csv"
     if not (run / "fleet.json").is_file() or not summary.is_file():
-        raise ConfigError(f"{label}: key '{KEY}': {run} is not a `torchcal fleet` run directory (it needs its "
+        raise ConfigError(f"{source_of(cfg, KEY, label)}: key '{KEY}': {run} is not a `torchcal fleet` run directory (it needs its "
                           "fleet.json and summary.csv)")
     table = pd.read_csv(summary)
     if "unit" not in table or "status" not in table:
-        raise ConfigError(f"{label}: key '{KEY}': {summary} lacks the columns 'unit' and 'status'")
+        raise ConfigError(f"{source_of(cfg, KEY, label)}: key '{KEY}': {summary} lacks the columns 'unit' and 'status'")
     names = [str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]]
     if not names:
-        raise ConfigError(f"{label}: key '{KEY}': {run} has no fitted unit to compare with")
+        raise ConfigError(f"{source_of(cfg, KEY, label)}: key '{KEY}': {run} has no fitted unit to compare with")
     return run, names
 
 

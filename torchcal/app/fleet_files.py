@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..core.exceptions import ConfigError
+from .config import source_of
 
 
 def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
@@ -13,17 +14,17 @@ def unit_files(cfg) -> list[tuple[str, Path, Path | None]]:
     label = cfg.config_file or "config"
     ident = Path(cfg.data.identification)
     if not ident.is_dir():
-        raise ConfigError(f"{label}: key 'data.identification': a fleet needs a folder with one CSV per unit, "
+        raise ConfigError(f"{source_of(cfg, 'data.identification', label)}: key 'data.identification': a fleet needs a folder with one CSV per unit, "
                           f"got {ident} ({'a file' if ident.is_file() else 'not found'})")
     files = measurement_files(ident)
     if not files:
-        raise ConfigError(f"{label}: key 'data.identification': {ident} holds no .csv files")
+        raise ConfigError(f"{source_of(cfg, 'data.identification', label)}: key 'data.identification': {ident} holds no .csv files")
     val = Path(cfg.data.validation) if cfg.data.validation else None
     if val is not None and not val.is_dir():
-        raise ConfigError(f"{label}: key 'data.validation': a fleet needs a folder with files named like the "
+        raise ConfigError(f"{source_of(cfg, 'data.validation', label)}: key 'data.validation': a fleet needs a folder with files named like the "
                           f"identification files, got {val}")
-    by_stem = _by_stem(files, label, "data.identification")
-    val_by_stem = _by_stem(measurement_files(val), label, "data.validation") if val is not None else {}
+    by_stem = _by_stem(files, source_of(cfg, "data.identification", label), "data.identification")
+    val_by_stem = _by_stem(measurement_files(val), source_of(cfg, "data.validation", label), "data.validation") if val is not None else {}
     return [(stem, f, val_by_stem.get(stem)) for stem, f in sorted(by_stem.items())]
 
 

@@ -30,7 +30,7 @@ from ..analysis.stats import percent_decrease, residual_stats
 from ..identify import fit
 from ..identify.hand_eye import hand_eye
 from .common import write_run_report
-from .config import ConfigError
+from .config import ConfigError, source_of
 from ..io.rundir import make_run_dir, run_log, save_model, write_json
 from ..kinematics import load_robot
 from ..kinematics.transforms import homogeneous, rpy_to_matrix
@@ -201,7 +201,7 @@ def config_fine(cfg, robot, ident: Measurements):
         n = robot.joint_map.n
         vals = [float(v) for v in sm] if not isinstance(sm, (int, float)) else [float(sm)] * n
         if len(vals) != n:
-            raise ConfigError(f"{cfg.config_file or 'config'}: key 'model.fine.smoothness_deg': {len(vals)} values "
+            raise ConfigError(f"{source_of(cfg, 'model.fine.smoothness_deg', cfg.config_file or 'config')}: key 'model.fine.smoothness_deg': {len(vals)} values "
                               f"for {n} joints")
         sigma = units.deg_to_rad(torch.tensor(vals, dtype=torch.float64))
     return fe, sigma, bool(f.get("warm_start", True))

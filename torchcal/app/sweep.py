@@ -40,7 +40,7 @@ import torch
 
 from ..core import units
 from ..io.atomic import atomic_path, atomic_write_text
-from .config import ConfigError, load_config, to_yaml
+from .config import ConfigError, load_config, source_of, to_yaml
 from .engines import Interrupted, interrupted, run_cells
 
 log = logging.getLogger("torchcal")
@@ -98,6 +98,9 @@ def parse_grid(specs: list[str]) -> tuple[list[str], list[tuple[str, list[str]]]
             plain.append(f"{key}={value}")
     if len({k for k, _ in axes}) != len(axes):
         raise ConfigError("sweep: a key is given twice as a grid axis")
+    both = sorted({k for k, _ in axes} & {p.partition("=")[0].strip() for p in plain})
+    if both:
+        raise ConfigError(f"sweep: key '{both[0]}' is given both as a grid axis and as one value; give one of them")
     engine_axes = [k for k, _ in axes if k.startswith("sweep.")]
     if engine_axes:
         raise ConfigError(f"sweep item '{engine_axes[0]}=...': where the sweep runs is one value for the whole grid, "
@@ -129,6 +132,7 @@ def _group_key(cfg) -> str:
     from .config import to_dict
 
     c = to_dict(cfg)
+    c.pop("overrides", None)  # provenance: each cell's own grid values, which the keys below already hold
     for key in STACKED_KEYS:
         node = c
         *path, last = key.split(".")
@@ -191,7 +195,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
                 bar.advance(note=f"{sum(r is not None for r in rows)} of {len(cells)} cells")
 
             outs = run_cells(sweep_group, jobs, engine, base.sweep.address,
-                             where=f"{base.config_file or 'config'}: key 'sweep.engine'", on_done=done)
+                             where=f"{source_of(base, 'sweep.engine', base.config_file or 'config')}: key 'sweep.engine'", on_done=done)
             for g, got in enumerate(outs):
                 if isinstance(got, Interrupted):
                     done(g, got)

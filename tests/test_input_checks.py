@@ -67,11 +67,41 @@ def test_radian_joints_refused_by_predict_and_compensate_warned_by_fit(fitted, t
         assert r.exit_code == 0, r.output
     # degrees pass untouched
     assert invoke("predict", run, sim / "validation.csv", tmp_path / "ok.csv").exit_code == 0
-    # fit: a warning naming the file and columns (the points still make it a poor fit, not a refusal)
+    # fit: the points decide. They fit the joints read as radians: refused, naming the file, before any run starts
     ident = _radians(sim / "identification.csv", tmp_path / "ident_rad.csv")
-    r = invoke("fit", sim / "fit.yaml", "model.order=1", "plots=false", "data.truth=null", "data.validation=null",
-               f"data.identification={ident}", f"out={tmp_path / 'run'}")
-    assert "ident_rad.csv: columns q1" in r.output and "look like radians" in r.output, r.output
+    args = ("fit", sim / "fit.yaml", "model.order=1", "plots=false", "data.truth=null", "data.validation=null",
+            f"data.identification={ident}", f"out={tmp_path / 'run'}")
+    r = invoke(*args)
+    assert r.exit_code == 2 and "ident_rad.csv: columns q1..q6: the joints are radians" in r.output, r.output
+    assert not (tmp_path / "run").exists()
+    r = invoke(*args, "--units-checked")  # the user's word: fitted as degrees (poorly)
+    assert r.exit_code == 0, r.output
+
+
+def test_joints_that_only_look_like_radians_are_warned_not_refused(fanuc):
+    """Near-home commands in degrees (every joint within +-6 deg) look like radians; their points fit degrees, so
+    the check must not refuse them. The same points with the commands rewritten in radians are refused."""
+    from tests.conftest import fanuc_dh_reference
+    from torchcal.io.unit_checks import UnitsError, check_radians, radian_columns
+
+    g = np.random.default_rng(3)
+    q_deg = g.uniform(-6.0, 6.0, (40, 6))  # every joint within the radian bound
+    F = fanuc_dh_reference(q_deg)  # an independent forward model: the points of degrees
+    tool = np.array([0.0, 0.0, 0.1])
+    xyz = F[:, :3, 3] + F[:, :3, :3] @ tool
+    R = len(q_deg)
+
+    def data(q_file):
+        return Measurements(q=torch.tensor(np.radians(q_file)), tool=torch.zeros(R, dtype=torch.long),
+                            xyz=torch.tensor(xyz), direction=torch.zeros(R, 6), pose=torch.arange(R),
+                            rows=torch.arange(1, R + 1), source="near_home.csv")
+
+    tools = torch.tensor(tool[None])
+    d = data(q_deg)
+    assert radian_columns(d.q, fanuc)  # it looks like radians ...
+    assert check_radians(d, fanuc, tools) is False  # ... but the points say degrees: only a warning
+    with pytest.raises(UnitsError, match="near_home.csv: columns q1..q6: the joints are radians"):
+        check_radians(data(np.radians(q_deg)), fanuc, tools)  # the same poses written in radians
 
 
 def test_import_tracker_warns_on_radian_joints(tmp_path, fanuc):

@@ -100,6 +100,53 @@ def point_scale(data, robot, tools_m: torch.Tensor | None = None) -> float | Non
     return float(r.median())
 
 
+RADIAN_FIT = (0.8, 1.25)
+"""Measured / nominal distance ratios that, with the joints read as radians, say the points fit them."""
+
+
+def radian_scales(data, robot, tools_m: torch.Tensor | None = None) -> tuple[float, float] | None:
+    """(point scale with the joints as read, as degrees; with the revolute joints read as radians), or None.
+
+    The second is :func:`point_scale` of the same rows with every revolute command multiplied by 180 / pi: radians
+    read as degrees move the nominal robot ~57x less than the tracker saw, radians read as radians match it.
+    """
+    s_deg = point_scale(data, robot, tools_m)
+    if s_deg is None:
+        return None
+    revolute = ~robot.joint_map.prismatic.cpu()
+    q = data.q.detach().cpu().clone()
+    q[:, revolute] = q[:, revolute] * (180.0 / math.pi)
+    s_rad = point_scale(_with_q(data, q), robot, tools_m)
+    return None if s_rad is None else (s_deg, s_rad)
+
+
+def _with_q(data, q: torch.Tensor):
+    """``data`` with other commands (q: (R, n) SI), every other field the same."""
+    import dataclasses
+
+    return dataclasses.replace(data, q=q.to(data.q))
+
+
+def check_radians(data, robot, tools_m: torch.Tensor | None = None, path=None) -> bool:
+    """Raise :class:`UnitsError` when the points fit the joints read as radians and not as degrees.
+
+    Called where :func:`radian_columns` has found joints that look like radians: the points decide. -> False when
+    they do not (too few rows, or neither reading fits: the look alone is then only a warning).
+    """
+    scales = radian_scales(data, robot, tools_m)
+    if scales is None:
+        return False
+    s_deg, s_rad = scales
+    if not (RADIAN_FIT[0] <= s_rad <= RADIAN_FIT[1]) or RADIAN_FIT[0] <= s_deg <= RADIAN_FIT[1]:
+        return False
+    raise UnitsError(
+        f"{path or data.source}: columns q1..q{robot.joint_map.n}: the joints are radians: read as radians, the "
+        f"nominal robot ('{robot.name}') moves its points as far as the tracker saw (distance ratio {s_rad:.3g}); "
+        f"read as degrees, as the contract says, {s_deg:.3g}x less. Convert "
+        f"the revolute columns (deg = rad * 180 / pi), or pass {OVERRIDE} (fit, fleet, sweep: "
+        f"data.units_checked=true) if they really are degrees")
+
+
 def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=None) -> None:
     """Raise :class:`UnitsError` when the measured x, y, z spread ~1000x less (metres) or more than the nominal model's."""
     s = point_scale(data, robot, tools_m)
@@ -113,4 +160,5 @@ def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=Non
         f"data.units_checked=true) if they really are mm")
 
 
-__all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "point_scale", "radian_columns", "radian_message"]
+__all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "point_scale", "radian_columns",
+           "radian_message", "radian_scales"]

@@ -152,6 +152,21 @@ def test_missing_files_say_not_available(run, tmp_path):
     assert _cells(text)["validation.modeled.mean"][0] == metrics["sets"]["validation"]["modeled"]["mean"]
 
 
+@pytest.mark.parametrize("estimated", [False, True])
+def test_tools_say_whether_the_alignment_estimated_them(run, tmp_path, estimated):
+    """alignment.json lists the tools either way; only where it estimated them may the report say so."""
+    bare = tmp_path / "aligned"
+    shutil.copytree(run, bare, ignore=shutil.ignore_patterns("plots", "report.html"))
+    tools = [[60.5, 80.25, 120.0], [10.0, -20.0, 100.0]]
+    (bare / "alignment.json").write_text(json.dumps({"estimated_frame": True, "estimated_tools": estimated,
+                                                      "tools_mm": tools}))
+    text = write_report(bare).read_text()
+    if estimated:
+        assert "60.500, 80.250, 120.000 mm (estimated from the data)" in text
+    else:
+        assert "estimated from the data" not in text and "mm (flange frame, from the config" in text
+
+
 def test_strings_from_files_are_escaped(run, tmp_path):
     bare = tmp_path / "evil"
     shutil.copytree(run, bare, ignore=shutil.ignore_patterns("plots", "model.pt", "report.html"))

@@ -98,10 +98,13 @@ def summary(run: RunFiles) -> str:
 def _tools(run: RunFiles):
     tools = get(run.config, "tools")
     aligned = get(run.alignment, "tools_mm")
-    if isinstance(aligned, list):
+    # alignment.json holds the tools whether or not they were estimated: the flag says which (a listed tool set
+    # passes through it unchanged when only the frame was estimated)
+    if isinstance(aligned, list) and get(run.alignment, "estimated_tools", default=True) is not False:
         return [(f"tool {i}", ", ".join(f"{v:.3f}" for v in t) + " mm (estimated from the data)") for i, t in enumerate(aligned)]
     if isinstance(tools, list):
-        return [(f"tool {i}", ", ".join(f"{float(v):g}" for v in t) + " mm (flange frame, from the config)")
+        return [(f"tool {i}", ", ".join(f"{float(v):g}" for v in t) + " mm (flange frame, from the config; the fit's "
+                                                                   "corrections are among the parameters)")
                 for i, t in enumerate(tools) if isinstance(t, list)]
     if isinstance(tools, dict) and "count" in tools:
         return [("tools", f"{tools['count']} tools, positions estimated (see alignment)")]

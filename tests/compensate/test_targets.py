@@ -108,6 +108,15 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     err = pose_error(reach, T)
     assert float(err[torch.from_numpy(ok), 3:].norm(dim=-1).max()) < 1e-9  # m (file digits: 1e-10 deg)
     assert all((reason == "") == bool(c) for reason, c in zip(out.reason, ok))
+    # the file's silent defaults are said: no dir1..dir6 on a backlash model; its rows name their tools
+    said = " ".join(r.output.split())
+    assert "targets.csv: no dir1..dir6 columns: the model's backlash terms are left out" in said
+    assert "no 'tool' column" not in said
+    df.drop(columns="tool").assign(**{f"dir{j + 1}": 1 for j in range(6)}).to_csv(tmp_path / "t0.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "t0.csv"), str(tmp_path / "out0.csv")])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 0 and "t0.csv: no 'tool' column: every target is for tool 0" in said, said
+    assert "backlash terms are left out" not in said
 
 
 def test_every_flagged_command_says_why(fanuc, tools_m):

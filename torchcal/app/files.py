@@ -97,6 +97,27 @@ class CompensationFile:
     flagged: int
     direction_outside: int
     result: Any = field(default=None, repr=False)
+    warnings: list[str] = field(default_factory=list)
+    """What the input leaves out (no approach directions for a backlash model, targets without a tool), said
+    by the CLI; the rows are still compensated."""
+
+
+def _input_warnings(model, input, df, data, targets: bool) -> list[str]:
+    """The two silent defaults of a compensation input, said: without dir1..dirN a backlash model is evaluated
+    without its backlash terms (the commands are then off by the lost motion: on a user's robot 5x the error
+    with directions), and targets without a 'tool' column are all for tool 0, not the flange."""
+    out = []
+    je = getattr(model, "joint_errors", None)
+    if je is not None and je.has_backlash and not data.has_direction:
+        n = model.robot.joint_map.n
+        out.append(f"{input}: no dir1..dir{n} columns: the model's backlash terms are left out (direction 0 for every "
+                   f"joint), so each command misses by the lost motion; give each row's approach directions (+1 / -1)")
+    if targets and "tool" not in df.columns:
+        tools = units.m_to_mm(model.tools().detach().cpu())
+        t0 = ", ".join(f"{float(v):.3f}" for v in tools[0])
+        out.append(f"{input}: no 'tool' column: every target is for tool 0 ({t0} mm in the flange frame, the run's "
+                   f"identified tool 0), not the flange; add a 'tool' column (0..{model.tools.count - 1}) to choose")
+    return out
 
 
 def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
@@ -169,9 +190,12 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         data = parse_table(df, Path(input), robot, None, False, False)
     _refuse_radians(input, data, robot, units_checked)
 
+    said = _input_warnings(model, input, df, data, targets=target_kind(df) is not None)
     if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
-        return _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg,
+        done = _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg,
                                         free_tool_axis, unseeded)
+        done.warnings[:0] = said
+        return done
     data = data.to(model.device)
     opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
     if free_tool_axis is not None:
@@ -197,7 +221,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     write_table(output, out)
     nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
     return CompensationFile(len(df), nc, ol, int((~res.converged | ~res.within_limits).sum()),
-                            0 if res.direction_outside is None else int(res.direction_outside.sum()), res)
+                            0 if res.direction_outside is None else int(res.direction_outside.sum()), res, said)
 
 
 def _with_run_tools(model, input, df, data):

@@ -307,3 +307,54 @@ def test_an_experiments_config_without_its_data_says_which_script_writes_them(tm
     r = invoke("fit", cfg)
     assert r.exit_code == 2
     assert "file not found" in r.output and f"python {tmp_path / 'run.py'}" in r.output.replace("\n", "")
+
+
+# ------------------------------------------------------------------------- 13. limits in the other angle unit
+def test_urdf_limits_in_degrees_and_joint_map_limits_in_radians_are_refused(tmp_path):
+    """A URDF's limits are radians, a joint map's degrees; written the other way round the joint ranges (and the
+    error polynomials' domain) are 57x off. Each is refused naming the file and joints; the right units load."""
+    import re
+
+    from torchcal.kinematics.robot import urdf_dir
+
+    text = (urdf_dir() / "fanuc_lrmate200i.urdf").read_text()
+
+    def to_degrees(m):
+        return f'{m.group(1)}="{math.degrees(float(m.group(2))):.6g}"'
+
+    deg = re.sub(r'(lower|upper)="([-0-9.eE]+)"', to_degrees, text)
+    assert deg != text
+    (tmp_path / "deg.urdf").write_text(deg)
+    with pytest.raises(URDFError) as err:
+        load_robot(tmp_path / "deg.urdf")
+    assert "deg.urdf" in str(err.value) and "6 of 6 revolute joints have limits beyond one turn" in str(err.value)
+    (tmp_path / "rad.urdf").write_text(text)
+    assert load_robot(tmp_path / "rad.urdf").n == 6  # the same robot in radians loads
+
+    yml = (urdf_dir() / "fanuc_lrmate200i.yaml").read_text().replace("urdf: fanuc_lrmate200i.urdf", "urdf: rad.urdf")
+    assert load_robot(_write(tmp_path / "deg.yaml", yml)).n == 6
+
+    def to_radians(m):
+        return f"lower: {math.radians(float(m.group(1))):.6g}, upper: {math.radians(float(m.group(2))):.6g}"
+
+    rad = re.sub(r"lower: ([-0-9.]+), upper: ([-0-9.]+)", to_radians, yml)
+    with pytest.raises(URDFError) as err:
+        load_robot(_write(tmp_path / "rad.yaml", rad))
+    assert "rad.yaml" in str(err.value) and "they look like radians" in str(err.value) and "'J1'" in str(err.value)
+
+
+def test_a_joint_map_lists_every_missing_key_at_once(tmp_path):
+    from torchcal.kinematics.robot import urdf_dir
+
+    shutil.copy(urdf_dir() / "fanuc_lrmate200i.urdf", tmp_path / "fanuc_lrmate200i.urdf")
+    yml = (urdf_dir() / "fanuc_lrmate200i.yaml").read_text()
+    yml = yml.replace("{name: J2, unit: deg, lower: -30, upper: 100}", "{name: J2, unit: deg}")
+    yml = yml.replace("{name: J5, unit: deg, lower: -90, upper: 90}", "{name: J5, lower: -90, upper: 90}")
+    with pytest.raises(URDFError) as err:
+        load_robot(_write(tmp_path / "r.yaml", yml))
+    assert "joints[1] is missing 'lower', 'upper'; joints[4] is missing 'unit'" in str(err.value)
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,15 +74,36 @@ def bundled_robots() -> list[str]:
     return sorted(p.stem for p in urdf_dir().glob("*.yaml"))
 
 
+LIMIT_TURN = 2 * math.pi + 0.05
+"""Limits (in a unit's numbers) within which a joint turns at most about once either way."""
+
+
+def _refuse_degree_limits(chain: Chain, path) -> None:
+    """URDF limits are radians. When most revolute joints reach beyond a full turn either way, they are degrees
+    (170 read as 170 rad): the joint ranges, and with them the error polynomials' domain, would be 57x too wide."""
+    rev = [i for i in range(chain.n) if not bool(chain.prismatic[i])]
+    wide = [i for i in rev if float(chain.limits[i].abs().max()) > LIMIT_TURN]
+    if len(wide) >= 2 and 2 * len(wide) >= len(rev):
+        shown = ", ".join(f"'{chain.joint_names[i]}' [{float(chain.limits[i, 0]):g}, {float(chain.limits[i, 1]):g}]"
+                          for i in wide[:3])
+        raise URDFError(f"{path}: {len(wide)} of {len(rev)} revolute joints have limits beyond one turn ({shown}"
+                        f"{', ...' if len(wide) > 3 else ''}): URDF limits are radians and these look like degrees "
+                        "(rad = deg * pi / 180); or give a joint-map YAML with the controller range in degrees")
+
+
 def _joint_map_from_yaml(spec: dict, chain: Chain, label: str) -> JointMap:
     joints = spec.get("joints")
     if not isinstance(joints, list) or len(joints) != chain.n:
         raise URDFError(f"{label}: 'joints' must list {chain.n} controller joints (the URDF has {chain.joint_names})")
     names, lims, prismatic = [], [], []
+    # every joint's missing keys at once, as a CSV's problems are: a datasheet is typed in one go
+    missing = [f"joints[{i}] is missing {', '.join(repr(k) for k in keys)}"
+               for i, j in enumerate(joints)
+               for keys in [[k for k in ("name", "unit", "lower", "upper") if not isinstance(j, dict) or k not in j]]
+               if keys]
+    if missing:
+        raise URDFError(f"{label}: " + "; ".join(missing))
     for i, j in enumerate(joints):
-        for key in ("name", "unit", "lower", "upper"):
-            if key not in j:
-                raise URDFError(f"{label}: joints[{i}] is missing '{key}'")
         if j["unit"] not in ("deg", "mm"):
             raise URDFError(f"{label}: joints[{i}] ('{j['name']}') unit must be 'deg' or 'mm', got {j['unit']!r}")
         names.append(str(j["name"]))
@@ -95,6 +117,11 @@ def _joint_map_from_yaml(spec: dict, chain: Chain, label: str) -> JointMap:
                for i in range(chain.n) if prismatic[i] != bool(chain.prismatic[i])]
         raise URDFError(f"{label}: controller units do not match the URDF joint types: " + "; ".join(bad)
                         + " (unit 'mm' = prismatic, 'deg' = revolute)")
+    turn = [f"'{names[i]}' [{lims[i][0]:g}, {lims[i][1]:g}]" for i in range(chain.n) if not prismatic[i]]
+    if turn and all(max(abs(v) for v in lims[i]) <= LIMIT_TURN for i in range(chain.n) if not prismatic[i]):
+        raise URDFError(f"{label}: every revolute joint's limits lie within +-{LIMIT_TURN:.2f} ({', '.join(turn[:3])}"
+                        f"{', ...' if len(turn) > 3 else ''}): they look like radians; a joint map's limits are the "
+                        "controller's, in degrees (deg = rad * 180 / pi)")
     scale = units.joint_scale(prismatic_t)
     limits = torch.tensor(lims, dtype=torch.float64) * scale[:, None]
     coupling = torch.tensor(spec.get("coupling", torch.eye(chain.n).tolist()), dtype=torch.float64)
@@ -165,6 +192,7 @@ def load_robot(spec: str | Path) -> Robot:
         if torch.isnan(chain.limits).any():
             missing = [n for n, l in zip(chain.joint_names, chain.limits) if torch.isnan(l).any()]
             raise URDFError(f"{path}: joints {missing} have no limits; give a joint-map YAML with the controller range")
+        _refuse_degree_limits(chain, path)
         return Robot(chain.name or path.stem, chain, JointMap.identity(chain.limits, chain.prismatic, list(chain.joint_names)), str(path))
     if not path.is_file():
         raise URDFError(f"{path}: " + ("is a directory, not a robot file (joint-map .yaml or .urdf)" if path.is_dir()

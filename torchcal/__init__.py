@@ -48,6 +48,7 @@ _LAZY = {
     "Prior": ("torchcal.identify", "Prior"),
     "FitResult": ("torchcal.identify", "FitResult"),
     "identifiability": ("torchcal.analysis.identifiability", "identifiability"),
+    "align": ("torchcal.identify.alignment", "align"),  # the measurement frame / tools on the nominal chain
     "PointTargets": ("torchcal.measure", "PointTargets"),
     # Paper III: 6-DOF measurement and online identification
     "SensorRig": ("torchcal.models.sensor_rig", "SensorRig"),

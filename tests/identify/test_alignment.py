@@ -167,6 +167,23 @@ def test_full_fit_from_the_alignment_equals_fit_from_the_truth(fanuc, paper2_far
     assert aligned < 0.4e-3
 
 
+def test_fit_from_a_far_frame_warns_and_points_to_align(fanuc, paper2_far):
+    """torchcal.fit on a model whose base is left at the tracker (2.5 m off) says so before it runs its iterations
+    out; the aligned model (torchcal.align, as the warning says) fits without a word."""
+    import warnings
+
+    import torchcal
+
+    truth, data, _ = paper2_far
+    with pytest.warns(UserWarning, match=r"misses the points .* by \d+\.\d mm RMS .*torchcal\.align"):
+        fit(RobotModel(fanuc, TOOLS_M, orders=0, backlash=False), data, NoiseModel.paper2(), max_iter=2)
+    res = torchcal.align(fanuc, data, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit(RobotModel(fanuc, res.tools, orders=0, backlash=False, base_nominal=res.base_nominal), data,
+            NoiseModel.paper2(), max_iter=2)
+
+
 def test_aligned_model_persists_through_the_run_directory(tmp_path, fanuc, paper2_far):
     truth, data, val = paper2_far
     res = align(fanuc, data, 3)

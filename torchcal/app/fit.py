@@ -49,6 +49,7 @@ from collections.abc import Mapping
 from ..core import threads, units
 from ..analysis.stats import far_rows_message, percent_decrease, point_residuals, residual_stats
 from ..identify import FitResult, NoiseModel, Prior, fit
+from ..identify.fit import frame_check
 from .config import ConfigError, check_config, source_of
 from ..kinematics.transforms import homogeneous, rpy_to_matrix
 from ..io.csv import DataError, read_measurements, write_table
@@ -727,6 +728,7 @@ def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: d
 
 
 # ------------------------------------------------------------------- the run
+@frame_check(quiet=True)  # the run says a far frame its own way (its nominal residual)
 def run_fit(cfg, console=None) -> RunResult:
     """Run one calibration from a config (see :mod:`torchcal.app.config`) and write its run directory.
 

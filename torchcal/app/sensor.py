@@ -36,6 +36,7 @@ from ..kinematics import load_robot
 from ..kinematics.transforms import homogeneous, rpy_to_matrix
 from ..measure.pose import rotation_error
 from ..core.measurements import Measurements
+from ..identify.fit import frame_check
 
 log = logging.getLogger("torchcal")
 
@@ -268,6 +269,7 @@ def choose_sensor_orders(cfg, inp: SensorInputs, make, ident: Measurements, inst
     return orders
 
 
+@frame_check(quiet=True)  # the run says a far frame its own way (its nominal residual)
 def run_sensor_fit(cfg, console=None):
     """``torchcal fit`` for a sensor config: the stages of this module, written to a run directory."""
     from .common import (

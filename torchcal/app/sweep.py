@@ -42,6 +42,7 @@ from ..core import units
 from ..io.atomic import atomic_path, atomic_write_text
 from .config import ConfigError, load_config, source_of, to_yaml
 from .engines import Interrupted, interrupted, run_cells
+from ..identify.fit import frame_check
 
 log = logging.getLogger("torchcal")
 
@@ -142,6 +143,7 @@ def _group_key(cfg) -> str:
     return json.dumps(c, sort_keys=True, default=str)
 
 
+@frame_check(quiet=True)  # the run says a far frame its own way (its nominal residual)
 def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     """Fit every cell of the grid ``specs`` over ``config`` into one run directory (see the module docstring).
 

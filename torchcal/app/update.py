@@ -51,6 +51,7 @@ from ..io.rundir import (
     write_json,
 )
 from ..core.measurements import Measurements
+from ..identify.fit import frame_check
 
 log = logging.getLogger("torchcal")
 
@@ -259,6 +260,7 @@ def _evaluate(cfg, model, new: Measurements, progress) -> tuple[dict, list[dict]
     return out, table6(evaluations)
 
 
+@frame_check(quiet=True)  # the run says a far frame its own way (its nominal residual)
 def run_update(run_dir, new_data, out, device=None, strategy: str | None = None, console=None) -> UpdateResult:
     """Add the rows of ``new_data`` (a CSV in the run's contract) to the run ``run_dir``; write the run ``out``.
 

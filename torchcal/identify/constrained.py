@@ -59,7 +59,7 @@ from ..core import progress
 from ..core.exceptions import TorchcalError
 from ..core.measurements import Measurements
 from ..core.threads import threads_for_work
-from .fit import fit, resolve_noise
+from .fit import fit, resolve_noise, warns_once
 from .layout import ParameterLayout
 from .problem import NoiseModel, Prior, row_errors
 from .result import FitResult
@@ -647,6 +647,7 @@ def _points(model, points, seed: int) -> torch.Tensor:
     return pts
 
 
+@warns_once
 def fit_constrained(model, data: Measurements, c: float, noise: NoiseModel | None = None, prior: Prior | None = Prior(),
                     points=None, tol: float = 1e-2, check_tol: float = 5e-2, tools=None, check_points=None,
                     seed: int = 0, solver: str = "sqp", refine: int = 3, blocks=(), raise_on_failure: bool = True,
@@ -949,6 +950,7 @@ def _stats(model, data: Measurements):
     return float(e.mean()), float(e.max())
 
 
+@warns_once
 def constraint_sweep(make_model, data: Measurements, boundary_index, c_values=None, noise: NoiseModel | None = None,
                      prior: Prior | None = Prior(), n_values: int = 8, span: float = 20.0,
                      stop_tol_mm: float | None = None, stop_mean_tol_mm: float | None = None, **options) -> SweepResult:
@@ -1113,6 +1115,7 @@ def _unique_first(pose: torch.Tensor):
     return poses, first
 
 
+@warns_once
 def auto_constraint(make_model, data: Measurements, boundary_index=None, border_axes=None, border_k: int = 30,
                     border_n: int = 10, c_values=None, tol_mm: float = 0.01, mean_tol_mm: float | None = None,
                     noise: NoiseModel | None = None, prior: Prior | None = Prior(), **options) -> AutoConstraintResult:

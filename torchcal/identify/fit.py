@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextvars
+import functools
 import logging
+from contextlib import contextmanager
 
 import torch
 
@@ -48,6 +51,62 @@ def resolve_noise(model, noise: NoiseModel | None) -> NoiseModel:
     log.info("joint repeatability of robot '%s' from %s; sigma_m = %.3g mm", robot.name, noise.source,
              noise.sigma_m * 1e3)
     return noise
+
+
+FAR_FRAME_MM = 20.0
+"""A start this far off the points (RMS, mm) is no calibration error: the frame or tools are not the model's
+(as ``torchcal fit``'s implausible-residual warning, :data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`)."""
+
+
+_FRAME = contextvars.ContextVar("torchcal_frame_check", default=None)
+
+
+@contextmanager
+def frame_check(quiet: bool = False):
+    """Within this block :func:`fit` warns of a far measurement frame at most once (order selection and the
+    slope constraint fit many times on one data set); ``quiet``: never (the caller, e.g. ``torchcal fit``'s
+    pipeline, says it its own way). Nested blocks share the outer one's state."""
+    outer = _FRAME.get()
+    if outer is not None and not quiet:
+        yield
+        return
+    token = _FRAME.set({"said": quiet})
+    try:
+        yield
+    finally:
+        _FRAME.reset(token)
+
+
+def warns_once(fn):
+    """Decorator: a function that fits many times on one data set warns of a far frame at most once a call."""
+    @functools.wraps(fn)
+    def inner(*args, **kwargs):
+        with frame_check():
+            return fn(*args, **kwargs)
+    return inner
+
+
+def _warn_far_frame(model, data: Measurements) -> bool:
+    """Warn when the model starts metres off the points: an LM or L-BFGS fit from there runs its iterations out in
+    the rotation of the frame (a user's 2 m tracker offset: 100 iterations, 122 mm left, no word otherwise)."""
+    if not (hasattr(model, "robot") and hasattr(model, "points")) or len(data) == 0:
+        return False
+    with torch.no_grad():
+        p = model.points(data.q, data.tool, data.direction if data.has_direction else None)
+        d = (p - data.xyz.to(p)).norm(dim=-1)
+        d = d[torch.isfinite(d)]
+        rms = float(d.square().mean().sqrt()) * 1e3 if d.numel() else 0.0
+    if rms > FAR_FRAME_MM:
+        import warnings
+
+        warnings.warn(
+            f"torchcal.fit: before the fit the model misses the points of {data.source or 'the data'} by {rms:.1f} mm "
+            f"RMS (> {FAR_FRAME_MM:g} mm): the measurement frame is probably not the model's (the tracker stood "
+            "elsewhere) or the tools are wrong; torchcal.align(robot, data, tools=...) estimates the frame "
+            "(.base_nominal, for RobotModel(..., base_nominal=...)), as `torchcal fit` does with "
+            "measurement_frame: estimate", UserWarning, stacklevel=3)
+        return True
+    return False
 
 
 def fit(
@@ -100,6 +159,10 @@ def fit(
     """
     if method not in SOLVERS:
         raise ValueError(f"unknown solver '{method}', choose from {sorted(SOLVERS)}")
+    state = _FRAME.get()
+    if instrument is None and not (state is not None and state["said"]):
+        if _warn_far_frame(model, data) and state is not None:
+            state["said"] = True
     problem = CalibrationProblem(model, data, resolve_noise(model, noise), prior, fixed, instrument, blocks, fixed_rows, v0)
     with threads_for_work(problem_work(problem)):
         pinned = fix_gauge(problem) if gauge else []

@@ -24,7 +24,7 @@ import torch
 from ..core.measurements import Measurements
 from ..core.progress import task
 from .candidates import StructureSearch
-from .fit import fit, resolve_noise
+from .fit import fit, resolve_noise, warns_once
 from .gauge import fix_gauge
 from .problem import CalibrationProblem, NoiseModel, Prior, row_errors
 
@@ -130,6 +130,7 @@ def loo_residuals(model, data: Measurements, noise: NoiseModel, prior: Prior | N
     return torch.where(bad[slot_of], torch.full_like(e, float("inf")), e)
 
 
+@warns_once
 def held_out_errors(
     make_model: Callable[[Sequence[int]], torch.nn.Module],
     orders: Sequence[int],
@@ -211,6 +212,7 @@ class SearchScores:
         return gain > self.margin * se
 
 
+@warns_once
 def select_orders(
     make_model: Callable[[Sequence[int]], torch.nn.Module],
     data: Measurements,

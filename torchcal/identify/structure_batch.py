@@ -15,11 +15,12 @@ from ..core.measurements import Measurements
 from ..core.progress import task
 from .batched import BatchedFitResult, fit_batch
 from .candidates import SharedLinearization
-from .fit import fit, resolve_noise
+from .fit import fit, resolve_noise, warns_once
 from .layout import copy_overlap
 from .problem import NoiseModel, Prior
 
 
+@warns_once
 def fit_structures(make, keys: Sequence, data: Measurements, noise: NoiseModel | None = None,
                    prior: Prior | None = Prior(), center=None, **options) -> tuple[list[torch.nn.Module], BatchedFitResult]:
     """Fit one model per structure key (e.g. per-joint order lists) of one factory on one data set, together.

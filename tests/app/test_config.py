@@ -121,6 +121,19 @@ def test_repeated_overrides_are_said_and_the_last_one_wins(cfg_file):
     assert repeated_overrides(["model.order=3", "model.backlash=false", "seed=1"]) == []
 
 
+def test_a_key_under_a_whole_value_key_replaces_a_list_or_a_word(cfg_file):
+    """tools.count=3 over listed tool vectors switches to estimated tools, as {count: 3} in the file does; the
+    frame's two keys given one by one over 'auto' build the mapping; a flow mapping without the space says so."""
+    cfg = load_config(cfg_file, ["tools.count=3"])
+    assert dict(cfg.tools) == {"count": 3}
+    cfg = load_config(cfg_file, ["measurement_frame.xyz_mm=[1000,0,0]", "measurement_frame.rpy_deg=[0,0,90]"])
+    assert cfg.measurement_frame == {"xyz_mm": (1000, 0, 0), "rpy_deg": (0, 0, 90)}
+    with pytest.raises(ConfigError, match=r"^override 'measurement_frame.xyz_mm=\[1000,0,0\]' .*rpy_deg"):
+        load_config(cfg_file, ["measurement_frame.xyz_mm=[1000,0,0]"])
+    with pytest.raises(ConfigError, match=r"put a space after the colon \('\{count: 3\}'\)"):
+        load_config(cfg_file, ["tools={count:3}"])
+
+
 def test_order_selection_keys(cfg_file):
     assert load_config(cfg_file, []).model.folds == 0  # leave one pose out by default
     cfg = load_config(cfg_file, ["model.folds=5", "model.margin=0"])

@@ -436,9 +436,11 @@ def _resolve_paths(cfg: DictConfig, base: Path, keys: Sequence[str]) -> None:
 def source_of(cfg: "FitConfig", key: str, label: str) -> str:
     """Where ``key``'s value came from, for a message: the last override setting it (or a key above or below
     it), else ``label`` (the file)."""
+    whole = next((w for w in WHOLE_VALUE_KEYS if key == w or key.startswith(w + ".")), None)
     for item in reversed(tuple(getattr(cfg, "overrides", ()) or ())):
         k = item.partition("=")[0].strip()
-        if k == key or key.startswith(k + ".") or k.startswith(key + "."):
+        if k == key or key.startswith(k + ".") or k.startswith(key + ".") or (
+                whole is not None and k.startswith(whole + ".")):  # the override replaced the whole value
             return f"override '{item}' (over {label})"
     return label
 
@@ -473,9 +475,14 @@ def apply_overrides(cfg: DictConfig, overrides: Sequence[str], base: Path | None
     base = Path.cwd() if base is None else base
     for item in overrides:
         key, _ = _split_override(item)
+        whole = next((w for w in WHOLE_VALUE_KEYS if key.startswith(w + ".")), None)
         try:
             new = OmegaConf.from_dotlist([item])
-            if key in WHOLE_VALUE_KEYS:
+            if whole is not None and not OmegaConf.is_dict(OmegaConf.select(cfg, whole)):
+                # tools.count=3 over a list of tool vectors, measurement_frame.xyz_mm=[..] over 'auto': the
+                # mapping replaces the value (merging a key into a list or a word has no meaning)
+                OmegaConf.update(cfg, whole, OmegaConf.select(new, whole), merge=False)
+            elif key in WHOLE_VALUE_KEYS:
                 # these take a list, a mapping or a word: an override replaces the value, never merges into it
                 OmegaConf.update(cfg, key, OmegaConf.select(new, key), merge=False)
             else:
@@ -714,7 +721,9 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
     elif isinstance(tools, dict):
         extra = sorted(set(tools) - {"count"})
         if extra:
-            fail(f"tools.{extra[0]}", "unknown key; unknown tool vectors are given as {count: T} (valid keys: count)")
+            colon = "; in a one-line mapping put a space after the colon ('{count: 3}')" if ":" in str(extra[0]) else ""
+            fail(f"tools.{extra[0]}", "unknown key; unknown tool vectors are given as {count: T} (valid keys: count)"
+                 + colon)
         if "count" not in tools or not _is_int(tools["count"]) or tools["count"] < 1:
             fail("tools.count", f"{tools.get('count')!r}: give the number of tools (an int >= 1)")
     elif isinstance(tools, list):

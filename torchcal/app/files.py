@@ -33,13 +33,35 @@ def _refuse_radians(path, data: Measurements, robot, units_checked: bool) -> Non
         raise UnitsError(radian_message(path, data.q, robot, rad) + f"; pass {OVERRIDE} if they really are degrees")
 
 
-def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> int:
+@dataclass
+class PredictFile:
+    """What :func:`predict_file` wrote: rows, and how many command a joint beyond the identification data."""
+
+    rows: int
+    outside_data: int | None = None
+    """Rows (of the file as read) with a joint beyond the identification data's range, the model's error series
+    extrapolated there (column 'outside_data'); None for runs that recorded no range."""
+
+
+def _outside_data_column(model, q: torch.Tensor):
+    """(B,) bool numpy per row, or None: any joint commanded beyond the identification data's range."""
+    out = model.outside_data(q) if hasattr(model, "outside_data") else None
+    return None if out is None else out.any(-1).cpu().numpy()
+
+
+def outside_data_message(input, count: int, rows: int) -> str:
+    return (f"{input}: {count} of {rows} rows command a joint beyond the identification data's range (column "
+            "'outside_data'): the model extrapolates its error terms there; measure such poses to calibrate them")
+
+
+def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> PredictFile:
     """``torchcal predict``: the points x, y, z (mm, measurement frame) an identified model predicts for
     the commands of a CSV (tool, q1..qN [, dir1..dirN]); other columns are kept, measured x, y, z replaced.
     A file without a 'tool' column (``torchcal plan-poses`` writes commands only) gets every tool of the
     run for every row, tool by tool, with the 'tool' column added.
 
-    -> the number of rows written. Raises RunDirError / DataError naming the folder or file.
+    Column 'outside_data' (when the run recorded its data's range): the row commands a joint beyond it.
+    -> :class:`PredictFile`. Raises RunDirError / DataError naming the folder or file.
     """
     from ..io.csv import points_to_file, read_table
     from ..io.rundir import RunDirError, load_model
@@ -52,7 +74,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
         from .sensor import predict_pose_file  # a sensor run (Paper III): modeled x, y, z, r11..r33
 
         with progress_task(f"predicting the sensor poses of {input}"):
-            return predict_pose_file(run_dir, input, output, model)
+            return PredictFile(predict_pose_file(run_dir, input, output, model))
     try:
         require(model, "predict points", f"torchcal predict {run_dir}")
     except TypeError as exc:
@@ -71,6 +93,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     data = data.to(model.device)
     # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
     tools = range(T) if per_tool else [None]
+    outside = _outside_data_column(model, data.q)
     parts = []
     with torch.no_grad(), progress_task(f"predicting {len(df) * len(tools)} rows"):
         for t in tools:
@@ -81,10 +104,12 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
                 out.insert(1 if "pose" in out.columns else 0, "tool", t)
             for i, c in enumerate(("x", "y", "z")):
                 out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
+            if outside is not None:
+                out["outside_data"] = outside
             parts.append(out)
     out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
     write_table(output, out)
-    return len(out)
+    return PredictFile(len(out), None if outside is None else int(outside.sum()) * len(tools))
 
 
 @dataclass
@@ -217,6 +242,11 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
     if res.direction_outside is not None:
         out["direction_outside"] = res.direction_outside.cpu().numpy()
+    outside = _outside_data_column(model, data.q)
+    if outside is not None:
+        out["outside_data"] = outside
+        if outside.any():
+            said.append(outside_data_message(input, int(outside.sum()), len(df)))
     out["reason"] = res.reasons(opts.get("max_correction"), robot.joint_map.prismatic)
     write_table(output, out)
     nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())

@@ -174,4 +174,6 @@ def fit(
         from ..core.coverage import DirectionCoverage
 
         model.coverage = DirectionCoverage.from_data(data.q, data.direction, model.command_limits)
+    if hasattr(model, "data_span") and len(data):
+        model.data_span = torch.stack([data.q.amin(0), data.q.amax(0)], 1).detach().cpu()
     return result

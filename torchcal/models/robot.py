@@ -97,6 +97,7 @@ class RobotModel(ChainBuffers, nn.Module):
         self.fine = build_fine(robot, fine)
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
         self.coverage = None  # DirectionCoverage of the identification data, set by fit()
+        self.data_span = None  # (n, 2) least / greatest command per joint in the identification data, set by fit()
 
     # -------------------------------------------------------------- kinematics
     def joint_variables(self, q: torch.Tensor) -> torch.Tensor:
@@ -334,6 +335,8 @@ class RobotModel(ChainBuffers, nn.Module):
         }
         if self.coverage is not None:
             out["coverage"] = self.coverage.to_dict()
+        if self.data_span is not None:  # absent in runs fitted before it (nothing is then said about extrapolation)
+            out["data_span"] = torch.as_tensor(self.data_span).cpu().tolist()
         if self.compliance is not None:  # absent when off: specs of models without it stay as they were
             out["compliance"] = self.compliance.spec()
         if self.fine is not None:  # likewise absent when off
@@ -356,4 +359,14 @@ class RobotModel(ChainBuffers, nn.Module):
             from ..core.coverage import DirectionCoverage
 
             model.coverage = DirectionCoverage.from_dict(spec["coverage"])
+        if spec.get("data_span") is not None:
+            model.data_span = torch.tensor(spec["data_span"], dtype=torch.float64)
         return model
+
+    def outside_data(self, q: torch.Tensor) -> torch.Tensor | None:
+        """(B, n) bool: commands q (B, n) beyond the identification data's range of that joint (the model
+        extrapolates its error series there), or None when the fit recorded no range."""
+        if self.data_span is None:
+            return None
+        span = torch.as_tensor(self.data_span).to(q.device, q.dtype)
+        return (q < span[:, 0]) | (q > span[:, 1])

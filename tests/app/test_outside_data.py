@@ -1,0 +1,60 @@
+"""Rows beyond the identification data's range: `torchcal predict` and `torchcal compensate` mark them
+('outside_data') and say how many, since the model's error series are extrapolated there."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from torchcal.cli import app
+from torchcal.io.rundir import load_model
+
+runner = CliRunner()
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, one_thread):
+    root = tmp_path_factory.mktemp("outside")
+    r = runner.invoke(app, ["simulate", str(root / "sim"), "--identification", "30", "--validation", "40", "--seed", "3"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["fit", str(root / "sim" / "fit.yaml"), "model.order=1", "plots=false", "report=false",
+                            "data.truth=null", f"out={root / 'run'}", "-q"])
+    assert r.exit_code == 0, r.output
+    return root
+
+
+def _expected(root, name):
+    """Independently of the model: any joint of the row beyond the identification file's min / max."""
+    ident = pd.read_csv(root / "sim" / "identification.csv")
+    rows = pd.read_csv(root / "sim" / name)
+    q = [f"q{i}" for i in range(1, 7)]
+    return ((rows[q] < ident[q].min()) | (rows[q] > ident[q].max())).any(axis=1).to_numpy()
+
+
+def test_the_run_keeps_its_data_range(run):
+    ident = pd.read_csv(run / "sim" / "identification.csv")
+    span = np.degrees(load_model(run / "run").data_span.numpy())
+    q = [f"q{i}" for i in range(1, 7)]
+    assert np.allclose(span[:, 0], ident[q].min().to_numpy(), atol=1e-9)
+    assert np.allclose(span[:, 1], ident[q].max().to_numpy(), atol=1e-9)
+
+
+def test_predict_and_compensate_mark_the_rows_beyond_it(run, tmp_path):
+    want = _expected(run, "validation.csv")
+    assert 0 < want.sum() < len(want)  # 30 poses do not span the 40 others: some rows lie beyond
+    r = runner.invoke(app, ["predict", str(run / "run"), str(run / "sim" / "validation.csv"), str(tmp_path / "p.csv")])
+    assert r.exit_code == 0, r.output
+    got = pd.read_csv(tmp_path / "p.csv").outside_data.to_numpy()
+    assert (got == want).all()
+    assert f"{int(want.sum())} of {len(want)} rows command a joint beyond the identification data's range" in " ".join(
+        r.output.split())
+    r = runner.invoke(app, ["compensate", str(run / "run"), str(run / "sim" / "validation.csv"),
+                            str(tmp_path / "c.csv")])
+    assert r.exit_code == 0, r.output
+    assert (pd.read_csv(tmp_path / "c.csv").outside_data.to_numpy() == want).all()
+    assert "beyond the identification data's range" in " ".join(r.output.split())
+    # the identification rows themselves are never beyond it, and nothing is said
+    r = runner.invoke(app, ["predict", str(run / "run"), str(run / "sim" / "identification.csv"), str(tmp_path / "i.csv")])
+    assert r.exit_code == 0 and not pd.read_csv(tmp_path / "i.csv").outside_data.any()
+    assert "beyond the identification" not in r.output

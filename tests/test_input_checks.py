@@ -358,3 +358,24 @@ def test_a_joint_map_lists_every_missing_key_at_once(tmp_path):
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+# ------------------------------------------------------------------------- 14. a model worse than the nominal robot
+def test_a_fit_worse_than_the_nominal_robot_is_said(fitted, tmp_path):
+    """Validation points of a robot that is exactly nominal (an independent DH forward model): the fitted errors
+    of the simulated robot can only make it worse there, and the run must say so rather than only print a
+    negative decrease."""
+    from tests.conftest import PAPER2_TOOLS_MM, fanuc_dh_reference
+
+    sim = fitted["sim"]
+    val = pd.read_csv(sim / "validation.csv")
+    q = val[[f"q{i}" for i in range(1, 7)]].to_numpy()
+    F = fanuc_dh_reference(q)
+    tools = np.asarray(PAPER2_TOOLS_MM)[val["tool"].to_numpy()] / 1000.0
+    val[["x", "y", "z"]] = (F[:, :3, 3] + np.einsum("rij,rj->ri", F[:, :3, :3], tools)) * 1000.0
+    val.to_csv(tmp_path / "nominal.csv", index=False)
+    r = invoke("fit", sim / "fit.yaml", "model.order=1", "plots=false", "report=false", "data.truth=null",
+               f"data.validation={tmp_path / 'nominal.csv'}", f"out={tmp_path / 'run'}")
+    assert r.exit_code == 0, r.output
+    assert "the fitted model is worse than the nominal robot on the validation set" in r.output, r.output
+    assert "worse than the nominal robot on the identification set" not in r.output

@@ -673,6 +673,12 @@ def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict
     for name, ev in evaluations.items():
         if far := far_rows_message(ev["modeled"], sets[name], f"{name.lower()} set ({sets[name].source})"):
             progress.warn(far)
+    for name, ev in evaluations.items():
+        nom, mod = ev["nominal_stats"].mean, ev["modeled_stats"].mean
+        if mod > nom:  # a calibration that makes the robot worse is no calibration, whatever the solver said
+            progress.warn(f"the fitted model is worse than the nominal robot on the {name.lower()} set (mean {mod:.4f} "
+                          f"against {nom:.4f} mm): do not deploy it; look for a unit slip, a wrong frame or tools, too "
+                          "few poses for the orders (model.order), or a solver that did not converge")
     nominal = evaluations["Identification"]["nominal_stats"].mean
     if nominal > NOMINAL_IMPLAUSIBLE_MM:
         progress.warn(f"the nominal residual (identification mean {nominal:.1f} mm) is far beyond any plausible calibration "

@@ -244,6 +244,25 @@ def test_bad_inputs_exit_2_with_one_message(e2e, tmp_path):
     assert r.exit_code == 2 and "no model here" in r.output
 
 
+@pytest.mark.parametrize("err", [OSError(30, "Read-only file system", "sim/identification.csv"),
+                                 OSError(28, "No space left on device", "sim/identification.csv"),
+                                 FileExistsError(17, "File exists", "sim")])
+def test_storage_errors_are_one_message_not_a_traceback(tmp_path, monkeypatch, err):
+    """A read-only mount, a full disk, a file where a folder belongs: the user's storage, exit 2, one line; any
+    other OSError stays a traceback (a bug)."""
+    import torchcal.app.simulate as simulate
+
+    def broken(*args, **kwargs):
+        raise err
+
+    monkeypatch.setattr(simulate, "simulate_dataset", broken)
+    r = invoke("simulate", tmp_path / "sim")
+    assert r.exit_code == 2 and "error:" in r.output and err.strerror in r.output and "Traceback" not in r.output
+    monkeypatch.setattr(simulate, "simulate_dataset", lambda *a, **k: (_ for _ in ()).throw(OSError(5, "I/O error")))
+    r = invoke("simulate", tmp_path / "sim")
+    assert r.exit_code == 1 and isinstance(r.exception, OSError)
+
+
 def test_console_script_reports_config_errors(tmp_path):
     """The installed `torchcal` entry point: exit status 2, the key and file named, no traceback."""
     exe = Path(sys.executable).parent / "torchcal"

@@ -10,6 +10,7 @@ on this side is in mm and degrees (see :mod:`torchcal.io.csv`).
     torchcal predict RUN_DIR commands.csv predicted.csv
     torchcal compensate RUN_DIR targets.csv compensated.csv
     torchcal update RUN_DIR new.csv --out NEW_RUN_DIR    # add measurements (Paper III (33))
+    torchcal export-urdf RUN_DIR calibrated.urdf         # the best constant model as a URDF, compared
 
 Bad inputs (data, robot, config, run directory) print one message naming the
 file, row / key and column, and exit with status 2. Ctrl-C prints one line
@@ -126,7 +127,14 @@ def _user_error_types() -> tuple[type[BaseException], ...]:
     """
     # unwritable or misnamed output paths are the user's to fix too; other OSErrors stay tracebacks (bugs)
     # NotImplementedError: a documented limitation, not a crash
-    return (TorchcalError, PermissionError, IsADirectoryError, NotADirectoryError, NotImplementedError)
+    return (TorchcalError, PermissionError, IsADirectoryError, NotADirectoryError, FileExistsError, NotImplementedError)
+
+
+def _storage_error(exc: BaseException) -> bool:
+    """A read-only file system, a full disk or quota: the user's storage, not a bug (no traceback)."""
+    import errno
+
+    return isinstance(exc, OSError) and exc.errno in (errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EACCES)
 
 
 @contextmanager
@@ -139,7 +147,7 @@ def _user_errors():
     try:
         yield
     except Exception as exc:
-        if not isinstance(exc, _user_error_types()):
+        if not isinstance(exc, _user_error_types()) and not _storage_error(exc):
             raise
         # markup=False: messages quote file contents and lists, which must not be read as rich markup;
         # soft_wrap: one line however long the paths in it (scripts grep it)
@@ -380,12 +388,15 @@ def predict_cmd(
 ):
     """Predict measured points x, y, z (mm) for joint commands with an identified model."""
     with _user_errors():
-        from .app.files import predict_file
+        from .app.files import outside_data_message, predict_file
 
         _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
-            rows = predict_file(run_dir, input, output, _device(device), units_checked)
-    typer.echo(f"predicted {rows} rows -> {output}")
+            res = predict_file(run_dir, input, output, _device(device), units_checked)
+    typer.echo(f"predicted {res.rows} rows -> {output}")
+    if res.outside_data:
+        _console(stderr=True).print(f"warning: {outside_data_message(input, res.outside_data, res.rows)}", markup=False,
+                                    soft_wrap=True)
 
 
 # ---------------------------------------------------------------------- update
@@ -468,6 +479,8 @@ def compensate_cmd(
             out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg,
                                   units_checked, _tool_axis(tool_axis) if free_tool_axis else None)
     typer.echo(f"compensated {out.rows} commands -> {output}")
+    for w in out.warnings:
+        _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
     if out.flagged:
         _console(stderr=True).print(
             f"warning: {out.flagged} of {out.rows} commands flagged ({out.not_converged} did not converge, "
@@ -592,6 +605,57 @@ def _check_table_outputs(run_dir: Path, out: Path, fmt: str, force: bool) -> Non
     if existing and not force:
         shown = ", ".join(existing[:5]) + (f" and {len(existing) - 5} more" if len(existing) > 5 else "")
         raise OutputExistsError(f"{out}: already holds {shown}; pass --force to overwrite them or choose another folder")
+
+
+# ------------------------------------------------------------------ export-urdf
+@app.command("export-urdf")
+def export_urdf_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="Run directory of a robot fit, written by `torchcal fit` or `torchcal update`.")],
+    output: Annotated[Path, typer.Argument(help="URDF to write (.urdf); the robot's joint-map YAML goes next to it (same stem, .yaml).")],
+    base: Annotated[str, typer.Option("--base", help="joint: fold the base correction into the first joint's origin; link: a new root link with a fixed joint carrying it.")] = "joint",
+    measurement_frame: Annotated[bool, typer.Option("--measurement-frame", help="Also fold in the measurement frame: the URDF's root is the tracker frame.")] = False,
+    constants: Annotated[str, typer.Option("--constants", help="fit: constants fitted to the full model over the joint limits (best); c0: the order-0 coefficients as identified (exact only for an order-0 model).")] = "fit",
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
+):
+    """A calibrated URDF: the constant part of a robot model in the joint origins, compared on the run's data (mm)."""
+    with _user_errors():
+        from .app.commands import export_urdf
+        from .app.config import ConfigError
+
+        if base not in ("joint", "link"):
+            raise ConfigError(f"--base '{base}': choose joint or link")
+        if constants not in ("fit", "c0"):
+            raise ConfigError(f"--constants '{constants}': choose fit or c0")
+        _check_output(output, force, *_run_files(run_dir))
+        with _progress(_console(stderr=True), f"exporting the calibrated URDF of {run_dir}"):
+            res, which = export_urdf(run_dir, output, base, measurement_frame, constants, force)
+    exp = res.export
+    typer.echo(f"wrote {exp.urdf}")
+    if exp.joint_map is not None:
+        typer.echo(f"wrote {exp.joint_map}")
+    how = "fitted to the full model" if constants == "fit" else "order-0 coefficients (c0)"
+    typer.echo(f"constants: {how}; vs the full model at {exp.commands} commands over the joint limits: "
+               f"RMS {exp.misfit_rms_mm:.4f} mm, max {exp.misfit_max_mm:.4f} mm")
+    if res.comparison is None:
+        typer.echo("warning: the run's config names no readable identification or validation file: not compared",
+                   err=True)
+        return
+    c, rms = res.comparison, res.rms_mm
+    typer.echo(f"compared on the {which} data: {res.data} ({c.nominal.count} points)")
+    t = Table(title="Residuals (mm)", caption="|p - xyz|, joint errors v at zero")
+    t.add_column("Model", no_wrap=True)
+    for name in ("Mean", "RMS", "Max"):
+        t.add_column(name, justify="right", no_wrap=True)
+    for label, key, stats in (("Nominal", "nominal", c.nominal), ("URDF alone", "urdf", c.urdf),
+                              ("Full model", "full", c.full)):
+        t.add_row(label, _mm(stats.mean), _mm(rms[key]), _mm(stats.max))
+    _console().print(t)
+    if res.urdf_worse_than_nominal:
+        hint = ("; export with --constants fit (the default)" if constants == "c0" else
+                ": the joint-dependent errors dominate, use the full model (torchcal predict / compensate)")
+        typer.echo(f"warning: the URDF alone is worse than the nominal robot on the {which} data (mean "
+                   f"{c.urdf.mean:.4f} mm against {c.nominal.mean:.4f} mm, RMS {rms['urdf']:.4f} against "
+                   f"{rms['nominal']:.4f} mm){hint}", err=True)
 
 
 # ------------------------------------------------------------------ import-tmac

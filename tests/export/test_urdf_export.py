@@ -71,7 +71,7 @@ def test_measurement_frame_can_be_included(tmp_path, fanuc, tools_m):
 
 def test_joint_dependent_terms_stay_out(tmp_path, fanuc, tools_m):
     model = randomize(RobotModel(fanuc, tools_m, orders=3, backlash=True), 6, rot=5e-3, trans=5e-4)
-    out = export_urdf(model, tmp_path / "cal.urdf")
+    out = export_urdf(model, tmp_path / "cal.urdf", constants="c0")  # the fitted constants: test_urdf_projection.py
     q = random_commands(fanuc, 100, 7)
     # reference: the same model with every order >= 1 coefficient zeroed, backlash not applied
     ref = RobotModel(fanuc, tools_m, orders=3, backlash=True)
@@ -122,7 +122,7 @@ def test_compare_urdf_reports_urdf_and_full_residuals(tmp_path, fanuc, tools_m):
     with torch.no_grad():
         xyz = truth.points(q, tool)
     data = Measurements.from_tensors(q, tool, xyz)
-    out = export_urdf(truth, tmp_path / "cal.urdf")
+    out = export_urdf(truth, tmp_path / "cal.urdf", constants="c0")
     cmp = compare_urdf(truth, out, data)
     assert cmp.full.max < 1e-9  # the truth model reproduces its own points
     assert cmp.nominal.mean > cmp.urdf.mean > cmp.full.mean
@@ -137,3 +137,6 @@ def test_compare_urdf_reports_urdf_and_full_residuals(tmp_path, fanuc, tools_m):
     assert rows["Nominal"]["mean_decrease"] is None and rows["Full model"]["mean_decrease"] > 99
     m = urdf_only_model(truth, out)
     assert m.joint_errors.coef.abs().max() == 0 and torch.equal(m.tools(), truth.tools())
+    # the default, constants fitted to the whole model, does better than c0 on these points
+    fitted = compare_urdf(truth, export_urdf(truth, tmp_path / "fit.urdf", count=128), data)
+    assert fitted.urdf.mean < cmp.urdf.mean and fitted.full.max < 1e-9

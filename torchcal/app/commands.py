@@ -122,6 +122,24 @@ def export_tables(run_dir, out, fmt: str = "csv", points: int | None = None, max
     return export_run_tables(run_dir, out, fmt, points, max_points)
 
 
+def export_urdf(run_dir, out, base: str = "joint", measurement_frame: bool = False, constants: str = "fit",
+                force: bool = False):
+    """``torchcal export-urdf``: a robot run's calibrated URDF (:func:`torchcal.export.urdf.export_run_urdf`),
+    compared on the run's validation data, else its identification data (the first its config names that
+    exists). -> (:class:`~torchcal.export.urdf.RunUrdfExport`, 'validation', 'identification' or None)."""
+    from ..export.urdf import export_run_urdf
+    from .config import run_config
+
+    cfg = run_config(run_dir)
+    data, which = None, None
+    for key in ("validation", "identification"):
+        path = getattr(cfg.data, key)
+        if path and Path(path).is_file():
+            data, which = Path(path), key
+            break
+    return export_run_urdf(run_dir, out, base, measurement_frame, constants, data, force), which
+
+
 def write_report(run_dir, out=None) -> Path:
     """``torchcal report``: the run directory's self-contained ``report.html`` (:mod:`torchcal.report`)."""
     from ..report import write_report as _write
@@ -129,5 +147,5 @@ def write_report(run_dir, out=None) -> Path:
     return _write(run_dir, out)
 
 
-__all__ = ["export_tables", "import_tmac_file", "import_tracker_file", "plan_poses_file", "table_output_names",
+__all__ = ["export_tables", "export_urdf", "import_tmac_file", "import_tracker_file", "plan_poses_file", "table_output_names",
            "write_report"]

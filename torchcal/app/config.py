@@ -618,7 +618,13 @@ def load_config(path, overrides: Sequence[str] = ()) -> FitConfig:
     if not path.is_file():
         raise ConfigError(f"{path}: " + ("is a directory, not a config file" if path.is_dir() else "config file not found"))
     try:
-        raw = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader)
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        line = path.read_bytes()[:exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: not a UTF-8 text file (byte 0x{exc.object[exc.start]:02x} at line {line}); save "
+                          "it as UTF-8") from None
+    try:
+        raw = yaml.load(text, Loader=_UniqueKeyLoader)
     except _DuplicateKey as exc:
         raise ConfigError(f"{path}: key '{exc.key}' is given twice (lines {exc.first} and {exc.second}) in one mapping; "
                           f"keep one") from None

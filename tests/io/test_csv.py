@@ -99,6 +99,8 @@ BAD_CELLS = [
     ("tool", "-1", "tool -1 is not configured"),
     ("tool", "0.5", "'0.5' is not an integer"),
     ("pose", "x7", "'x7' is not a finite number"),
+    ("x", "1e300", "1e+300 mm is beyond any tracker's range"),  # finite: once overflowed the solver
+    ("z", "-1e30", "-1e+30 mm is beyond any tracker's range"),  # a lost-beam code
 ]
 
 

@@ -455,6 +455,10 @@ def parse_table(
                 problems += [Problem(int(rows[p.row - 1]) + 1, p.column, p.message) for p in sub_problems]
                 xyz[rows, i] = vals
 
+    far = np.abs(xyz) > XYZ_BOUND_MM
+    for r, i in zip(*np.nonzero(far)):  # finite, but no tracker measures there: a lost-beam code or a unit slip
+        problems.append(Problem(int(r) + 1, XYZ[i], f"{xyz[r, i]:g} mm is beyond any tracker's range "
+                                f"(|value| > {XYZ_BOUND_MM:g} mm): a lost-beam or error code? remove the row"))
     if require_xyz and "pose" in cols and (n_tools is None or "tool" in cols):
         # a bad pose or tool is already reported; it must not also pair up as a false duplicate
         key = pd.DataFrame({"pose": pose, "tool": tool, "row": np.arange(R)})[valid_key]
@@ -493,6 +497,10 @@ def read_table(path, robot, n_tools: int | None, require_xyz: bool = True, requi
 
 _ODD_BREAKS = re.compile("[\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
 """Line breaks other than '\\n' (str.splitlines would split on them; the csv module reads them otherwise)."""
+
+
+XYZ_BOUND_MM = 1.0e6
+"""|x|, |y|, |z| beyond 1 km (mm) are no measured point: laser trackers reach tens of metres."""
 
 
 def _read_clean(path: Path, robot, n_tools: int) -> Measurements | None:
@@ -555,6 +563,8 @@ def _read_clean(path: Path, robot, n_tools: int) -> Measurements | None:
     if pd.DataFrame({"pose": pose, "tool": tool}).duplicated().any():
         return None
     xyz = np.stack([num[c] for c in XYZ], 1)
+    if (np.abs(xyz) > XYZ_BOUND_MM).any():
+        return None
     extra = {c: df[c].to_numpy(dtype=object) for c in names if c not in numeric}
     return _to_measurements(q, tool, xyz, np.ascontiguousarray(direction), pose, has_direction, str(path), extra,
                             prismatic)

@@ -64,3 +64,28 @@ def test_a_robot_is_simulated_with_its_own_repeatability(tmp_path):
     assert noise["joint_var_fwd"] != default_joint_variances(6)[0]
     truth = truth_noise(paths["truth"])
     assert torch.allclose(truth.joint_var_fwd, abb.repeatability.var_fwd, rtol=1e-10)
+
+
+def test_an_interrupted_overwrite_leaves_no_mixed_set(tmp_path, monkeypatch):
+    """--force over an earlier set, interrupted while writing: the folder must not hold a fit.yaml that pairs the
+    new identification file with the old validation file and truth (a fit of it reported 2 mm for 0.05)."""
+    import torchcal.io.csv as csv
+
+    simulate_dataset(tmp_path / "sim", identification=8, validation=4, seed=0)
+    real = csv.write_measurements
+    calls = []
+
+    def interrupted_on_second(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 2:  # the validation file: Ctrl-C
+            raise KeyboardInterrupt
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(csv, "write_measurements", interrupted_on_second)
+    with pytest.raises(KeyboardInterrupt):
+        simulate_dataset(tmp_path / "sim", identification=8, validation=4, seed=7, force=True)
+    left = sorted(p.name for p in (tmp_path / "sim").iterdir())
+    assert left == ["identification.csv"]  # the new one alone: incomplete, and `torchcal fit` has nothing to start
+    monkeypatch.setattr(csv, "write_measurements", real)
+    paths = simulate_dataset(tmp_path / "sim", identification=8, validation=4, seed=7, force=True)
+    assert json.loads(paths["truth"].read_text())["seed"] == 7

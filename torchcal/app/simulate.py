@@ -116,11 +116,17 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     shuffle = pose_order == "shuffled"
     q_id = quasi_random_commands(limits, identification, seed, shuffle=shuffle)
     ident = simulate(truth, q_id, list(range(len(tools_mm))), noise, seed)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {"identification": write_measurements(out_dir / names["identification"], ident, rob)}
+    val = None
     if validation:
         q_val = quasi_random_commands(limits, validation, seed, skip=identification, shuffle=shuffle)
         val = simulate(truth, q_val, [validation_tool], noise, seed + 1)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    # everything is computed; the old set goes first and fit.yaml comes last, so that Ctrl-C or a full disk
+    # while writing leaves an incomplete set that `torchcal fit` cannot start from, never one mixing two seeds
+    for name in ("config", "identification", "validation", "truth"):
+        (out_dir / names[name]).unlink(missing_ok=True)
+    paths = {"identification": write_measurements(out_dir / names["identification"], ident, rob)}
+    if val is not None:
         paths["validation"] = write_measurements(out_dir / names["validation"], val, rob)
     paths["truth"] = save_truth(out_dir / names["truth"], truth, kind, seed, noise, robot_spec=robot_spec)
     cfg = {

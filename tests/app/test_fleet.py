@@ -448,6 +448,11 @@ def test_plan_poses_designed_for_a_fleet_prior(tmp_path, robot):
     r = CliRunner().invoke(app, ["plan-poses", "abb_irb120", "12", str(tmp_path / "abb.csv"), "--fleet", str(fleet_run),
                                  "--candidates", "300"])
     assert r.exit_code != 0 and "fanuc_lrmate200i" in r.output and "abb_irb120" in r.output
+    # a single unit's run directory is no fleet: one message naming the option, not a missing-file traceback
+    (tmp_path / "one_run").mkdir()
+    r = CliRunner().invoke(app, ["plan-poses", "fanuc_lrmate200i", "12", str(tmp_path / "one.csv"), "--fleet",
+                                 str(tmp_path / "one_run")])
+    assert r.exit_code == 2 and "not a `torchcal fleet` run directory" in " ".join(r.output.split())
     # measured on a new unit of the type, fitted with the fleet's prior: designed against plain poses
     truth = fleet_truths(robot, TOOLS, 8, 0).truths[7]
     noise = torchcal.NoiseModel.from_robot(robot)

@@ -124,7 +124,7 @@ def test_predict_equals_model_points(e2e, fanuc):
     r = invoke("predict", e2e["run"], root / "predict_in.csv", root / "predicted.csv")
     assert r.exit_code == 0, r.output
     out = pd.read_csv(root / "predicted.csv")
-    assert list(out.columns) == list(inp.columns) + ["x", "y", "z"]
+    assert list(out.columns) == list(inp.columns) + ["x", "y", "z", "outside_data"]
     assert list(out.label) == list(inp.label)
     q = read_measurements(e2e["sim"] / "validation.csv", fanuc, 3)  # same commands, as SI
     with torch.no_grad():
@@ -141,8 +141,8 @@ def test_predict_equals_model_points(e2e, fanuc):
     r = invoke("predict", e2e["run"], e2e["sim"] / "validation.csv", root / "predicted2.csv")
     assert r.exit_code == 0, r.output
     out2 = pd.read_csv(root / "predicted2.csv")
-    assert list(out2.columns) == list(val.columns)
-    assert out2.drop(columns=["x", "y", "z"]).equals(val.drop(columns=["x", "y", "z"]))
+    assert list(out2.columns) == list(val.columns) + ["outside_data"]
+    assert out2.drop(columns=["x", "y", "z", "outside_data"]).equals(val.drop(columns=["x", "y", "z"]))
     assert np.allclose(out2[["x", "y", "z"]].to_numpy(), p_mm.numpy(), rtol=0, atol=1e-7)
 
 

@@ -379,3 +379,22 @@ def test_a_fit_worse_than_the_nominal_robot_is_said(fitted, tmp_path):
     assert r.exit_code == 0, r.output
     assert "the fitted model is worse than the nominal robot on the validation set" in r.output, r.output
     assert "worse than the nominal robot on the identification set" not in r.output
+
+
+# ------------------------------------------------------------------------- 15. a run that did not finish
+def test_a_partial_run_is_not_deployed(fitted, tmp_path):
+    """A run directory still holding PARTIAL (its fit failed or was interrupted) may hold a failed solver's last
+    iterate: predict, compensate, update and the exports refuse it, naming the file to delete once checked."""
+    sim = fitted["sim"]
+    run = tmp_path / "partial"
+    shutil.copytree(fitted["run"], run)
+    (run / "PARTIAL").write_text("This run did not finish.\n")
+    for args in (("predict", run, sim / "validation.csv", tmp_path / "p.csv"),
+                 ("compensate", run, sim / "validation.csv", tmp_path / "c.csv"),
+                 ("update", run, sim / "validation.csv", "--out", tmp_path / "u"),
+                 ("export-urdf", run, tmp_path / "cal.urdf")):
+        r = invoke(*args)
+        assert r.exit_code == 2 and "this run did not finish" in r.output and "PARTIAL" in r.output, (args, r.output)
+        assert not any((tmp_path / n).exists() for n in ("p.csv", "c.csv", "u", "cal.urdf"))
+    (run / "PARTIAL").unlink()  # the user's word: checked
+    assert invoke("predict", run, sim / "validation.csv", tmp_path / "p.csv").exit_code == 0

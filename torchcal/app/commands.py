@@ -125,7 +125,9 @@ def export_tables(run_dir, out, fmt: str = "csv", points: int | None = None, max
     """``torchcal export-tables``: a machine run's compensation tables in a controller format; -> what was
     written (a path, or {name: path}); refusals and end-slope notes come as warnings."""
     from ..export.controller import export_run_tables
+    from ..io.rundir import require_finished
 
+    require_finished(run_dir, "torchcal export-tables")
     return export_run_tables(run_dir, out, fmt, points, max_points)
 
 
@@ -135,8 +137,10 @@ def export_urdf(run_dir, out, base: str = "joint", measurement_frame: bool = Fal
     compared on the run's validation data, else its identification data (the first its config names that
     exists). -> (:class:`~torchcal.export.urdf.RunUrdfExport`, 'validation', 'identification' or None)."""
     from ..export.urdf import export_run_urdf
+    from ..io.rundir import require_finished
     from .config import run_config
 
+    require_finished(run_dir, "torchcal export-urdf")
     cfg = run_config(run_dir)
     data, which = None, None
     for key in ("validation", "identification"):

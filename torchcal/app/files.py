@@ -66,6 +66,9 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     from ..io.csv import points_to_file, read_table
     from ..io.rundir import RunDirError, load_model
 
+    from ..io.rundir import require_finished
+
+    require_finished(run_dir, "torchcal predict")
     with progress_task(f"loading the run {run_dir}"):
         model = load_model(run_dir, device=device)
     from ..core.contract import PredictsPoints, implements, require
@@ -198,6 +201,9 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     from ..core.contract import require
     from ..io.rundir import RunDirError
 
+    from ..io.rundir import require_finished
+
+    require_finished(run_dir, "torchcal compensate")
     with progress_task(f"loading the run {run_dir}"):
         model = load_model(run_dir, device=device)
     try:  # the model contract: machine tools and sensor rigs have no joint-error Newton solve

@@ -44,6 +44,7 @@ from ..io.rundir import (
     RunDirError,
     collect_versions,
     load_model,
+    require_finished,
     make_run_dir,
     read_json,
     run_log,
@@ -327,6 +328,7 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
 
     progress = Progress(console)
     with progress.step(f"reading the run {parent} and {new_path}", quiet=True):
+        require_finished(parent, "torchcal update")
         model = load_model(parent, device=dev)
         noise = _noise_prior_options(cfg, model)[0]
         new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written

@@ -233,6 +233,17 @@ def model_class(spec: dict, path="model.pt"):
     return getattr(importlib.import_module(module), name)
 
 
+def require_finished(run_dir, what: str) -> None:
+    """Refuse (:class:`RunDirError`) a run directory that still holds :data:`PARTIAL_FILE`: its model may be a
+    failed solver's last iterate (a fit stopped by a bad number left one 8 mm off), not a calibration to deploy.
+    ``what``: the command, for the message. A model file given directly is not checked."""
+    path = Path(run_dir)
+    if path.is_dir() and (path / PARTIAL_FILE).is_file():
+        raise RunDirError(f"{path}: this run did not finish (it holds {PARTIAL_FILE}: failed or interrupted, see its "
+                          f"run.log), so {what} does not use its model; fit again, or delete {path / PARTIAL_FILE} "
+                          "if you have checked that the model is complete")
+
+
 def load_model(run_dir, device=None, robot=None):
     """Rebuild the identified :class:`torchcal.models.robot.RobotModel` of a run (a run folder or its model.pt).
 
@@ -341,6 +352,7 @@ def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
 __all__ = [
     "MODEL_FILE",
     "PARTIAL_FILE",
+    "require_finished",
     "RunDirError",
     "RUN_MARKERS",
     "collect_versions",

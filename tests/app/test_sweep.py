@@ -144,3 +144,17 @@ def test_sweep_interrupted_keeps_the_cells_it_fitted(sim, tmp_path, monkeypatch)
     assert list(done["model.order"]) == [1, 1] and (table["status"] == "failed").sum() == 2
     assert table[table["status"] == "failed"]["reason"].str.startswith("Interrupted").all()
     assert all((run / "cells" / f"{c:02d}" / "model.pt").exists() for c in done["cell"])
+
+
+def test_a_cell_asking_more_poses_than_the_file_fails_alone(sim, tmp_path):
+    """One cell's n_poses beyond the file's 40 poses is that cell's failure, named; the cells stacked with it in
+    one batched solve are still fitted. When no cell can be fitted the sweep fails (as a fleet does), its table
+    written."""
+    res = run_sweep(sim, ["data.n_poses=20,30,50", "model.order=1", "data.truth=null"], out=tmp_path / "sw")
+    status = {r["data.n_poses"]: r["status"] for r in res.rows}
+    assert status == {"20": "fitted", "30": "fitted", "50": "failed"}
+    bad = [r for r in res.rows if r["status"] == "failed"][0]
+    assert "override 'data.n_poses=50'" in bad["reason"] and "50 poses asked for" in bad["reason"]
+    with pytest.raises(ConfigError, match="sweep: no cell could be fitted; cell 0: .*60 poses asked for"):
+        run_sweep(sim, ["data.n_poses=60,70", "model.order=1", "data.truth=null"], out=tmp_path / "none")
+    assert (tmp_path / "none" / "results.csv").is_file()

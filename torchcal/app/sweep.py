@@ -210,6 +210,10 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
                         "says why")
         if interrupted(outs):  # the cells fitted by then are written; the run ends as interrupted (PARTIAL stays)
             raise KeyboardInterrupt
+        if len(failed) == len(cells):  # as `torchcal fleet`: nothing fitted is a failed run (exit 2), its table kept
+            first = result.rows[0]
+            raise ConfigError(f"sweep: no cell could be fitted; cell {first['cell']}: {first['reason']}\n(results.csv "
+                              f"in {run_dir} has every cell's reason)")
         log.info(f"sweep done in {result.time:.1f} s: {run_dir / 'results.csv'}")
     return result
 
@@ -266,24 +270,30 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
         raise ConfigError(f"{inp.label}: the sweep stacks cells on the given tools and frame; run the alignment "
                           "once with `torchcal fit` and give its tools and measurement frame in the config")
     n = inp.robot.joint_map.n
-    models, rows, noises, structures = [], [], [], []
-    for cfg in cfgs:
-        data = inp.ident if cfg.data.n_poses is None else first_poses(inp.ident, int(cfg.data.n_poses), inp.label)
+    models, rows, noises, structures = {}, {}, {}, {}
+    out: list[dict | None] = [None] * len(cfgs)
+    for i, cfg in enumerate(cfgs):
+        try:
+            data = inp.ident if cfg.data.n_poses is None else first_poses(inp.ident, int(cfg.data.n_poses),
+                                                                               source_of(cfg, "data.n_poses", inp.label))
+        except ConfigError as exc:  # this cell's own value (more poses than the file has): the others go on
+            out[i] = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+            log.warning(f"cell {cells[i]} failed: {exc}")
+            continue
         orders = config_orders(cfg, n)
         make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal, _compliance(cfg),
                              None if cfg.model.error_variable is None else cfg.model.error_variable, cfg.model.kind)
         if make.backlash is True and data.has_direction:  # as torchcal fit: the backlash order follows the data
             make.backlash, _ = default_backlash_orders(orders, data.q, data.direction, inp.robot.joint_map.limits.to(data.q))
-        models.append(make(orders))
-        structures.append((orders, make.backlash))
-        rows.append(torch.isin(inp.ident.pose, data.pose.unique()))
-        noises.append(config_noise(cfg, inp.robot, inp.label))
+        models[i] = make(orders)
+        structures[i] = (orders, make.backlash)
+        rows[i] = torch.isin(inp.ident.pose, data.pose.unique())
+        noises[i] = config_noise(cfg, inp.robot, inp.label)
     # one batched solve per structure: every model of it at its own size (a superset of mixed orders would
     # compute the small ones at the largest size); each from zero, as its own fit would start
     levels: dict[str, list[int]] = {}
-    for i, st in enumerate(structures):
+    for i, st in structures.items():
         levels.setdefault(json.dumps(st), []).append(i)
-    out: list[dict | None] = [None] * len(models)
     opts = {k: v for k, v in inp.opts.items() if k in ("ftol", "max_iter")}
     opts["ftol"] = max(float(opts.get("ftol", 0.0)), SWEEP_FTOL)
     for part in levels.values():

@@ -394,6 +394,8 @@ def predict_cmd(
         with _progress(_console(stderr=True)):
             res = predict_file(run_dir, input, output, _device(device), units_checked)
     typer.echo(f"predicted {res.rows} rows -> {output}")
+    for w in res.warnings:
+        _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
     if res.outside_data:
         _console(stderr=True).print(f"warning: {outside_data_message(input, res.outside_data, res.rows)}", markup=False,
                                     soft_wrap=True)

@@ -58,3 +58,13 @@ def test_predict_and_compensate_mark_the_rows_beyond_it(run, tmp_path):
     r = runner.invoke(app, ["predict", str(run / "run"), str(run / "sim" / "identification.csv"), str(tmp_path / "i.csv")])
     assert r.exit_code == 0 and not pd.read_csv(tmp_path / "i.csv").outside_data.any()
     assert "beyond the identification" not in r.output
+
+
+def test_predict_says_when_a_backlash_model_gets_no_directions(run, tmp_path):
+    val = pd.read_csv(run / "sim" / "validation.csv")
+    val.drop(columns=[f"dir{i}" for i in range(1, 7)]).to_csv(tmp_path / "nodir.csv", index=False)
+    r = runner.invoke(app, ["predict", str(run / "run"), str(tmp_path / "nodir.csv"), str(tmp_path / "p.csv")])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 0 and "nodir.csv: no dir1..dir6 columns: the model's backlash terms are left out" in said
+    r = runner.invoke(app, ["predict", str(run / "run"), str(run / "sim" / "validation.csv"), str(tmp_path / "q.csv")])
+    assert "backlash terms are left out" not in r.output

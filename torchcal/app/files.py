@@ -41,6 +41,8 @@ class PredictFile:
     outside_data: int | None = None
     """Rows (of the file as read) with a joint beyond the identification data's range, the model's error series
     extrapolated there (column 'outside_data'); None for runs that recorded no range."""
+    warnings: list[str] = field(default_factory=list)
+    """What the input leaves out (no approach directions for a backlash model), said by the CLI."""
 
 
 def _outside_data_column(model, q: torch.Tensor):
@@ -96,6 +98,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     data = data.to(model.device)
     # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
     tools = range(T) if per_tool else [None]
+    said = _input_warnings(model, input, df, data, targets=False)
     outside = _outside_data_column(model, data.q)
     parts = []
     with torch.no_grad(), progress_task(f"predicting {len(df) * len(tools)} rows"):
@@ -112,7 +115,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
             parts.append(out)
     out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
     write_table(output, out)
-    return PredictFile(len(out), None if outside is None else int(outside.sum()) * len(tools))
+    return PredictFile(len(out), None if outside is None else int(outside.sum()) * len(tools), said)
 
 
 @dataclass
@@ -139,7 +142,7 @@ def _input_warnings(model, input, df, data, targets: bool) -> list[str]:
     if je is not None and je.has_backlash and not data.has_direction:
         n = model.robot.joint_map.n
         out.append(f"{input}: no dir1..dir{n} columns: the model's backlash terms are left out (direction 0 for every "
-                   f"joint), so each command misses by the lost motion; give each row's approach directions (+1 / -1)")
+                   f"joint), so each row is off by the lost motion; give each row's approach directions (+1 / -1)")
     if targets and "tool" not in df.columns:
         tools = units.m_to_mm(model.tools().detach().cpu())
         t0 = ", ".join(f"{float(v):.3f}" for v in tools[0])

@@ -141,6 +141,21 @@ def test_a_config_not_in_utf8_names_the_file_and_line(cfg_file):
         load_config(cfg_file)
 
 
+def test_override_mistakes_get_plain_words(cfg_file):
+    """A misspelt key names the one meant; a section given one value and an empty value say what they are, not
+    OmegaConf's internals (a merge error on '_ParsedDataConfig', 'Incompatible value None')."""
+    with pytest.raises(ConfigError, match=r"unknown config key 'solver.max_itr' \(did you mean 'solver.max_iter'\?\)"):
+        load_config(cfg_file, ["solver.max_itr=5"])
+    with pytest.raises(ConfigError) as err:
+        load_config(cfg_file, ["learnign_rate=3"])
+    assert "did you mean" not in str(err.value) and "config_file" not in str(err.value)  # nothing close; no internals
+    with pytest.raises(ConfigError, match=r"key 'data' is a section of keys \(identification, .*e\.g\. data\.identification="):
+        load_config(cfg_file, ["data=foo"])
+    with pytest.raises(ConfigError, match=r"override 'out=': key 'out': needs a value"):
+        load_config(cfg_file, ["out="])
+    assert load_config(cfg_file, ["solver={max_iter: 5}"]).solver.max_iter == 5  # a mapping for a section is fine
+
+
 def test_order_selection_keys(cfg_file):
     assert load_config(cfg_file, []).model.folds == 0  # leave one pose out by default
     cfg = load_config(cfg_file, ["model.folds=5", "model.margin=0"])

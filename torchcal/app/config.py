@@ -25,6 +25,7 @@ overrides resolve against the current directory, like any other shell argument.
 from __future__ import annotations
 
 import copy
+import difflib
 import dataclasses
 import functools
 import typing
@@ -291,6 +292,9 @@ class FitConfig:
 FRAME_MODES = ("auto", "base", "estimate")
 """The string values of ``measurement_frame``."""
 
+PROVENANCE_KEYS = ("config_file", "overrides")
+"""Keys load_config sets itself (where the config came from); not offered as valid keys to type."""
+
 WHOLE_VALUE_KEYS = ("tools", "measurement_frame", "sensor.mount", "constraint.c")
 """Keys whose override replaces the whole value (their values change type: list, mapping or word)."""
 
@@ -402,10 +406,14 @@ def _explain(exc: OmegaConfBaseException, where: str) -> ConfigError:
     key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "?"
     if isinstance(exc, ConfigKeyError):
         parts = str(key).split(".")
-        valid = _keys_at(FitConfig, parts[:-1])
+        valid = [k for k in _keys_at(FitConfig, parts[:-1]) if k not in PROVENANCE_KEYS]
         hint = f"; valid keys{' under ' + '.'.join(parts[:-1]) if len(parts) > 1 else ''}: {', '.join(valid)}" if valid else ""
-        return ConfigError(f"{where}: unknown config key '{key}'{hint}")
+        close = difflib.get_close_matches(parts[-1], valid, n=1, cutoff=0.7)
+        mean = f" (did you mean '{'.'.join([*parts[:-1], close[0]])}'?)" if close else ""
+        return ConfigError(f"{where}: unknown config key '{key}'{mean}{hint}")
     msg = str(exc).split("\n")[0]
+    if msg.startswith("Incompatible value 'None'"):  # OmegaConf's words for `key=` on a key that takes no null
+        msg = "needs a value (it cannot be empty or null)"
     return ConfigError(f"{where}: key '{key}': {msg}")
 
 
@@ -474,7 +482,11 @@ def apply_overrides(cfg: DictConfig, overrides: Sequence[str], base: Path | None
     """
     base = Path.cwd() if base is None else base
     for item in overrides:
-        key, _ = _split_override(item)
+        key, value = _split_override(item)
+        section = _keys_at(FitConfig, key.split("."))
+        if section and key not in WHOLE_VALUE_KEYS and not value.strip().startswith("{"):
+            raise ConfigError(f"override '{item}': key '{key}' is a section of keys ({', '.join(section)}), not one "
+                              f"value: set one of them, e.g. {key}.{section[0]}=...")
         whole = next((w for w in WHOLE_VALUE_KEYS if key.startswith(w + ".")), None)
         try:
             new = OmegaConf.from_dotlist([item])

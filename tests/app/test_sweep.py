@@ -158,3 +158,16 @@ def test_a_cell_asking_more_poses_than_the_file_fails_alone(sim, tmp_path):
     with pytest.raises(ConfigError, match="sweep: no cell could be fitted; cell 0: .*60 poses asked for"):
         run_sweep(sim, ["data.n_poses=60,70", "model.order=1", "data.truth=null"], out=tmp_path / "none")
     assert (tmp_path / "none" / "results.csv").is_file()
+
+
+def test_ray_engine_without_ray_fails_before_any_run_directory(sim, tmp_path, monkeypatch):
+    """The optional extra missing: one message naming the key, and no PARTIAL run directory left behind."""
+    import importlib.util
+    import sys
+
+    real = importlib.util.find_spec
+    monkeypatch.delitem(sys.modules, "ray", raising=False)
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
+    with pytest.raises(ConfigError, match=r"override 'sweep.engine=ray' .*key 'sweep.engine': ray needs Ray installed"):
+        run_sweep(sim, ["model.order=1,2", "sweep.engine=ray"], out=tmp_path / "sw")
+    assert not (tmp_path / "sw").exists()

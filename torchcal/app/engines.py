@@ -29,6 +29,19 @@ class Interrupted(TorchcalError):
     are kept, and the caller writes them before it lets the interrupt end the run."""
 
 
+def check_engine(engine: str, where: str) -> None:
+    """Refuse (:class:`ConfigError` naming ``where``) an unknown engine, or ``ray`` where Ray is not installed:
+    checked before a run directory is made, so that a missing extra leaves nothing behind."""
+    if engine not in ENGINES:
+        raise ConfigError(f"{where}: must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if engine == "ray":
+        import importlib.util
+        import sys
+
+        if "ray" not in sys.modules and importlib.util.find_spec("ray") is None:
+            raise ConfigError(f"{where}: ray needs Ray installed (pip install 'torchcal[ray]')")
+
+
 def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", address: str | None = None,
               where: str = "key 'engine'", on_done: Callable[[int, object], None] | None = None) -> list:
     """``fn(*a)`` for every ``a`` in ``args`` on ``engine`` -> per cell its result or the exception it raised.
@@ -43,8 +56,7 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
         >>> run_cells(divmod, [(7, 2), (1, 0)])[0]
         (3, 1)
     """
-    if engine not in ENGINES:
-        raise ConfigError(f"{where}: must be one of {', '.join(ENGINES)}, got {engine!r}")
+    check_engine(engine, where)
     done = on_done or (lambda i, r: None)
     if engine == "local":
         out: list = []
@@ -110,4 +122,4 @@ def task_error(exc: Exception) -> Exception:
     return cause if isinstance(cause, Exception) else exc
 
 
-__all__ = ["ENGINES", "Interrupted", "interrupted", "run_cells", "task_error"]
+__all__ = ["ENGINES", "Interrupted", "check_engine", "interrupted", "run_cells", "task_error"]

@@ -38,8 +38,8 @@ from ..core.exceptions import ConfigError
 from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
-from .config import SolverConfig, load_config, source_of, to_yaml, updated
-from .engines import interrupted
+from .config import SolverConfig, check_config, load_config, source_of, to_yaml, updated
+from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 from .fleet_files import ignored_files, unit_files, validation_gaps
 from .fleet_frames import align_units, in_base
@@ -76,6 +76,7 @@ def _check_fleet_config(cfg) -> None:
     if cfg.prior.fleet is not None:
         raise ConfigError(f"{source_of(cfg, 'prior.fleet', label)}: key 'prior.fleet': a fleet's units are fitted under the config's own prior; a "
                           "fleet prior is for a new unit with few poses (`torchcal fit UNIT.yaml prior.fleet=RUN`)")
+    check_engine(cfg.fleet.engine, f"{source_of(cfg, 'fleet.engine', label)}: key 'fleet.engine'")
     if cfg.solver.method != "lm":
         raise ConfigError(f"{source_of(cfg, 'solver.method', label)}: key 'solver.method': a fleet's batched solve is Levenberg-Marquardt (lm), got "
                           f"{cfg.solver.method!r}")
@@ -157,8 +158,6 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
 
     t0 = time.perf_counter()
     cfg = load_config(config, list(overrides or []))  # checked: every key's value; the robot's joints below
-    from .config import check_config
-
     label = cfg.config_file or "config"
     _check_fleet_config(cfg)
     files = unit_files(cfg)

@@ -41,7 +41,7 @@ import torch
 from ..core import units
 from ..io.atomic import atomic_path, atomic_write_text
 from .config import ConfigError, load_config, source_of, to_yaml
-from .engines import Interrupted, interrupted, run_cells
+from .engines import Interrupted, check_engine, interrupted, run_cells
 from ..identify.fit import frame_check
 
 log = logging.getLogger("torchcal")
@@ -163,6 +163,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     cells = [dict(zip(keys, values)) for values in itertools.product(*[v for _, v in axes])]
     cfgs = [load_config(config, plain + [f"{k}={v}" for k, v in cell.items()]) for cell in cells]
     base = load_config(config, plain)
+    check_engine(base.sweep.engine, f"{source_of(base, 'sweep.engine', base.config_file or 'config')}: key 'sweep.engine'")
     run_dir = make_run_dir(Path(out) if out is not None else Path(base.out).with_name("sweeps"))
     atomic_write_text(run_dir / "config.yaml", to_yaml(base))
     write_json(run_dir / "sweep.json", {"config": str(config), "overrides": plain, "axes": {k: v for k, v in axes},

@@ -242,7 +242,14 @@ def test_fleet_command_names_what_it_does_not_use(tmp_path, robot):
     assert rows["unit00"]["status"] == "fitted" and "validation_mean_mm" not in rows["unit00"]
     assert any("unit00" in w and "validation file not used" in w and "row 3" in w for w in res.warnings)
     assert any("README.txt" in w for w in res.warnings)
+    assert not any("byte-identical" in w for w in res.warnings)
     shutil.move(tmp_path / "ident" / "unit01.CSV", tmp_path / "ident" / "unit01.csv")
+    # a unit's file copied under another name: said (two "units" with no spread between them)
+    shutil.copy(tmp_path / "ident" / "unit00.csv", tmp_path / "ident" / "unit09.csv")
+    res = run_fleet(cfg, out=tmp_path / "fleet-run-copy")
+    assert [w for w in res.warnings if "byte-identical" in w] == [
+        "units unit00, unit09 have byte-identical identification files: one unit measured once?"]
+    (tmp_path / "ident" / "unit09.csv").unlink()
     shutil.copy(tmp_path / "ident" / "unit02.csv", tmp_path / "ident" / "unit02.tsv")
     with pytest.raises(ConfigError, match="unit02.csv and unit02.tsv"):
         run_fleet(cfg, out=tmp_path / "fleet-run-2")

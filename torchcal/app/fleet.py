@@ -41,7 +41,7 @@ from .common import config_backlash, config_orders
 from .config import SolverConfig, check_config, load_config, source_of, to_yaml, updated
 from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
-from .fleet_files import ignored_files, unit_files, validation_gaps
+from .fleet_files import identical_files, ignored_files, unit_files, validation_gaps
 from .fleet_frames import align_units, in_base
 
 log = logging.getLogger("torchcal")
@@ -190,6 +190,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         ignored = ignored_files(cfg)
         if ignored:
             warn(f"not read (not .csv / .tsv files): {', '.join(ignored)}")
+        for same in identical_files(files):  # one unit's file copied under two names: two "units", no spread
+            warn(f"units {', '.join(same)} have byte-identical identification files: one unit measured once?")
         if no_val:
             warn(f"data.validation: no file in {cfg.data.validation} for {len(no_val)} unit(s): {', '.join(no_val)} "
                  "(their validation columns stay empty)")

@@ -67,4 +67,15 @@ def ignored_files(cfg) -> list[str]:
     return out
 
 
-__all__ = ["ignored_files", "measurement_files", "unit_files", "validation_gaps"]
+__all__ = ["identical_files", "ignored_files", "measurement_files", "unit_files", "validation_gaps"]
+
+
+def identical_files(files) -> list[list[str]]:
+    """Groups of units (names) whose identification files are byte for byte the same; ``files``: as
+    :func:`unit_files` returns them."""
+    import hashlib
+
+    by_hash: dict[str, list[str]] = {}
+    for name, ident, _ in files:
+        by_hash.setdefault(hashlib.sha256(Path(ident).read_bytes()).hexdigest(), []).append(name)
+    return [names for names in by_hash.values() if len(names) > 1]

@@ -84,13 +84,19 @@ def feature_scores(models) -> FeatureScores:
                               list(models[0].joint_errors.joint_names))
 
 
+MAD_FLOOR = 0.01
+"""The least spread (a fraction of the fleet median) a feature's MAD is taken to have."""
+
+
 def scores_from_values(values: dict, joints: list) -> FeatureScores:
     """Per feature name (M, n) values of M units, each standardized by the units' median and MAD (per column)."""
     out = FeatureScores(list(joints), {}, {}, {}, {}, {})
     for key, F in values.items():
         F = F.detach().cpu().clamp(min=1e-15)  # (M, n)
         med = F.median(0).values
-        mad = (F - med).abs().median(0).values.clamp(min=1e-15)
+        # a spread of at least 1 % of the median: units with equal values (a file given twice, a fleet of three)
+        # have no MAD, and a z-score divided by nothing says 1e12 where a ratio says 1.2
+        mad = torch.maximum((F - med).abs().median(0).values, MAD_FLOOR * med.abs()).clamp(min=1e-15)
         out.value[key], out.median[key], out.mad[key] = F, med, mad
         out.z[key] = 0.6745 * (F - med) / mad
         out.ratio[key] = F / med
@@ -129,5 +135,5 @@ def parameter_outliers(fit, threshold: float = 5.0, min_ratio: float = OUTLIER_M
     return score, found
 
 
-__all__ = ["FeatureScores", "OUTLIER_MIN_RATIO", "Outlier", "axis_errors", "feature_scores", "joint_features",
+__all__ = ["FeatureScores", "MAD_FLOOR", "OUTLIER_MIN_RATIO", "Outlier", "axis_errors", "feature_scores", "joint_features",
            "parameter_outliers", "scores_from_values"]

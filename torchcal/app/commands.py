@@ -63,9 +63,9 @@ def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=No
     kw = dict(seed=seed, tracker=tracker, min_tool_distance=units.mm_to_m(min_distance_mm),
               min_height=units.mm_to_m(min_height_mm), max_incidence_deg=max_incidence_deg)
     if fleet is None:
-        plan = plan_poses(rob, count, order=order, **kw)
+        plan = _in_option_words(plan_poses, rob, count, order=order, **kw)
     else:
-        pool = plan_poses(rob, candidates, order="sequence", **kw)  # reachable, visible; a Sobol prefix
+        pool = _in_option_words(plan_poses, rob, candidates, order="sequence", **kw)  # reachable, visible; Sobol
         design = _fleet_design(fleet, rob, seed)
         picked, rms = design(pool.q, count)
         plain = design(pool.q[:count], count)[1]  # the plan without the design
@@ -77,6 +77,24 @@ def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=No
                                         "prior_rms_mm": units.m_to_mm(float(rms[0]))}})
     plan.to_csv(output, rob)
     return plan, rob
+
+
+_OPTION_WORDS = (("plan_poses: ", "plan-poses: "), ("order must", "--order must"),
+                 ("relax min_height / min_tool_distance / max_incidence_deg",
+                  "relax --min-height-mm / --min-distance-mm / --max-incidence-deg"))
+
+
+def _in_option_words(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` with a PlanningError's argument names put in the command's option names."""
+    from ..analysis.planning import PlanningError
+
+    try:
+        return fn(*args, **kwargs)
+    except PlanningError as exc:
+        msg = str(exc)
+        for lib, cli in _OPTION_WORDS:
+            msg = msg.replace(lib, cli)
+        raise PlanningError(msg) from None
 
 
 def _fleet_design(fleet, rob, seed: int):

@@ -171,3 +171,11 @@ def test_ray_engine_without_ray_fails_before_any_run_directory(sim, tmp_path, mo
     with pytest.raises(ConfigError, match=r"override 'sweep.engine=ray' .*key 'sweep.engine': ray needs Ray installed"):
         run_sweep(sim, ["model.order=1,2", "sweep.engine=ray"], out=tmp_path / "sw")
     assert not (tmp_path / "sw").exists()
+
+
+def test_a_mistyped_range_is_named(sim, tmp_path):
+    with pytest.raises(ConfigError, match="'model.order=a:b' is no range: lo:hi\\[:step\\] takes integers"):
+        run_sweep(sim, ["model.order=a:b"], out=tmp_path / "sw")
+    with pytest.raises(ConfigError, match="'model.order=' gives no values"):
+        run_sweep(sim, ["model.order="], out=tmp_path / "sw")
+    assert not (tmp_path / "sw").exists()

@@ -158,7 +158,11 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     t0 = time.perf_counter()
     plain, axes = parse_grid(list(specs))
     if not axes:
-        raise ConfigError("sweep: give at least one grid axis (key=a,b,c or key=lo:hi)")
+        odd = [p for p in plain if ":" in p.partition("=")[2] and not p.partition("=")[2].lstrip().startswith(("[", "{"))]
+        empty = [p for p in plain if not p.partition("=")[2].strip()]
+        hint = (f"; '{odd[0]}' is no range: lo:hi[:step] takes integers" if odd else
+                f"; '{empty[0]}' gives no values" if empty else "")
+        raise ConfigError(f"sweep: give at least one grid axis (key=a,b,c or key=lo:hi){hint}")
     keys = [k for k, _ in axes]
     cells = [dict(zip(keys, values)) for values in itertools.product(*[v for _, v in axes])]
     cfgs = [load_config(config, plain + [f"{k}={v}" for k, v in cell.items()]) for cell in cells]

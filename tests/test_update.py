@@ -148,6 +148,28 @@ def test_bad_inputs_name_the_file(runs):
     assert r.exit_code == 2 and "config.yaml" in r.output
 
 
+def test_unit_slips_in_new_rows_are_named_as_such(runs):
+    """Radian joints and metre points in an update's rows: the fit's unit checks, not 'misses by 600 mm'."""
+    import numpy as np
+
+    root = runs["root"]
+    b1 = pd.read_csv(root / "b1.csv")
+    rad, metres = b1.copy(), b1.copy()
+    q = [f"q{i}" for i in range(1, 7)]
+    rad[q] = np.radians(rad[q])
+    metres[["x", "y", "z"]] = metres[["x", "y", "z"]] / 1000.0
+    rad.to_csv(root / "b1_rad.csv", index=False)
+    metres.to_csv(root / "b1_m.csv", index=False)
+    r = invoke("update", root / "run", root / "b1_rad.csv", "--out", root / "never")
+    assert r.exit_code == 2 and "b1_rad.csv: columns q1..q6: the joints are radians" in r.output, r.output
+    r = invoke("update", root / "run", root / "b1_m.csv", "--out", root / "never")
+    assert r.exit_code == 2 and "b1_m.csv: columns x, y, z" in r.output and "look like metres" in r.output
+    assert not (root / "never").exists()
+    # the user's word skips the check; the rows then meet the update's own plausibility check
+    r = invoke("update", root / "run", root / "b1_m.csv", "--out", root / "never", "--units-checked")
+    assert r.exit_code == 2 and "look like metres" not in r.output and "misses these points" in r.output
+
+
 @pytest.fixture(scope="module")
 def sensor_runs(tmp_path_factory, fanuc, one_thread):
     """A 6-DOF STS run (Paper III) on 24 poses and its update with 10 more (simulated FANUC + STS + tracker)."""

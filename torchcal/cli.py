@@ -412,6 +412,8 @@ def update_cmd(
              "only for a parent written by `torchcal fit`, an updated run keeps its own.")] = None,
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Online adaptive identification (Paper III (33)): add new measurements to a run without refitting the old ones."""
     with _user_errors():
@@ -419,7 +421,8 @@ def update_cmd(
 
         console = None if quiet else _console(stderr=True)
         with _progress(console):
-            res = run_update(run_dir, new_data, out, _device(device), strategy, console=console)
+            res = run_update(run_dir, new_data, out, _device(device), strategy, console=console,
+                             units_checked=units_checked)
     if res.table:
         _console().print(results_table(res.table, "Residuals after the update (Paper II, Table 6 layout)"))
     for w in res.warnings:

@@ -262,7 +262,8 @@ def _evaluate(cfg, model, new: Measurements, progress) -> tuple[dict, list[dict]
 
 
 @frame_check(quiet=True)  # the run says a far frame its own way (its nominal residual)
-def run_update(run_dir, new_data, out, device=None, strategy: str | None = None, console=None) -> UpdateResult:
+def run_update(run_dir, new_data, out, device=None, strategy: str | None = None, console=None,
+               units_checked: bool = False) -> UpdateResult:
     """Add the rows of ``new_data`` (a CSV in the run's contract) to the run ``run_dir``; write the run ``out``.
 
     device: torch device (default the run config's); strategy: 'information' or
@@ -290,7 +291,8 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
 
     try:  # stages as progress tasks: a bar on a terminal, plain lines (and a heartbeat) elsewhere and in run.log
         with showing(console):
-            return _run_update(parent, cfg, Path(new_data), Path(out), dev, strategy, console)
+            return _run_update(parent, cfg, Path(new_data), Path(out), dev, strategy, console,
+                               units_checked or bool(cfg.data.units_checked))
     finally:
         threads.set_threads(old_override)
 
@@ -323,7 +325,20 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
             f"frame or unit? An update only refines the parent's robot; fit such data with torchcal fit"))])
 
 
-def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console) -> UpdateResult:
+def _check_units(model, new, new_path) -> None:
+    """The unit slips ``torchcal fit`` checks (joints in radians, points in metres), on the new rows: named as
+    such rather than as the 'misses by 600 mm' of another robot (units_checked: the user's word skips it)."""
+    from ..io.unit_checks import check_point_scale, check_radians, radian_columns
+
+    tools = model.tools().detach().cpu()
+    if radian_columns(new.q, model.robot):
+        check_radians(new, model.robot, tools, path=new_path)
+    else:
+        check_point_scale(new, model.robot, tools, path=new_path)
+
+
+def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console,
+                units_checked: bool = False) -> UpdateResult:
     from .fit import Progress
 
     progress = Progress(console)
@@ -333,6 +348,8 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
         noise = _noise_prior_options(cfg, model)[0]
         new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written
         new = new.to(dev)
+        if instrument is None and not units_checked:  # point rows; a sensor's poses are checked by their reader
+            _check_units(model, new, new_path)
         _check_new_data(cfg, model, new, new_path)
     notes: list[str] = []
     with progress.step("loading the parent's online state (or rebuilding it from its data)", quiet=True):

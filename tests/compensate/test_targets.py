@@ -117,6 +117,19 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     said = " ".join(r.output.split())
     assert r.exit_code == 0 and "t0.csv: no 'tool' column: every target is for tool 0" in said, said
     assert "backlash terms are left out" not in said
+    # targets in metres, and an orientation given twice: refused, nothing written
+    metres = df.copy()
+    metres[["x", "y", "z"]] = metres[["x", "y", "z"]] / 1000.0
+    metres.to_csv(tmp_path / "t_m.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "t_m.csv"), str(tmp_path / "out_m.csv")])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and "t_m.csv: columns x, y, z" in said and "look like metres" in said, said
+    both = df.assign(qw=1.0, qx=0.0, qy=0.0, qz=0.0)
+    both.to_csv(tmp_path / "t_both.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "t_both.csv"), str(tmp_path / "out_b.csv")])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and "both rx, ry, rz and qw, qx, qy, qz are given" in said, said
+    assert not (tmp_path / "out_m.csv").exists() and not (tmp_path / "out_b.csv").exists()
 
 
 def test_every_flagged_command_says_why(fanuc, tools_m):

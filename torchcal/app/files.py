@@ -223,6 +223,10 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
             df, unseeded = _seeds_from_flags(model, Path(input), df)
         data = parse_table(df, Path(input), robot, None, False, False)
     _refuse_radians(input, data, robot, units_checked)
+    if target_kind(df) is not None and not units_checked:  # target x, y, z in metres: ~1000x too close together
+        from ..io.unit_checks import check_point_scale
+
+        check_point_scale(data, robot, model.tools().detach().cpu(), path=input)
 
     said = _input_warnings(model, input, df, data, targets=target_kind(df) is not None)
     if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)

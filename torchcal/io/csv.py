@@ -624,6 +624,9 @@ def read_targets(df: pd.DataFrame, path) -> tuple[str, torch.Tensor, torch.Tenso
         raise DataError(path, [Problem(None, None, "no Cartesian target columns: x, y, z (mm) and rx, ry, rz "
                                                    "(deg) or qw, qx, qy, qz")])
     problems: list[Problem] = []
+    if set(TARGET_RPY) <= set(df.columns) and set(TARGET_QUAT) <= set(df.columns):
+        problems.append(Problem(None, "qw", "both rx, ry, rz and qw, qx, qy, qz are given: keep one orientation "
+                                            "(which one the controller meant cannot be told)"))
     p = np.stack([parse_numbers(df, c, problems) for c in XYZ], 1)
     names = TARGET_RPY if kind == "rpy" else TARGET_QUAT
     o = np.stack([parse_numbers(df, c, problems) for c in names], 1)

@@ -110,7 +110,8 @@ def test_a_bad_value_from_an_override_names_the_override_not_the_file(cfg_file, 
     cfg_file.write_text(MINIMAL.replace("order: 3", "order: 11"))
     with pytest.raises(ConfigError) as err:
         load_config(cfg_file, ["seed=1"])
-    assert str(err.value).startswith(f"{cfg_file}: key 'model.order'")
+    line = MINIMAL.splitlines().index("  order: 3") + 1  # the file's own line of the key
+    assert str(err.value).startswith(f"{cfg_file}, line {line}: key 'model.order'")
 
 
 def test_repeated_overrides_are_said_and_the_last_one_wins(cfg_file):

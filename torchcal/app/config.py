@@ -441,16 +441,51 @@ def _resolve_paths(cfg: DictConfig, base: Path, keys: Sequence[str]) -> None:
             node[name] = _resolve_path(node[name], base)
 
 
+_KEY_LINES: dict[str, dict[str, int]] = {}
+"""{config file: {dotted key: line}} of the files load_config read: a value's check, made after parsing, can name
+its line (a cache rebuilt on every read of that file, so an edited file is never mislabelled for long)."""
+
+
+def _key_lines(text: str) -> dict[str, int]:
+    """Every mapping key of a YAML text, dotted, with its 1-based line (nothing where the text does not compose)."""
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return {}
+    out: dict[str, int] = {}
+
+    def walk(node, prefix):
+        if isinstance(node, yaml.MappingNode):
+            for k, v in node.value:
+                if isinstance(k, yaml.ScalarNode):
+                    key = f"{prefix}{k.value}"
+                    out.setdefault(key, k.start_mark.line + 1)
+                    walk(v, key + ".")
+
+    walk(root, "")
+    return out
+
+
+def _with_line(label: str, key: str, config_file: str | None) -> str:
+    lines = _KEY_LINES.get(config_file or "", {})
+    parts = key.split(".")
+    for i in range(len(parts), 0, -1):  # the key itself, else the nearest key above it the file has
+        line = lines.get(".".join(parts[:i]))
+        if line is not None:
+            return f"{label}, line {line}"
+    return label
+
+
 def source_of(cfg: "FitConfig", key: str, label: str) -> str:
     """Where ``key``'s value came from, for a message: the last override setting it (or a key above or below
-    it), else ``label`` (the file)."""
+    it), else ``label`` (the file, with the key's line where the file has it)."""
     whole = next((w for w in WHOLE_VALUE_KEYS if key == w or key.startswith(w + ".")), None)
     for item in reversed(tuple(getattr(cfg, "overrides", ()) or ())):
         k = item.partition("=")[0].strip()
         if k == key or key.startswith(k + ".") or k.startswith(key + ".") or (
                 whole is not None and k.startswith(whole + ".")):  # the override replaced the whole value
             return f"override '{item}' (over {label})"
-    return label
+    return _with_line(label, key, getattr(cfg, "config_file", None))
 
 
 def repeated_overrides(overrides: Sequence[str]) -> list[str]:
@@ -635,6 +670,7 @@ def load_config(path, overrides: Sequence[str] = ()) -> FitConfig:
         line = path.read_bytes()[:exc.start].count(b"\n") + 1
         raise ConfigError(f"{path}: not a UTF-8 text file (byte 0x{exc.object[exc.start]:02x} at line {line}); save "
                           "it as UTF-8") from None
+    _KEY_LINES[str(path.resolve())] = _key_lines(text)
     try:
         raw = yaml.load(text, Loader=_UniqueKeyLoader)
     except _DuplicateKey as exc:

@@ -147,6 +147,11 @@ def test_override_mistakes_get_plain_words(cfg_file):
     OmegaConf's internals (a merge error on '_ParsedDataConfig', 'Incompatible value None')."""
     with pytest.raises(ConfigError, match=r"unknown config key 'solver.max_itr' \(did you mean 'solver.max_iter'\?\)"):
         load_config(cfg_file, ["solver.max_itr=5"])
+    with pytest.raises(ConfigError, match=r"'model.max_iter' \(did you mean one of 'solver.max_iter', "
+                                          r"'compensation.max_iter'\?\)"):
+        load_config(cfg_file, ["model.max_iter=5"])  # the right name in other sections
+    with pytest.raises(ConfigError, match=r"'data.threshold' \(did you mean 'fleet.threshold'\?\)"):
+        load_config(cfg_file, ["data.threshold=5"])
     with pytest.raises(ConfigError) as err:
         load_config(cfg_file, ["learnign_rate=3"])
     assert "did you mean" not in str(err.value) and "config_file" not in str(err.value)  # nothing close; no internals

@@ -401,6 +401,24 @@ def _keys_at(node_type, parts: list[str]) -> list[str]:
     return [f.name for f in fields(t)] if t is not None and is_dataclass(t) else []
 
 
+@functools.lru_cache(maxsize=1)
+def _all_keys() -> tuple[str, ...]:
+    """Every dotted key of the schema (sections' keys included), for suggestions."""
+    out: list[str] = []
+
+    def walk(cls, prefix):
+        for f in fields(cls):
+            t = typing.get_type_hints(cls).get(f.name)
+            key = prefix + f.name
+            if f.name not in PROVENANCE_KEYS:
+                out.append(key)
+            if isinstance(t, type) and is_dataclass(t):
+                walk(t, key + ".")
+
+    walk(FitConfig, "")
+    return tuple(out)
+
+
 def _explain(exc: OmegaConfBaseException, where: str) -> ConfigError:
     """One readable sentence from an OmegaConf error; ``where`` is the file or the override."""
     key = getattr(exc, "full_key", None) or getattr(exc, "key", None) or "?"
@@ -409,7 +427,12 @@ def _explain(exc: OmegaConfBaseException, where: str) -> ConfigError:
         valid = [k for k in _keys_at(FitConfig, parts[:-1]) if k not in PROVENANCE_KEYS]
         hint = f"; valid keys{' under ' + '.'.join(parts[:-1]) if len(parts) > 1 else ''}: {', '.join(valid)}" if valid else ""
         close = difflib.get_close_matches(parts[-1], valid, n=1, cutoff=0.7)
-        mean = f" (did you mean '{'.'.join([*parts[:-1], close[0]])}'?)" if close else ""
+        if close:
+            mean = f" (did you mean '{'.'.join([*parts[:-1], close[0]])}'?)"
+        else:  # the right name in another section (model.max_iter for solver.max_iter)
+            other = [k for k in _all_keys() if k.rsplit(".", 1)[-1] == parts[-1] and k != str(key)]
+            mean = (f" (did you mean '{other[0]}'?)" if len(other) == 1 else
+                    f" (did you mean one of {', '.join(repr(k) for k in other)}?)" if 1 < len(other) <= 3 else "")
         return ConfigError(f"{where}: unknown config key '{key}'{mean}{hint}")
     msg = str(exc).split("\n")[0]
     if msg.startswith("Incompatible value 'None'"):  # OmegaConf's words for `key=` on a key that takes no null

@@ -224,6 +224,15 @@ def test_fleet_command_names_what_it_does_not_use(tmp_path, robot):
     res = run_fleet(cfg, out=tmp_path / "fleet-run")
     rows = {r["unit"]: r for r in res.rows}
     assert "validation_mean_mm" in rows["unit00"] and "validation_mean_mm" not in rows["unit01"]
+    # each unit's model keeps its own data's span (predict / compensate judge extrapolation by it)
+    import numpy as np
+    import pandas as pd
+
+    from torchcal.io.rundir import load_model
+
+    span = np.degrees(load_model(res.run_dir / "units" / "unit01").data_span.numpy())
+    own = pd.read_csv(tmp_path / "ident" / "unit01.csv")[[f"q{i}" for i in range(1, 7)]]
+    assert np.allclose(span[:, 0], own.min().to_numpy()) and np.allclose(span[:, 1], own.max().to_numpy())
     gap = [w for w in res.warnings if "no file" in w]
     assert len(gap) == 1 and "unit01, unit02" in gap[0]
     assert any("unit77.csv" in w for w in res.warnings)

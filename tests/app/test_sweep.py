@@ -6,6 +6,7 @@ import importlib.util
 import json
 
 import pytest
+import torch
 
 from torchcal.app.sweep import parse_grid, run_sweep
 from torchcal.app.config import ConfigError, load_config
@@ -39,6 +40,15 @@ def test_sweep_cells_equal_their_own_fits(sim, tmp_path):
     assert (res.run_dir / "results.csv").exists() and (res.run_dir / "plots" / "sweep.png").exists()
     assert json.loads((res.run_dir / "sweep.json").read_text())["cells"] == 4
     assert (res.run_dir / "cells" / "03" / "model.pt").exists()
+    # a stacked cell's model keeps the span of its own first N poses' commands (what extrapolation is judged by)
+    import pandas as pd
+    from torchcal.io.rundir import load_model
+
+    cell = next(r for r in res.rows if r["data.n_poses"] == "25")
+    ident = pd.read_csv(sim.parent / "identification.csv")
+    first = ident[ident.pose.isin(ident.pose.drop_duplicates().iloc[:25])][[f"q{i}" for i in range(1, 7)]]
+    span = load_model(res.run_dir / "cells" / f"{cell['cell']:02d}").data_span * 180.0 / 3.141592653589793
+    assert torch.allclose(span[:, 1], torch.tensor(first.max().to_numpy()), atol=1e-9)
     # what an engine sends out: one group per model structure (each the batched solve of its pose counts)
     assert "4 cells over model.order, data.n_poses: 2 independent group(s)" in (res.run_dir / "run.log").read_text()
     for row in res.rows:

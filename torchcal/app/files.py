@@ -52,8 +52,9 @@ def _outside_data_column(model, q: torch.Tensor):
 
 
 def outside_data_message(input, count: int, rows: int) -> str:
-    return (f"{input}: {count} of {rows} rows command a joint beyond the identification data's range (column "
-            "'outside_data'): the model extrapolates its error terms there; measure such poses to calibrate them")
+    return (f"{input}: {count} of {rows} rows put a joint beyond the identification data's range (column "
+            "'outside_data'; for compensate, at the compensated command): the model extrapolates its error terms "
+            "there; measure such poses to calibrate them")
 
 
 def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> PredictFile:
@@ -255,7 +256,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
     if res.direction_outside is not None:
         out["direction_outside"] = res.direction_outside.cpu().numpy()
-    outside = _outside_data_column(model, data.q)
+    outside = _outside_data_column(model, res.q)  # where the model is evaluated: the compensated command
     if outside is not None:
         out["outside_data"] = outside
         if outside.any():
@@ -360,11 +361,17 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     out["converged"] = converged.numpy()
     out["within_limits"] = comp.within_limits.cpu().numpy()
     out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
+    outside = _outside_data_column(model, res.q)
+    said = []
+    if outside is not None:
+        out["outside_data"] = outside
+        if outside.any():
+            said.append(outside_data_message(input, int(outside.sum()), len(df)))
     out["reason"] = res.reason
     write_table(output, out)
     flagged = int((~converged).sum())
     return CompensationFile(len(df), int((~comp.converged).sum()), int((~comp.within_limits).sum()), flagged,
-                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp)
+                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp, said)
 
 
 def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:

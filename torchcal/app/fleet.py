@@ -34,11 +34,10 @@ from pathlib import Path
 import torch
 
 from ..core import units
-from ..core.exceptions import ConfigError
 from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
 from .common import config_backlash, config_orders
-from .config import SolverConfig, check_config, load_config, source_of, to_yaml, updated
+from .config import ConfigError, SolverConfig, check_config, load_config, source_of, to_yaml, updated
 from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 from .fleet_files import identical_files, ignored_files, unit_files, validation_gaps
@@ -129,7 +128,7 @@ def fit_cell(cfg, cell: list[tuple[str, object]], n_threads: int) -> list[dict]:
         out = fit_fleet(lambda: make(orders), data, noise, prior, **opts)
     finally:
         threads.set_threads(old)
-    return [{"name": name, "state": {k: v.detach().cpu() for k, v in m.state_dict().items()},
+    return [{"name": name, "state": {k: v.detach().cpu() for k, v in m.state_dict().items()}, "span": m.data_span,
              "fit": r.summary(), "orders": orders, "backlash": make.backlash}
             for (name, _), m, r in zip(cell, out.models, out.results)]
 
@@ -259,6 +258,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             for u in got:
                 model = _factory(cfg, robot, device, u["backlash"])(u["orders"])
                 model.load_state_dict(u["state"])
+                model.data_span = u.get("span")  # its data's range: not a parameter, so not in the state
                 if u["name"] in frames:
                     with torch.no_grad():
                         model.base.nominal.copy_(frames[u["name"]].to(model.base.nominal))

@@ -174,6 +174,7 @@ def fit(
         from ..core.coverage import DirectionCoverage
 
         model.coverage = DirectionCoverage.from_data(data.q, data.direction, model.command_limits)
-    if hasattr(model, "data_span") and len(data):
-        model.data_span = torch.stack([data.q.amin(0), data.q.amax(0)], 1).detach().cpu()
+    if hasattr(model, "record_data_span"):
+        model.data_span = None  # this fit's data alone (a refit of a loaded model starts over)
+        model.record_data_span(data.q)
     return result

@@ -458,6 +458,9 @@ def fit_fleet(make: Callable[[], torch.nn.Module], units: Sequence[Measurements]
     else:
         batch = solve_streams(fp, k, max_iter, ftol, xtol, mu0, chunk, label, t0)
     fp.in_data_order(batch.results)
+    for model, unit in zip(fp.models, units):  # what each unit's predict / compensate judge extrapolation by
+        if hasattr(model, "record_data_span"):
+            model.record_data_span(unit.q)
     return FleetFit(fp.models, batch, fp.layout)
 
 

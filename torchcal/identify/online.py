@@ -406,11 +406,8 @@ class OnlineCalibration:
             cov = getattr(self.model, "coverage", None)
             self.model.coverage = (DirectionCoverage.from_data(data.q, data.direction, self.model.command_limits)
                                    if cov is None else cov.update(data.q, data.direction))
-        if hasattr(self.model, "data_span") and len(data):  # the range every row so far covered
-            lo, hi = data.q.amin(0).detach().cpu(), data.q.amax(0).detach().cpu()
-            span = self.model.data_span
-            self.model.data_span = torch.stack([lo, hi], 1) if span is None else torch.stack(
-                [torch.minimum(span[:, 0], lo), torch.maximum(span[:, 1], hi)], 1)
+        if hasattr(self.model, "record_data_span"):  # the range every row so far covered
+            self.model.record_data_span(data.q)
 
     def _solve(self, data: Measurements, instrument: Instrument, blocks, fixed_rows=None, v0=None) -> FitResult:
         """One identification, the gauge pinned as in the first update (see :meth:`pin`)."""

@@ -363,10 +363,25 @@ class RobotModel(ChainBuffers, nn.Module):
             model.data_span = torch.tensor(spec["data_span"], dtype=torch.float64)
         return model
 
+    def record_data_span(self, q: torch.Tensor) -> None:
+        """Keep the least / greatest error variable (:meth:`error_variables`: the command, or θ where a joint's
+        errors follow it) of each joint over the identification commands q (R, n), widening a span already
+        kept (online updates): what :meth:`outside_data` judges against."""
+        if q.shape[0] == 0:
+            return
+        with torch.no_grad():
+            u = self.error_variables(q.to(self.error_offset))
+            lo, hi = u.amin(0).detach().cpu(), u.amax(0).detach().cpu()
+        span = self.data_span
+        self.data_span = torch.stack([lo, hi], 1) if span is None else torch.stack(
+            [torch.minimum(span[:, 0], lo), torch.maximum(span[:, 1], hi)], 1)
+
     def outside_data(self, q: torch.Tensor) -> torch.Tensor | None:
-        """(B, n) bool: commands q (B, n) beyond the identification data's range of that joint (the model
-        extrapolates its error series there), or None when the fit recorded no range."""
+        """(B, n) bool: commands q (B, n) at which a joint's error variable lies beyond the identification data's
+        range (the model extrapolates that joint's error series there), or None when no range was recorded."""
         if self.data_span is None:
             return None
-        span = torch.as_tensor(self.data_span).to(q.device, q.dtype)
-        return (q < span[:, 0]) | (q > span[:, 1])
+        with torch.no_grad():
+            u = self.error_variables(q.to(self.error_offset))
+        span = torch.as_tensor(self.data_span).to(u.device, u.dtype)
+        return (u < span[:, 0]) | (u > span[:, 1])

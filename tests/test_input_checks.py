@@ -82,7 +82,7 @@ def test_joints_that_only_look_like_radians_are_warned_not_refused(fanuc):
     """Near-home commands in degrees (every joint within +-6 deg) look like radians; their points fit degrees, so
     the check must not refuse them. The same points with the commands rewritten in radians are refused."""
     from tests.conftest import fanuc_dh_reference
-    from torchcal.io.unit_checks import UnitsError, check_radians, radian_columns
+    from torchcal.io.unit_checks import UnitsError, check_radians, degrees_confirmed, radian_columns
 
     g = np.random.default_rng(3)
     q_deg = g.uniform(-6.0, 6.0, (40, 6))  # every joint within the radian bound
@@ -99,7 +99,7 @@ def test_joints_that_only_look_like_radians_are_warned_not_refused(fanuc):
     tools = torch.tensor(tool[None])
     d = data(q_deg)
     assert radian_columns(d.q, fanuc)  # it looks like radians ...
-    assert check_radians(d, fanuc, tools) is False  # ... but the points say degrees: only a warning
+    assert degrees_confirmed(check_radians(d, fanuc, tools))  # ... but the points say degrees: only a warning
     with pytest.raises(UnitsError, match="near_home.csv: columns q1..q6: the joints are radians"):
         check_radians(data(np.radians(q_deg)), fanuc, tools)  # the same poses written in radians
 
@@ -398,3 +398,30 @@ def test_a_partial_run_is_not_deployed(fitted, tmp_path):
         assert not any((tmp_path / n).exists() for n in ("p.csv", "c.csv", "u", "cal.urdf"))
     (run / "PARTIAL").unlink()  # the user's word: checked
     assert invoke("predict", run, sim / "validation.csv", tmp_path / "p.csv").exit_code == 0
+
+
+def test_near_home_degrees_are_not_refused_where_the_points_or_the_run_say_degrees(tmp_path):
+    """A run identified on near-home poses in degrees: predict and compensate must take its own files (its points
+    fit degrees; its commands are within the run's own span) instead of calling them radians."""
+    import torchcal
+    from tests.conftest import PAPER2_TOOLS_MM
+
+    robot = load_robot("fanuc_lrmate200i")
+    tools = torch.tensor(PAPER2_TOOLS_MM, dtype=torch.float64) / 1000.0
+    truth = torchcal.TruthRobot.fanuc_paper2(robot, tools, 4)
+    g = torch.Generator().manual_seed(2)
+    q = torch.deg2rad(torch.rand(40, 6, generator=g, dtype=torch.float64) * 10.0 - 5.0)  # within +-5 deg
+    data = torchcal.simulate(truth, q, [0, 1, 2], torchcal.NoiseModel.from_robot(robot), 1)
+    torchcal.write_measurements(tmp_path / "home.csv", data, robot)
+    cfg = tmp_path / "home.yaml"
+    cfg.write_text(f"robot: fanuc_lrmate200i\ntools: {PAPER2_TOOLS_MM}\ndata: {{identification: home.csv}}\n"
+                   "model: {order: 0, backlash: false}\nplots: false\nreport: false\nout: run\n")
+    r = invoke("fit", cfg, "-q")
+    assert r.exit_code == 0 and "but the measured points fit them read as degrees" in r.output, r.output
+    run = tmp_path / "run"
+    assert invoke("predict", run, tmp_path / "home.csv", tmp_path / "p.csv").exit_code == 0  # its points decide
+    cmds = pd.read_csv(tmp_path / "home.csv").drop(columns=["x", "y", "z"])
+    cmds.to_csv(tmp_path / "cmds.csv", index=False)
+    r = invoke("compensate", run, tmp_path / "cmds.csv", tmp_path / "c.csv")  # no points: the run's span decides
+    assert r.exit_code == 0, r.output
+    # (against a run fitted over the whole range such commands are still refused: the test of section 1)

@@ -22,15 +22,27 @@ from ..core.progress import task as progress_task
 from ..io.csv import write_table
 
 
-def _refuse_radians(path, data: Measurements, robot, units_checked: bool) -> None:
-    """Commands that look like radians would be driven as degrees: refuse unless the user says they are degrees."""
+def _refuse_radians(path, data: Measurements, model, units_checked: bool) -> None:
+    """Commands that look like radians would be driven as degrees: refuse unless the user says they are degrees,
+    the file's measured points fit degrees, or the run was itself identified on such commands (near-home)."""
     if units_checked:
         return
-    from ..io.unit_checks import OVERRIDE, UnitsError, radian_columns, radian_message
+    from ..io.unit_checks import (OVERRIDE, RADIAN_BOUND, UnitsError, check_radians, degrees_confirmed,
+                                  radian_columns, radian_message)
 
+    robot = model.robot
     rad = radian_columns(data.q, robot)
-    if rad:
-        raise UnitsError(radian_message(path, data.q, robot, rad) + f"; pass {OVERRIDE} if they really are degrees")
+    if not rad:
+        return
+    if degrees_confirmed(check_radians(data, robot, model.tools().detach().cpu(), path)):  # radians: refused there
+        return
+    span = getattr(model, "data_span", None)
+    if span is not None:  # the run's own commands (error variables: the same unit) stayed this close to home
+        deg = units.joints_from_si(span.abs().amax(1)[None], robot.joint_map.prismatic.cpu())[0]
+        cols = [int(c[1:]) - 1 for c in rad]
+        if bool((deg[cols] <= RADIAN_BOUND).all()):
+            return
+    raise UnitsError(radian_message(path, data.q, robot, rad) + f"; pass {OVERRIDE} if they really are degrees")
 
 
 @dataclass
@@ -95,7 +107,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
         per_tool = "tool" not in df.columns
         if not per_tool:  # the rows name their tools: checked against the run's
             data = parse_table(df, input, model.robot, T, require_xyz=False)
-    _refuse_radians(input, data, model.robot, units_checked)
+    _refuse_radians(input, data, model, units_checked)
     data = data.to(model.device)
     # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
     tools = range(T) if per_tool else [None]
@@ -223,7 +235,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         if target_kind(df) is not None and _has_flags(df, robot):  # the controller's branch by configuration flags
             df, unseeded = _seeds_from_flags(model, Path(input), df)
         data = parse_table(df, Path(input), robot, None, False, False)
-    _refuse_radians(input, data, robot, units_checked)
+    _refuse_radians(input, data, model, units_checked)
     if target_kind(df) is not None and not units_checked:  # target x, y, z in metres: ~1000x too close together
         from ..io.unit_checks import check_point_scale
 

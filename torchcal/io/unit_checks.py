@@ -127,24 +127,30 @@ def _with_q(data, q: torch.Tensor):
     return dataclasses.replace(data, q=q.to(data.q))
 
 
-def check_radians(data, robot, tools_m: torch.Tensor | None = None, path=None) -> bool:
+def check_radians(data, robot, tools_m: torch.Tensor | None = None, path=None) -> tuple[float, float] | None:
     """Raise :class:`UnitsError` when the points fit the joints read as radians and not as degrees.
 
-    Called where :func:`radian_columns` has found joints that look like radians: the points decide. -> False when
-    they do not (too few rows, or neither reading fits: the look alone is then only a warning).
+    Called where :func:`radian_columns` has found joints that look like radians: the points decide.
+    -> :func:`radian_scales` (as degrees, as radians) when they do not refuse, None where they cannot tell (too
+    few rows, no points); :func:`degrees_confirmed` says whether they confirm degrees.
     """
-    scales = radian_scales(data, robot, tools_m)
+    scales = radian_scales(data, robot, tools_m) if bool(torch.isfinite(data.xyz).all()) else None
     if scales is None:
-        return False
+        return None
     s_deg, s_rad = scales
     if not (RADIAN_FIT[0] <= s_rad <= RADIAN_FIT[1]) or RADIAN_FIT[0] <= s_deg <= RADIAN_FIT[1]:
-        return False
+        return scales
     raise UnitsError(
         f"{path or data.source}: columns q1..q{robot.joint_map.n}: the joints are radians: read as radians, the "
         f"nominal robot ('{robot.name}') moves its points as far as the tracker saw (distance ratio {s_rad:.3g}); "
         f"read as degrees, as the contract says, {s_deg:.3g}x less. Convert "
         f"the revolute columns (deg = rad * 180 / pi), or pass {OVERRIDE} (fit, fleet, sweep: "
         f"data.units_checked=true) if they really are degrees")
+
+
+def degrees_confirmed(scales: tuple[float, float] | None) -> bool:
+    """Whether :func:`check_radians`' scales say the points fit the joints read as degrees."""
+    return scales is not None and RADIAN_FIT[0] <= scales[0] <= RADIAN_FIT[1]
 
 
 def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=None) -> None:
@@ -160,5 +166,6 @@ def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=Non
         f"data.units_checked=true) if they really are mm")
 
 
-__all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "point_scale", "radian_columns",
+__all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "degrees_confirmed", "point_scale",
+           "radian_columns",
            "radian_message", "radian_scales"]

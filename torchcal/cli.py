@@ -647,7 +647,8 @@ def export_urdf_cmd(
         return
     c, rms = res.comparison, res.rms_mm
     typer.echo(f"compared on the {which} data: {res.data} ({c.nominal.count} points)")
-    t = Table(title="Residuals (mm)", caption="|p - xyz|, joint errors v at zero")
+    t = Table(title="Residuals (mm)", caption="|p - xyz|, joint errors v at zero; every row with the run's identified "
+                                              "tool vectors (the URDF holds no tools)")
     t.add_column("Model", no_wrap=True)
     for name in ("Mean", "RMS", "Max"):
         t.add_column(name, justify="right", no_wrap=True)
@@ -657,6 +658,8 @@ def export_urdf_cmd(
     _console().print(t)
     if res.urdf_worse_than_nominal:
         hint = ("; export with --constants fit (the default)" if constants == "c0" else
+                "; the full model is worse than the nominal robot there too: do not deploy this run"
+                if c.full.mean > c.nominal.mean else
                 ": the joint-dependent errors dominate, use the full model (torchcal predict / compensate)")
         typer.echo(f"warning: the URDF alone is worse than the nominal robot on the {which} data (mean "
                    f"{c.urdf.mean:.4f} mm against {c.nominal.mean:.4f} mm, RMS {rms['urdf']:.4f} against "

@@ -239,8 +239,8 @@ def require_finished(run_dir, what: str) -> None:
     ``what``: the command, for the message. A model file given directly is not checked."""
     path = Path(run_dir)
     if path.is_dir() and (path / PARTIAL_FILE).is_file():
-        raise RunDirError(f"{path}: this run did not finish (it holds {PARTIAL_FILE}: failed or interrupted, see its "
-                          f"run.log), so {what} does not use its model; fit again, or delete {path / PARTIAL_FILE} "
+        raise RunDirError(f"{path}: this run did not finish (it holds {PARTIAL_FILE}: failed or interrupted; its "
+                          f"run.log, or its fleet's, says why), so {what} does not use its model; fit again, or delete {path / PARTIAL_FILE} "
                           "if you have checked that the model is complete")
 
 

@@ -160,7 +160,7 @@ def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=Non
         return
     guess = "metres" if s < 1 else "micrometres" if s > 300 else "another unit"
     raise UnitsError(
-        f"{path or data.source}: columns x, y, z: the distances between the measured points are {s:.3g} times the "
+        f"{path or data.source}: columns x, y, z: the distances between the rows' points are {s:.3g} times the "
         f"nominal robot's ('{robot.name}'), i.e. off by a factor ~{(1 / s if s < 1 else s):.3g}: they look like "
         f"{guess}, and the contract is mm; convert them, or pass {OVERRIDE} (fit, fleet, sweep: "
         f"data.units_checked=true) if they really are mm")

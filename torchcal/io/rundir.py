@@ -240,8 +240,8 @@ def require_finished(run_dir, what: str) -> None:
     path = Path(run_dir)
     if path.is_dir() and (path / PARTIAL_FILE).is_file():
         raise RunDirError(f"{path}: this run did not finish (it holds {PARTIAL_FILE}: failed or interrupted; its "
-                          f"run.log, or its fleet's, says why), so {what} does not use its model; fit again, or delete {path / PARTIAL_FILE} "
-                          "if you have checked that the model is complete")
+                          f"run.log, or its fleet's, says why), so {what} does not use its model; fit again, or "
+                          f"delete {path / PARTIAL_FILE} if you have checked that the model is complete")
 
 
 def load_model(run_dir, device=None, robot=None):

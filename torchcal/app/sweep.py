@@ -306,6 +306,7 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
                           rows=torch.stack([rows[i] for i in part]), **opts)
         for i, r in zip(part, batch.results):
             model = models[i]
+            model.record_data_span(inp.ident.q[rows[i]])  # its own first N poses: what extrapolation is judged by
             data = inp.ident.subset(rows[i])
             ident = residual_stats(point_residuals(model, data).cpu()).scaled(units.m_to_mm(1.0))
             row = {"status": "fitted", "converged": bool(r.success), "iterations": int(r.nit), "cost": float(r.fun),

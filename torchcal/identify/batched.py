@@ -306,11 +306,7 @@ def fit_batch(superset, models: Sequence[torch.nn.Module], data: Measurements, n
     """
     t0 = time.perf_counter()
     bp = BatchedProblem(superset, models, data, noise, prior, rows, fixed, gauge)
-    out = solve_batched(bp, max_iter, ftol, xtol, mu0, chunk, t0=t0)
-    for m, model in enumerate(models):
-        if hasattr(model, "record_data_span"):  # each model's own rows (a sweep cell's first N poses)
-            model.record_data_span(data.q[bp.rows[m].to(data.q.device)])
-    return out
+    return solve_batched(bp, max_iter, ftol, xtol, mu0, chunk, t0=t0)
 
 
 def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-10, mu0: float = MU0,

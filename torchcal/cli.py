@@ -156,12 +156,17 @@ def _user_errors():
         raise typer.Exit(USER_ERROR) from None
 
 
+def _warn(lines) -> None:
+    """Each line a ``warning:`` on stderr, one line however long (scripts grep it)."""
+    for w in lines:
+        _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
+
+
 def _warn_repeated(items) -> None:
     """A key given twice among the overrides: said on stderr (the last one is used), before the run starts."""
     from .app.config import repeated_overrides
 
-    for w in repeated_overrides(items or []):
-        _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
+    _warn(repeated_overrides(items or []))
 
 
 def _device(name: str):
@@ -388,17 +393,13 @@ def predict_cmd(
 ):
     """Predict measured points x, y, z (mm) for joint commands with an identified model."""
     with _user_errors():
-        from .app.files import outside_data_message, predict_file
+        from .app.files import predict_file
 
         _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
             res = predict_file(run_dir, input, output, _device(device), units_checked)
     typer.echo(f"predicted {res.rows} rows -> {output}")
-    for w in res.warnings:
-        _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
-    if res.outside_data:
-        _console(stderr=True).print(f"warning: {outside_data_message(input, res.outside_data, res.rows)}", markup=False,
-                                    soft_wrap=True)
+    _warn(res.warnings)
 
 
 # ---------------------------------------------------------------------- update
@@ -484,8 +485,7 @@ def compensate_cmd(
             out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg,
                                   units_checked, _tool_axis(tool_axis) if free_tool_axis else None)
     typer.echo(f"compensated {out.rows} commands -> {output}")
-    for w in out.warnings:
-        _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
+    _warn(out.warnings)
     if out.flagged:
         _console(stderr=True).print(
             f"warning: {out.flagged} of {out.rows} commands flagged ({out.not_converged} did not converge, "

@@ -107,11 +107,10 @@ def _fleet_design(fleet, rob, seed: int):
     from ..identify.problem import NoiseModel
     from .fleet_prior import prior_from_fleet_run
 
-    from pathlib import Path
-
+    from ..io.rundir import is_fleet_run
     from .config import ConfigError
 
-    if not (Path(fleet) / "summary.csv").is_file() or not (Path(fleet) / "units").is_dir():
+    if not is_fleet_run(fleet):
         raise ConfigError(f"--fleet {fleet}: not a `torchcal fleet` run directory (it needs the summary.csv and "
                           "units/ that `torchcal fleet` writes; a `torchcal fit` run has neither)")
     fp = prior_from_fleet_run(fleet, robot=rob)

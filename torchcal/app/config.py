@@ -957,8 +957,10 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
     if cfg.prior.fleet is not None:
         from ..identify.fleet_prior import METHODS as _FLEET_METHODS
 
+        from ..io.rundir import is_fleet_run
+
         where = Path(str(cfg.prior.fleet))
-        if not (where / "summary.csv").is_file() or not (where / "units").is_dir():
+        if not is_fleet_run(where):
             fail("prior.fleet", f"{str(where)!r} is not a fleet's run directory (no summary.csv and units/: the folder "
                                 "`torchcal fleet` wrote)")
         if cfg.prior.fleet_method not in _FLEET_METHODS:

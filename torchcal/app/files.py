@@ -54,7 +54,8 @@ class PredictFile:
     """Rows (of the file as read) with a joint beyond the identification data's range, the model's error series
     extrapolated there (column 'outside_data'); None for runs that recorded no range."""
     warnings: list[str] = field(default_factory=list)
-    """What the input leaves out (no approach directions for a backlash model), said by the CLI."""
+    """What the input leaves out (no approach directions for a backlash model) and the rows beyond the data's
+    range, said by the CLI."""
 
 
 def _outside_data_column(model, q: torch.Tensor):
@@ -63,10 +64,18 @@ def _outside_data_column(model, q: torch.Tensor):
     return None if out is None else out.any(-1).cpu().numpy()
 
 
-def outside_data_message(input, count: int, rows: int) -> str:
-    return (f"{input}: {count} of {rows} rows put a joint beyond the identification data's range (column "
-            "'outside_data'; for compensate, at the compensated command): the model extrapolates its error terms "
-            "there; measure such poses to calibrate them")
+def _mark_outside_data(table, outside, input, said: list[str]) -> int | None:
+    """The 'outside_data' column (``outside``: per row of ``table``, or None where the run recorded no range)
+    added to ``table``, and its count said in ``said`` when any. -> that count (None: no range)."""
+    if outside is None:
+        return None
+    table["outside_data"] = outside
+    count = int(outside.sum())
+    if count:
+        said.append(f"{input}: {count} of {len(table)} rows put a joint beyond the identification data's range "
+                    "(column 'outside_data'; for compensate, at the compensated command): the model extrapolates "
+                    "its error terms there; measure such poses to calibrate them")
+    return count
 
 
 def predict_file(run_dir, input, output, device=None, units_checked: bool = False) -> PredictFile:
@@ -79,9 +88,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     -> :class:`PredictFile`. Raises RunDirError / DataError naming the folder or file.
     """
     from ..io.csv import points_to_file, read_table
-    from ..io.rundir import RunDirError, load_model
-
-    from ..io.rundir import require_finished
+    from ..io.rundir import RunDirError, load_model, require_finished
 
     require_finished(run_dir, "torchcal predict")
     with progress_task(f"loading the run {run_dir}"):
@@ -123,12 +130,12 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
                 out.insert(1 if "pose" in out.columns else 0, "tool", t)
             for i, c in enumerate(("x", "y", "z")):
                 out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
-            if outside is not None:
-                out["outside_data"] = outside
             parts.append(out)
     out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
+    # every tool's part holds the same commands: one judgement, repeated per part
+    count = _mark_outside_data(out, None if outside is None else np.tile(outside, len(tools)), input, said)
     write_table(output, out)
-    return PredictFile(len(out), None if outside is None else int(outside.sum()) * len(tools), said)
+    return PredictFile(len(out), count, said)
 
 
 @dataclass
@@ -215,9 +222,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     from ..io.rundir import load_model
 
     from ..core.contract import require
-    from ..io.rundir import RunDirError
-
-    from ..io.rundir import require_finished
+    from ..io.rundir import RunDirError, require_finished
 
     require_finished(run_dir, "torchcal compensate")
     with progress_task(f"loading the run {run_dir}"):
@@ -236,13 +241,14 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
             df, unseeded = _seeds_from_flags(model, Path(input), df)
         data = parse_table(df, Path(input), robot, None, False, False)
     _refuse_radians(input, data, model, units_checked)
-    if target_kind(df) is not None and not units_checked:  # target x, y, z in metres: ~1000x too close together
+    targets = target_kind(df) is not None
+    if targets and not units_checked:  # target x, y, z in metres: ~1000x too close together
         from ..io.unit_checks import check_point_scale
 
         check_point_scale(data, robot, model.tools().detach().cpu(), path=input)
 
-    said = _input_warnings(model, input, df, data, targets=target_kind(df) is not None)
-    if target_kind(df) is not None:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
+    said = _input_warnings(model, input, df, data, targets=targets)
+    if targets:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
         done = _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg,
                                         free_tool_axis, unseeded)
         done.warnings[:0] = said
@@ -268,11 +274,8 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
     if res.direction_outside is not None:
         out["direction_outside"] = res.direction_outside.cpu().numpy()
-    outside = _outside_data_column(model, res.q)  # where the model is evaluated: the compensated command
-    if outside is not None:
-        out["outside_data"] = outside
-        if outside.any():
-            said.append(outside_data_message(input, int(outside.sum()), len(df)))
+    # judged where the model is evaluated: the compensated command
+    _mark_outside_data(out, _outside_data_column(model, res.q), input, said)
     out["reason"] = res.reasons(opts.get("max_correction"), robot.joint_map.prismatic)
     write_table(output, out)
     nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
@@ -373,12 +376,8 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     out["converged"] = converged.numpy()
     out["within_limits"] = comp.within_limits.cpu().numpy()
     out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
-    outside = _outside_data_column(model, res.q)
-    said = []
-    if outside is not None:
-        out["outside_data"] = outside
-        if outside.any():
-            said.append(outside_data_message(input, int(outside.sum()), len(df)))
+    said: list[str] = []
+    _mark_outside_data(out, _outside_data_column(model, res.q), input, said)
     out["reason"] = res.reason
     write_table(output, out)
     flagged = int((~converged).sum())

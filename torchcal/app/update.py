@@ -325,18 +325,6 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
             f"frame or unit? An update only refines the parent's robot; fit such data with torchcal fit"))])
 
 
-def _check_units(model, new, new_path) -> None:
-    """The unit slips ``torchcal fit`` checks (joints in radians, points in metres), on the new rows: named as
-    such rather than as the 'misses by 600 mm' of another robot (units_checked: the user's word skips it)."""
-    from ..io.unit_checks import check_point_scale, check_radians, radian_columns
-
-    tools = model.tools().detach().cpu()
-    if radian_columns(new.q, model.robot):
-        check_radians(new, model.robot, tools, path=new_path)
-    else:
-        check_point_scale(new, model.robot, tools, path=new_path)
-
-
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console,
                 units_checked: bool = False) -> UpdateResult:
     from .fit import Progress
@@ -349,7 +337,10 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
         new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written
         new = new.to(dev)
         if instrument is None and not units_checked:  # point rows; a sensor's poses are checked by their reader
-            _check_units(model, new, new_path)
+            from ..io.unit_checks import check_units
+
+            # the fit's unit-slip checks, named as such rather than as the 'misses by 600 mm' of another robot
+            check_units(new, model.robot, model.tools().detach().cpu(), new_path)
         _check_new_data(cfg, model, new, new_path)
     notes: list[str] = []
     with progress.step("loading the parent's online state (or rebuilding it from its data)", quiet=True):

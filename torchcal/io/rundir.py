@@ -62,6 +62,12 @@ def is_run_dir(folder) -> bool:
     return folder.is_dir() and any((folder / m).exists() for m in RUN_MARKERS)
 
 
+def is_fleet_run(folder) -> bool:
+    """Whether ``folder`` is what ``torchcal fleet`` writes (its summary.csv and units/): a fleet prior's source."""
+    folder = Path(folder)
+    return (folder / "summary.csv").is_file() and (folder / "units").is_dir()
+
+
 def _fresh(path: Path) -> bool:
     """Create ``path`` as a new folder (or take it when it is an empty folder); False when it is taken."""
     try:
@@ -352,17 +358,18 @@ def run_log(run_dir, name: str = "torchcal", filename: str = "run.log"):
 __all__ = [
     "MODEL_FILE",
     "PARTIAL_FILE",
-    "require_finished",
     "RunDirError",
     "RUN_MARKERS",
     "collect_versions",
     "first_readable_model",
     "git_commit",
+    "is_fleet_run",
     "is_run_dir",
     "load_model",
     "load_run_config",
     "make_run_dir",
     "read_json",
+    "require_finished",
     "run_log",
     "save_model",
     "write_json",

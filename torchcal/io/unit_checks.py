@@ -153,6 +153,19 @@ def degrees_confirmed(scales: tuple[float, float] | None) -> bool:
     return scales is not None and RADIAN_FIT[0] <= scales[0] <= RADIAN_FIT[1]
 
 
+def check_units(data, robot, tools_m: torch.Tensor | None = None, path=None) -> tuple[list[str], tuple | None]:
+    """The unit slips of a file of measured rows, checked the one way ``fit``, ``fleet``, ``sweep`` and ``update``
+    do: joints that look like radians go to :func:`check_radians` (the points decide; the nominal points of
+    radians read as degrees say nothing about the points' unit), the rest to :func:`check_point_scale`.
+    Raises :class:`UnitsError` on a slip. -> (the columns that look like radians, :func:`check_radians`' scales),
+    for the caller's note."""
+    rad = radian_columns(data.q, robot)
+    if rad:
+        return rad, check_radians(data, robot, tools_m, path)
+    check_point_scale(data, robot, tools_m, path)
+    return [], None
+
+
 def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=None) -> None:
     """Raise :class:`UnitsError` when the measured x, y, z spread ~1000x less (metres) or more than the nominal model's."""
     s = point_scale(data, robot, tools_m)
@@ -166,6 +179,5 @@ def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=Non
         f"data.units_checked=true) if they really are mm")
 
 
-__all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "degrees_confirmed", "point_scale",
-           "radian_columns",
-           "radian_message", "radian_scales"]
+__all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "check_units", "degrees_confirmed",
+           "point_scale", "radian_columns", "radian_message", "radian_scales"]

@@ -97,7 +97,7 @@ class RobotModel(ChainBuffers, nn.Module):
         self.fine = build_fine(robot, fine)
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
         self.coverage = None  # DirectionCoverage of the identification data, set by fit()
-        self.data_span = None  # (n, 2) least / greatest command per joint in the identification data, set by fit()
+        self.data_span = None  # (n, 2) least / greatest error variable per joint in the identification data (fit())
 
     # -------------------------------------------------------------- kinematics
     def joint_variables(self, q: torch.Tensor) -> torch.Tensor:

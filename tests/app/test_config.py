@@ -389,3 +389,19 @@ def test_fleet_run_paths_resolve_against_the_config_folder(tmp_path, monkeypatch
     monkeypatch.chdir(tmp_path / "fleets")
     cfg = load_config(p, ["prior.fleet=one"])
     assert Path(cfg.prior.fleet) == fleet.resolve()
+
+
+def test_a_bad_tool_row_names_its_own_line(tmp_path):
+    """A config listing tools one per line: the message points at the bad row, not at 'tools:' above it."""
+    text = ("robot: fanuc_lrmate200i\ntools:\n  - [0, 0, 100]\n  - [10, 0, 100]\n  - [1, 2]\n"
+            "data: {identification: ident.csv}\n")
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert str(err.value).startswith(f"{path}, line 5: key 'tools': tool 2 is [1, 2]")
+    # given on the command line instead, the override is named
+    path.write_text(text.replace("  - [1, 2]\n", ""))
+    with pytest.raises(ConfigError) as err:
+        load_config(path, ["tools=[[0,0,100],[1,2,'x']]"])
+    assert str(err.value).startswith("override 'tools=[[0,0,100],[1,2,'x']]'")

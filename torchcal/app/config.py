@@ -470,7 +470,8 @@ its line (a cache rebuilt on every read of that file, so an edited file is never
 
 
 def _key_lines(text: str) -> dict[str, int]:
-    """Every mapping key of a YAML text, dotted, with its 1-based line (nothing where the text does not compose)."""
+    """Every mapping key and list item of a YAML text, dotted (``tools.2`` for a list's third item), with its
+    1-based line (nothing where the text does not compose)."""
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError:
@@ -484,6 +485,10 @@ def _key_lines(text: str) -> dict[str, int]:
                     key = f"{prefix}{k.value}"
                     out.setdefault(key, k.start_mark.line + 1)
                     walk(v, key + ".")
+        elif isinstance(node, yaml.SequenceNode):
+            for i, v in enumerate(node.value):
+                out.setdefault(f"{prefix}{i}", v.start_mark.line + 1)
+                walk(v, f"{prefix}{i}.")
 
     walk(root, "")
     return out
@@ -746,8 +751,9 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
 
     Raises :class:`ConfigError` naming ``label`` and the key.
     """
-    def fail(key, msg):
-        raise ConfigError(f"{source_of(cfg, key, label)}: key '{key}': {msg}")
+    def fail(key, msg, at=None):
+        # at: a finer key than the one named (a list item, tools.2) whose own line the message should give
+        raise ConfigError(f"{source_of(cfg, at or key, label)}: key '{key}': {msg}")
 
     for key, value in (("robot", cfg.robot), ("data.identification", cfg.data.identification)):
         if value in (MISSING, None, ""):
@@ -808,9 +814,9 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
             fail("tools", "needs at least one tool vector [x, y, z] (mm), or {count: T} when they are unknown")
         for i, t in enumerate(tools):
             if not isinstance(t, list) or len(t) != 3:
-                fail("tools", f"tool {i} is {t!r}; each tool is [x, y, z] in mm")
+                fail("tools", f"tool {i} is {t!r}; each tool is [x, y, z] in mm", at=f"tools.{i}")
             if not all(_is_number(v) for v in t):
-                fail("tools", f"tool {i} {t!r}: the values must be numbers (mm)")
+                fail("tools", f"tool {i} {t!r}: the values must be numbers (mm)", at=f"tools.{i}")
     else:
         fail("tools", f"{tools!r}: give a list of tool vectors [[x, y, z], ...] (mm) or {{count: T}} when they are unknown")
 

@@ -214,6 +214,16 @@ def test_config_key_given_twice_is_refused(fitted, tmp_path):
     assert r.exit_code == 2 and "'order'" in r.output and "twice" in r.output
 
 
+def test_an_override_for_another_commands_section_is_said(fitted):
+    """fleet.* given to `torchcal fit` changes nothing: the user who meant it must hear so before the run."""
+    cfg = fitted["sim"] / "fit.yaml"
+    r = invoke("fit", cfg, "--dry-run", "fleet.engine=ray", "model.order=2")
+    assert r.exit_code == 0, r.output
+    said = [ln for ln in r.output.splitlines() if ln.startswith("warning:")]
+    assert len(said) == 1 and "'fleet.engine=ray' has no effect on `torchcal fit`" in said[0]
+    assert "`torchcal fleet`" in said[0]
+
+
 # ------------------------------------------------------------------------- 6. export-tables --points
 def test_export_tables_points_above_the_siemens_cap_is_refused(tmp_path, monkeypatch):
     import torchcal.io.rundir as rundir

@@ -162,11 +162,12 @@ def _warn(lines) -> None:
         _console(stderr=True).print(f"warning: {w}", markup=False, soft_wrap=True)
 
 
-def _warn_repeated(items) -> None:
-    """A key given twice among the overrides: said on stderr (the last one is used), before the run starts."""
-    from .app.config import repeated_overrides
+def _warn_repeated(items, command: str) -> None:
+    """A key given twice among the overrides (the last one is used), or one that ``command`` does not read: said
+    on stderr before the run starts."""
+    from .app.config import repeated_overrides, unused_overrides
 
-    _warn(repeated_overrides(items or []))
+    _warn([*repeated_overrides(items or []), *unused_overrides(items or [], command)])
 
 
 def _device(name: str):
@@ -269,7 +270,7 @@ def fit_cmd(
         from .app.config import load_config, to_yaml
         from .app.fit import run_fit
 
-        _warn_repeated(overrides)
+        _warn_repeated(overrides, "fit")
         cfg = load_config(config, [*(overrides or []), *(["data.units_checked=true"] if units_checked else [])])
         if dry_run:
             typer.echo(to_yaml(cfg), nl=False)
@@ -308,7 +309,7 @@ def sweep_cmd(
     with _user_errors():
         from .app.sweep import parse_grid, run_sweep
 
-        _warn_repeated(parse_grid(grid)[0])
+        _warn_repeated(parse_grid(grid)[0], "sweep")
         console = None if quiet else _console(stderr=True)
         with _progress(console):
             result = run_sweep(config, grid, out=out, console=console)
@@ -349,7 +350,7 @@ def fleet_cmd(
     with _user_errors():
         from .app.fleet import run_fleet
 
-        _warn_repeated(overrides)
+        _warn_repeated(overrides, "fleet")
         console = None if quiet else _console(stderr=True)
         with _progress(console):
             result = run_fleet(config, overrides or [], out=out, console=console)

@@ -5,7 +5,8 @@ from pathlib import Path
 
 import pytest
 
-from torchcal.app.config import ConfigError, check_config, load_config, make_config, repeated_overrides
+from torchcal.app.config import (ConfigError, check_config, load_config, make_config, repeated_overrides,
+                                 unused_overrides)
 
 MINIMAL = """\
 robot: fanuc_lrmate200i
@@ -405,3 +406,11 @@ def test_a_bad_tool_row_names_its_own_line(tmp_path):
     with pytest.raises(ConfigError) as err:
         load_config(path, ["tools=[[0,0,100],[1,2,'x']]"])
     assert str(err.value).startswith("override 'tools=[[0,0,100],[1,2,'x']]'")
+
+
+def test_overrides_of_another_commands_section_are_named():
+    items = ["model.order=4", "fleet.cell=10", "sweep.engine=ray", "prior.fleet=runs/f"]
+    fit = unused_overrides(items, "fit")
+    assert len(fit) == 2 and "'fleet.cell=10'" in fit[0] and "'sweep.engine=ray'" in fit[1]
+    assert [w.split("'")[1] for w in unused_overrides(items, "fleet")] == ["sweep.engine=ray"]
+    assert [w.split("'")[1] for w in unused_overrides(items, "sweep")] == ["fleet.cell=10"]

@@ -527,6 +527,23 @@ def repeated_overrides(overrides: Sequence[str]) -> list[str]:
             for k, v in seen.items() if len(v) > 1]
 
 
+SECTION_COMMANDS = {"fleet": "fleet", "sweep": "sweep"}
+"""Config sections that only one command reads: {section: that command}."""
+
+
+def unused_overrides(overrides: Sequence[str], command: str) -> list[str]:
+    """One sentence per override that sets a section only another command reads (``fleet.engine=ray`` given to
+    ``torchcal fit``): the run would go ahead without it, so the user who meant it is told."""
+    out = []
+    for item in overrides:
+        section = item.partition("=")[0].strip().split(".")[0]
+        other = SECTION_COMMANDS.get(section)
+        if other is not None and other != command:
+            out.append(f"override '{item}' has no effect on `torchcal {command}`: the {section}: section is read "
+                       f"only by `torchcal {other}`")
+    return out
+
+
 def _split_override(item: str) -> tuple[str, str]:
     if "=" not in item:
         raise ConfigError(f"override '{item}': expected key=value (e.g. model.order=4)")

@@ -313,6 +313,7 @@ def sweep_cmd(
         console = None if quiet else _console(stderr=True)
         with _progress(console):
             result = run_sweep(config, grid, out=out, console=console)
+    _warn(result.warnings)
     t = Table(title=f"Sweep: {len(result.rows)} cells ({result.time:.1f} s)")
     cols = [*result.keys, "status", "converged", "iterations", "identification_mean_mm", "validation_mean_mm",
             "validation_max_mm"]

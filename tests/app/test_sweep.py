@@ -189,3 +189,22 @@ def test_a_mistyped_range_is_named(sim, tmp_path):
     with pytest.raises(ConfigError, match="'model.order=' gives no values"):
         run_sweep(sim, ["model.order="], out=tmp_path / "sw")
     assert not (tmp_path / "sw").exists()
+
+
+def test_joints_in_radians_are_refused_once_before_any_run_directory(sim, tmp_path):
+    """A data file whose joints are radians fails every cell alike: it is refused up front, naming the file,
+    with no PARTIAL sweep left behind; data.units_checked=true lets it through as the user's word."""
+    import math
+
+    import pandas as pd
+
+    from torchcal.io.unit_checks import UnitsError
+
+    ident = pd.read_csv(sim.parent / "identification.csv")
+    qcols = [c for c in ident.columns if c.startswith("q")]
+    ident[qcols] = ident[qcols] * math.pi / 180.0
+    path = tmp_path / "rad.csv"
+    ident.to_csv(path, index=False)
+    with pytest.raises(UnitsError, match="rad.csv"):
+        run_sweep(sim, ["model.order=1,2", f"data.identification={path}", "data.truth=null"], out=tmp_path / "sw")
+    assert not (tmp_path / "sw").exists()

@@ -39,6 +39,7 @@ from pathlib import Path
 import torch
 
 from ..core import units
+from ..core.exceptions import TorchcalError
 from ..io.atomic import atomic_path, atomic_write_text
 from .config import ConfigError, load_config, source_of, to_yaml
 from .engines import Interrupted, check_engine, interrupted, run_cells
@@ -65,6 +66,8 @@ class SweepResult:
     keys: list[str]
     rows: list[dict] = field(default_factory=list)
     time: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+    """What the data files' checks said (joints read as degrees although they look like radians, ...)."""
 
 
 def parse_grid(specs: list[str]) -> tuple[list[str], list[tuple[str, list[str]]]]:
@@ -168,12 +171,13 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     cfgs = [load_config(config, plain + [f"{k}={v}" for k, v in cell.items()]) for cell in cells]
     base = load_config(config, plain)
     check_engine(base.sweep.engine, f"{source_of(base, 'sweep.engine', base.config_file or 'config')}: key 'sweep.engine'")
+    notes = check_data(cfgs)
     run_dir = make_run_dir(Path(out) if out is not None else Path(base.out).with_name("sweeps"))
     atomic_write_text(run_dir / "config.yaml", to_yaml(base))
     write_json(run_dir / "sweep.json", {"config": str(config), "overrides": plain, "axes": {k: v for k, v in axes},
                                         "cells": len(cells)})
     write_json(run_dir / "versions.json", collect_versions(torch.device(base.device)))
-    result = SweepResult(run_dir, keys)
+    result = SweepResult(run_dir, keys, warnings=notes)
     # the independent groups an engine runs: one per model structure of the stacked cells (each its own batched
     # solve; backlash: true may still split a group by what each cell's data choose), one per cell fitted alone
     groups: dict[str, list[int]] = {}
@@ -189,6 +193,8 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     with run_log(run_dir):
         log.info(f"sweep of {len(cells)} cells over {', '.join(keys)}: {len(groups)} independent group(s), engine "
                  f"{engine}; {run_dir}")
+        for note in notes:
+            log.warning(note)
         with task("sweep: cell groups", total=len(groups)) as bar:
             def done(g, got):
                 members = members_of[g]
@@ -221,6 +227,36 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
                               f"in {run_dir} has every cell's reason)")
         log.info(f"sweep done in {result.time:.1f} s: {run_dir / 'results.csv'}")
     return result
+
+
+def check_data(cfgs) -> list[str]:
+    """Read and unit-check each distinct set of data files of the grid once, before the run directory exists.
+    When every set fails (a file in radians or metres, one that cannot be read), that is one error up front
+    (exit 2, nothing written) rather than the same failure in every cell; a grid over data files where only
+    some fail goes on, and those cells fail alone (as a fleet's broken unit). ``data.n_poses`` is left to the
+    cells likewise. -> the checks' notes (joints read as degrees, ...), each once."""
+    from dataclasses import replace
+
+    from ..kinematics import load_robot
+    from .fit import config_tool_count, read_sets
+
+    seen, notes, errors = set(), [], []
+    for cfg in cfgs:
+        key = (cfg.robot, cfg.data.identification, cfg.data.validation, str(cfg.tools), cfg.data.units_checked)
+        if key in seen:
+            continue
+        seen.add(key)
+        whole = replace(cfg, data=replace(cfg.data, n_poses=None))
+        found: list[str] = []
+        try:
+            read_sets(whole, load_robot(cfg.robot), config_tool_count(cfg), cfg.data.identification,
+                      cfg.data.validation, found, torch.device("cpu"), cfg.config_file or "config")
+        except TorchcalError as exc:
+            errors.append(exc)
+        notes += [n for n in found if n not in notes]
+    if errors and len(errors) == len(seen):
+        raise errors[0]
+    return notes
 
 
 def sweep_group(kind: str, cfgs: list, run_dir: str, cells: list[int], n_threads: int | None) -> list[dict]:

@@ -434,4 +434,10 @@ def test_near_home_degrees_are_not_refused_where_the_points_or_the_run_say_degre
     cmds.to_csv(tmp_path / "cmds.csv", index=False)
     r = invoke("compensate", run, tmp_path / "cmds.csv", tmp_path / "c.csv")  # no points: the run's span decides
     assert r.exit_code == 0, r.output
+    # update and sweep read such files the same way, and say so
+    r = invoke("update", run, tmp_path / "home.csv", "--out", tmp_path / "u", "-q")
+    assert r.exit_code == 0 and "but the measured points fit them read as degrees" in r.output, r.output
+    r = invoke("sweep", cfg, "model.order=0,1", "--out", tmp_path / "sw", "-q")
+    said = [ln for ln in r.output.splitlines() if "fit them read as degrees" in ln]
+    assert r.exit_code == 0 and len(said) == 1 and said[0].startswith("warning:"), r.output
     # (against a run fitted over the whole range such commands are still refused: the test of section 1)

@@ -331,17 +331,14 @@ def read_sets(cfg, robot, T: int, identification, validation, notes: list[str], 
     if cfg.data.n_poses is not None:
         ident = first_poses(ident, int(cfg.data.n_poses), source_of(cfg, "data.n_poses", label))
     if not cfg.data.units_checked:
-        from ..io.unit_checks import check_units, degrees_confirmed, radian_message
+        from ..io.unit_checks import check_units, units_note
 
         for d in (ident, val):
             if d is None:
                 continue
-            rad, scales = check_units(d, robot, config_tools(cfg))  # a slip the points confirm: refused
-            if rad:
-                notes.append(radian_message(d.source, d.q, robot, rad) + (
-                    f"; but the measured points fit them read as degrees (distance ratio {scales[0]:.3g}): read "
-                    "as degrees (near-home poses?)" if degrees_confirmed(scales) else
-                    "; set data.units_checked=true if they really are degrees"))
+            note = units_note(d, robot, *check_units(d, robot, config_tools(cfg)), "data.units_checked=true")
+            if note:  # a slip the points confirm was refused above
+                notes.append(note)
     return ident, val
 
 

@@ -337,10 +337,12 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
         new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written
         new = new.to(dev)
         if instrument is None and not units_checked:  # point rows; a sensor's poses are checked by their reader
-            from ..io.unit_checks import check_units
+            from ..io.unit_checks import check_units, units_note
 
             # the fit's unit-slip checks, named as such rather than as the 'misses by 600 mm' of another robot
-            check_units(new, model.robot, model.tools().detach().cpu(), new_path)
+            note = units_note(new, model.robot, *check_units(new, model.robot, model.tools().detach().cpu(), new_path))
+            if note:
+                progress.warn(note)
         _check_new_data(cfg, model, new, new_path)
     notes: list[str] = []
     with progress.step("loading the parent's online state (or rebuilding it from its data)", quiet=True):

@@ -166,6 +166,17 @@ def check_units(data, robot, tools_m: torch.Tensor | None = None, path=None) -> 
     return [], None
 
 
+def units_note(data, robot, rad: list[str], scales: tuple | None, override: str = OVERRIDE) -> str | None:
+    """What :func:`check_units` let through but the user should hear: joints that look like radians read as
+    degrees, because the points fit them as degrees (near-home poses) or cannot tell (then ``override`` is how
+    the user says they really are degrees). None when nothing looked like radians."""
+    if not rad:
+        return None
+    return radian_message(data.source, data.q, robot, rad) + (
+        f"; but the measured points fit them read as degrees (distance ratio {scales[0]:.3g}): read as degrees "
+        "(near-home poses?)" if degrees_confirmed(scales) else f"; set {override} if they really are degrees")
+
+
 def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=None) -> None:
     """Raise :class:`UnitsError` when the measured x, y, z spread ~1000x less (metres) or more than the nominal model's."""
     s = point_scale(data, robot, tools_m)
@@ -180,4 +191,4 @@ def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=Non
 
 
 __all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "check_units", "degrees_confirmed",
-           "point_scale", "radian_columns", "radian_message", "radian_scales"]
+           "point_scale", "radian_columns", "radian_message", "radian_scales", "units_note"]

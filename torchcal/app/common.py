@@ -289,7 +289,15 @@ def tools_text(tools_mm) -> str:
     return "; ".join("[" + ", ".join(f"{v:.3f}" for v in t) + "]" for t in tools_mm)
 
 
+def failed_row(exc: BaseException | str, **keys) -> dict:
+    """A results row of a unit or cell that could not be fitted: ``keys`` (its name) with status 'failed' and the
+    reason, an exception as 'Type: message' (what fleet and sweep tables and their summaries read)."""
+    why = exc if isinstance(exc, str) else f"{type(exc).__name__}: {exc}"
+    return {**keys, "status": "failed", "reason": why}
+
+
 __all__ = [
+    "failed_row",
     "write_run_report",
     "STAT_KEYS",
     "RunResult",

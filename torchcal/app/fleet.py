@@ -36,7 +36,7 @@ import torch
 from ..core import units
 from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
-from .common import config_backlash, config_orders
+from .common import config_backlash, config_orders, failed_row
 from .config import ConfigError, SolverConfig, check_config, load_config, source_of, to_yaml, updated
 from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
@@ -212,7 +212,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                         ident, val = read_sets(cfg, robot, T, fi, None, notes, torch.device("cpu"), label)
                         notes.append(f"validation file not used: {type(exc).__name__}: {exc}")
                 except Exception as exc:  # a broken file is this unit's failure, not the fleet's
-                    rows[name] = {"unit": name, "status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+                    rows[name] = failed_row(exc, unit=name)
                     log.warning("unit %s: not fitted: %s", name, exc)
                 else:
                     for note in notes:
@@ -253,7 +253,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         for cell, got in zip(cells, outs):
             if isinstance(got, Exception):
                 for name, _ in cell:
-                    rows[name] = {"unit": name, "status": "failed", "reason": f"{type(got).__name__}: {got}"}
+                    rows[name] = failed_row(got, unit=name)
                 continue
             for u in got:
                 model = _factory(cfg, robot, device, u["backlash"])(u["orders"])
@@ -397,7 +397,7 @@ def _same_format(loaded: list, rows: dict, robot) -> list:
                f"{len(loaded)} readable units have none")
         why += ("; a fleet fits one model structure (backlash follows the directions): give every unit the same "
                 "columns, or fit this unit alone with `torchcal fit`")
-        rows[name] = {"unit": name, "status": "failed", "reason": why}
+        rows[name] = failed_row(why, unit=name)
         log.warning("unit %s: not fitted: %s", name, why)
     return keep
 

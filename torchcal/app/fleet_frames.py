@@ -10,6 +10,7 @@ import logging
 import torch
 
 from ..core.progress import task
+from .common import failed_row
 
 log = logging.getLogger("torchcal")
 
@@ -31,7 +32,7 @@ def align_units(cfg, robot, loaded: list, rows: dict, label: str) -> tuple[list,
             try:
                 _, frame, res = config_alignment(cfg, robot, ident, f"{label}: unit {name}")
             except Exception as exc:  # this unit's failure, not the fleet's
-                rows[name] = {"unit": name, "status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+                rows[name] = failed_row(exc, unit=name)
                 log.warning("unit %s: not fitted: %s", name, exc)
             else:
                 frames[name], summaries[name] = frame.detach().cpu(), res.summary()

@@ -41,6 +41,7 @@ import torch
 from ..core import units
 from ..core.exceptions import TorchcalError
 from ..io.atomic import atomic_path, atomic_write_text
+from .common import failed_row
 from .config import ConfigError, load_config, source_of, to_yaml
 from .engines import Interrupted, check_engine, interrupted, run_cells
 from ..identify.fit import frame_check
@@ -200,7 +201,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
                 members = members_of[g]
                 if isinstance(got, Exception):  # this group's cells are reported; the others go on
                     log.warning(f"cells {members} failed ({engine}): {type(got).__name__}: {got}")
-                    got = [{"status": "failed", "reason": f"{type(got).__name__}: {got}"}] * len(members)
+                    got = [failed_row(got)] * len(members)
                 for i, row in zip(members, got):
                     rows[i] = row
                     if engine != "local" and row["status"] == "fitted":  # a worker's log stays on the worker
@@ -318,7 +319,7 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
             data = inp.ident if cfg.data.n_poses is None else first_poses(inp.ident, int(cfg.data.n_poses),
                                                                                source_of(cfg, "data.n_poses", inp.label))
         except ConfigError as exc:  # this cell's own value (more poses than the file has): the others go on
-            out[i] = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
+            out[i] = failed_row(exc)
             log.warning(f"cell {cells[i]} failed: {exc}")
             continue
         orders = config_orders(cfg, n)

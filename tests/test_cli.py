@@ -15,6 +15,7 @@ import torch
 from typer.testing import CliRunner
 
 from torchcal.app import fit as pipeline
+from torchcal.compensate.toolset import compensation_goal, model_tool_set_frame
 from torchcal.cli import PAPER2_TOOLS_MM, app
 from torchcal.app.config import load_config
 from torchcal.io.csv import read_measurements
@@ -174,9 +175,9 @@ def test_compensate_lands_on_the_nominal_flange(e2e, fanuc):
         assert ((~free.converged) | (need > torch.pi / 36)).all()
     assert f"{int((~ok).sum())} of {len(out)} commands flagged" in r.output or (ok.all() and "0 commands flagged" in r.output)
     assert np.allclose(out.max_dq, np.degrees((q_new - q_nom).abs().max(dim=1).values.numpy()), atol=1e-6)
-    with torch.no_grad():
+    with torch.no_grad():  # the modeled flange on the nominal one, carried by the tool set's frame (.toolset)
         Fa = model.flange(q_new[ok], s[ok], base=False)
-        Fn = model.nominal_flange(q_nom[ok])
+        Fn = compensation_goal(model, q_nom[ok])
     assert (Fa[:, :3, 3] - Fn[:, :3, 3]).norm(dim=1).max() < 1e-8  # m, after 12-digit rounding in the file
     assert (Fa[:, :3, :3] - Fn[:, :3, :3]).abs().max() < 1e-8
     assert (q_new - q_nom).abs().max() > 1e-5  # the commands did change (rad)
@@ -198,13 +199,16 @@ def test_compensate_with_a_free_tool_axis_reaches_the_tool_point_and_axis(e2e):
     q_nom = torch.tensor(inp[[f"q{i}" for i in range(1, 7)]].to_numpy())[ok] * torch.pi / 180
     q_new = torch.tensor(out[[f"q{i}" for i in range(1, 7)]].to_numpy())[ok] * torch.pi / 180
     tool = torch.tensor(inp.tool.to_numpy())[ok]
-    with torch.no_grad():
+    with torch.no_grad():  # in the tool set's frame (.toolset): the tool point lands on the nominal robot's, the
+        # tool's z axis (the tool set's) along the nominal flange's
         Fa, Fn = model.flange(q_new, base=False), model.nominal_flange(q_nom)
         p = model.tools()[tool]
+        G = model_tool_set_frame(model)
     reach = (Fa[:, :3, :3] @ p[:, :, None])[..., 0] + Fa[:, :3, 3]
-    want = (Fn[:, :3, :3] @ p[:, :, None])[..., 0] + Fn[:, :3, 3]
+    p_set = (p - G[:3, 3]) @ G[:3, :3]
+    want = (Fn[:, :3, :3] @ p_set[:, :, None])[..., 0] + Fn[:, :3, 3]
     assert (reach - want).norm(dim=1).max() < 1e-8
-    assert (Fa[:, :3, 2] - Fn[:, :3, 2]).norm(dim=1).max() < 1e-8
+    assert ((Fa[:, :3, :3] @ G[:3, :3])[:, :, 2] - Fn[:, :3, 2]).norm(dim=1).max() < 1e-8
     r = invoke("compensate", e2e["run"], root / "axis_in.csv", root / "axis_out2.csv", "--free-tool-axis",
                "--tool-axis", "0,0,0")
     assert r.exit_code == 2 and "--tool-axis '0,0,0'" in r.output
@@ -333,7 +337,7 @@ def test_fit_with_gravity_compliance(e2e, fanuc):
     q_new = torch.tensor(np.deg2rad(cc[[f"q{i}" for i in range(1, 7)]].to_numpy()))
     q_nom = torch.tensor(np.deg2rad(val[[f"q{i}" for i in range(1, 7)]].to_numpy()))
     with torch.no_grad():  # (46) with the deflection, checked on the model itself
-        de = pose_error(model.flange(q_new, base=False), model.nominal_flange(q_nom))
+        de = pose_error(model.flange(q_new, base=False), compensation_goal(model, q_nom))
     assert float(de[torch.from_numpy(ok)].norm(dim=-1).max()) < 1e-9
 
 

@@ -30,6 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from setup import setup  # noqa: E402
 
 from torchcal.app.fit import compensation_targets  # noqa: E402
+from torchcal.compensate.toolset import compensation_goal  # noqa: E402
 from torchcal.compensate import compensate, damped_least_squares, nominal_sigma_min  # noqa: E402
 from torchcal.compensate.targets import tool_pose, compensate_targets  # noqa: E402
 from torchcal.kinematics.fk import chain_frames  # noqa: E402
@@ -74,7 +75,7 @@ def reachable_check(model, q, s, rows, bound, starts=8, seed=0):
     of q_nom and the same configuration flags."""
     g = torch.Generator().manual_seed(seed)
     qr, sr = q[rows], s[rows]
-    target = model.nominal_flange(qr).detach()
+    target = compensation_goal(model, qr)  # the nominal flange in the tool set's frame (.toolset)
     f0 = flags(model, qr)
     ok = torch.zeros(rows.numel(), dtype=torch.bool)
     for k in range(starts):

@@ -52,6 +52,7 @@ from torchcal.kinematics import load_robot
 from torchcal.core.measurements import Measurements
 from torchcal.models.robot import RobotModel
 from torchcal.app.fit import compensation_check, compensation_targets
+from torchcal.compensate.toolset import compensation_goal
 from torchcal.sim import TruthRobot, quasi_random_commands, simulate
 
 TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]  # Table 4
@@ -327,7 +328,7 @@ def compensation_robustness(S: Setup, model: RobotModel, poses: int, check_rows:
     # solution further away is on another branch, which compensate() refuses on purpose (the robot would swing).
     pick = flagged[torch.randperm(flagged.numel(), generator=g)[:check_rows]]
     reachable = torch.zeros(pick.numel(), dtype=torch.bool)
-    target = model.nominal_flange(q[pick]).detach()
+    target = compensation_goal(model, q[pick])  # the nominal flange in the tool set's frame (.toolset)
     for k in range(8):
         start = q[pick] + (0.0 if k == 0 else 0.4) * (torch.rand(pick.numel(), S.robot.n, generator=g, dtype=torch.float64) - 0.5)
         r = damped_least_squares(model, start, target, s[pick], max_iter=300)
@@ -337,7 +338,7 @@ def compensation_robustness(S: Setup, model: RobotModel, poses: int, check_rows:
     rate = float(c[away].sum()) / est_reachable * 100
     with torch.no_grad():
         from torchcal.kinematics.transforms import pose_error
-        de = pose_error(model.flange(res.q, s, base=False), model.nominal_flange(q))
+        de = pose_error(model.flange(res.q, s, base=False), compensation_goal(model, q))
         # on the simulated robot itself: where the compensated command sends the tool vs where the nominal
         # model promised it (random approach directions, so patterns the identification data never showed)
         tool = torch.full((poses,), VALIDATION_TOOL, dtype=torch.long)

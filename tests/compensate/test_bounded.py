@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from conftest import random_commands, randomize
+from torchcal.compensate.toolset import compensation_goal
 from torchcal.compensate import FlangeKernel, compensate
 from torchcal.kinematics.transforms import pose_error
 from torchcal.models.robot import RobotModel
@@ -24,7 +25,7 @@ BOUND = math.radians(30.0)  # compensate()'s default max_correction
 def actual_error(model, q_new, q_nom, s):
     """(46) checked with RobotModel itself, not with the kernel the solver runs on."""
     with torch.no_grad():
-        return pose_error(model.flange(q_new, s, base=False), model.nominal_flange(q_nom))
+        return pose_error(model.flange(q_new, s, base=False), compensation_goal(model, q_nom))
 
 
 def directions(count, seed):

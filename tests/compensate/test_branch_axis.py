@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from conftest import random_commands, randomize
+from torchcal.compensate.toolset import compensation_goal, inverse, model_tool_set_frame, tool_poses
 from torchcal.compensate import FlangeKernel, branch_changed, compensate
 from torchcal.compensate.result import BRANCH, CONVERGED
 from torchcal.compensate.targets import compensate_targets
@@ -58,7 +59,7 @@ def test_next_to_the_wrist_the_default_converges_on_the_branch(model, fanuc):
     assert bool((res.correction[c] <= 30 * DEG).all())
     # (46) holds, recomputed with RobotModel, and every converged command keeps q_nom's flags
     with torch.no_grad():
-        de = pose_error(model.flange(res.q, s, base=False), model.nominal_flange(q))
+        de = pose_error(model.flange(res.q, s, base=False), compensation_goal(model, q))
     assert float(de[c].norm(dim=-1).max()) <= 1e-11
     assert torch.equal(wrist_flag(res.q[c]), wrist_flag(q[c]))
     assert not bool(branch_changed(FlangeKernel(model), q, res.q, c).any())
@@ -106,8 +107,12 @@ def tool_axis_errors(model, q_new, q_nom, s, c, a):
     """Position error of the tool point c and angle between the tool axes a (flange frame), and the rotation
     about the axis: (B,) m, (B,) rad, (B,) rad."""
     with torch.no_grad():
-        Fa = model.flange(q_new, s, base=False)
+        # in the tool set's frame (.toolset), which compensation puts in the nominal flange's place; c is a point
+        # of the modeled flange (an identified tool point), a the tool's axis
+        G = model_tool_set_frame(model)
+        Fa = model.flange(q_new, s, base=False) @ G
         Fn = model.nominal_flange(q_nom)
+        c = inverse(G)[:3, :3] @ c + inverse(G)[:3, 3]
     pa = Fa[:, :3, 3] + Fa[:, :3, :3] @ c
     pn = Fn[:, :3, 3] + Fn[:, :3, :3] @ c
     ax_a, ax_n = Fa[:, :3, :3] @ a, Fn[:, :3, :3] @ a
@@ -161,7 +166,7 @@ def test_five_dof_targets(model, fanuc):
         Fa = model.flange(res.q, s, base=False)
         tip = Fa[:, :3, 3] + (Fa[:, :3, :3] @ model.tools()[tool][..., None])[..., 0]
     assert float((tip - T[:, :3, 3])[ok].norm(dim=-1).max()) < 1e-9
-    za, zt = Fa[:, :3, 2], T[:, :3, 2]
+    za, zt = tool_poses(model, res.q, tool, s)[:, :3, 2], T[:, :3, 2]  # the tool set's z axis (.toolset)
     assert float(torch.linalg.cross(za, zt)[ok].norm(dim=-1).max()) < 1e-9
     both = ok & six.converged
     assert float((res.q - res.q_nominal)[both].norm(dim=-1).mean()) < float((six.q - six.q_nominal)[both].norm(dim=-1).mean())

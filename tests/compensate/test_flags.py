@@ -13,6 +13,7 @@ import torch
 from conftest import random_commands, randomize
 
 import torchcal
+from torchcal.compensate.toolset import tool_poses
 from torchcal.compensate.flags import configuration_flags, seeds_for_flags
 from torchcal.compensate.kernel import FlangeKernel
 from torchcal.compensate.newton import nominal_sigma_min
@@ -126,10 +127,7 @@ def test_a_targets_file_with_flags_instead_of_seeds(tmp_path, fanuc, tools_m):
     assert ok_np.mean() > 0.8 and all((w == "") == c for w, c in zip(out.reason, ok_np))
     ok = torch.from_numpy(ok_np)
     qc = torch.tensor(np.radians(out[[f"q{j + 1}" for j in range(6)]].to_numpy()[ok_np].astype(float)))
-    with torch.no_grad():
-        F = model.flange(qc, None, base=False)
-        t = model.tools()[tool[ok]]
-    reach = homogeneous(F[:, :3, :3], F[:, :3, 3] + (F[:, :3, :3] @ t[..., None])[..., 0])
+    reach = tool_poses(model, qc, tool[ok])  # the identified tool in the tool set's frame (.toolset)
     assert float(pose_error(reach, T[ok]).norm(dim=-1).max()) < 1e-9
     assert torch.equal(configuration_flags(model, qc), flags[ok])  # on the branch the flags name
     # a flag that is not +-1: the file, row and column are named

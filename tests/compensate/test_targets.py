@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 from conftest import random_commands, randomize
 
+from torchcal.compensate.toolset import tool_poses
 from torchcal.compensate import damped_least_squares, nominal_sigma_min
 from torchcal.compensate.targets import compensate_targets
 from torchcal.kinematics.transforms import homogeneous, pose_error
@@ -40,7 +41,7 @@ def test_targets_reach_the_model_and_round_trip(fanuc, tools_m):
     assert float((res.q_nominal[clear] - q_ctrl[clear]).abs().max()) < 1e-8
     with torch.no_grad():
         # the calibrated commands put the model's identified tool on the target
-        reach = _tool_pose(model.flange(res.q, s, base=False), model.tools()[tool])
+        reach = tool_poses(model, res.q, tool, s)
         assert float(pose_error(reach[ok], T[ok]).norm(dim=-1).max()) < 1e-9
         # the corrected target, through the controller's nominal IK (nominal tool), gives the calibrated commands
         nominal = RobotModel(fanuc, tools_m, orders=0, backlash=None)
@@ -104,7 +105,7 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     assert ok.mean() > 0.8
     qc = torch.tensor(np.radians(out[[f"q{j + 1}" for j in range(6)]].to_numpy()), dtype=torch.float64)
     with torch.no_grad():
-        reach = _tool_pose(model.flange(qc, None, base=False), model.tools()[tool])
+        reach = tool_poses(model, qc, tool)
     err = pose_error(reach, T)
     assert float(err[torch.from_numpy(ok), 3:].norm(dim=-1).max()) < 1e-9  # m (file digits: 1e-10 deg)
     assert all((reason == "") == bool(c) for reason, c in zip(out.reason, ok))

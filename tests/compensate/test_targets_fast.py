@@ -11,6 +11,7 @@ from conftest import random_commands, randomize
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from torchcal.compensate.toolset import compensation_goal, inverse, model_tool_set_frame, tool_poses
 from torchcal.compensate import fused
 from torchcal.compensate import targets as TG
 from torchcal.compensate.kernel import pose_error_soa
@@ -19,6 +20,12 @@ from torchcal.kinematics.transforms import homogeneous, pose_error
 from torchcal.models.robot import RobotModel
 
 pytestmark = pytest.mark.skipif(not fused.HAVE_NUMBA, reason="the compiled pass needs numba")
+
+
+def _g_inv(model):
+    """The inverse of the model's tool-set frame (None: identity), as compensate() passes it to its solver."""
+    G = model_tool_set_frame(model)
+    return None if G is None else inverse(G)
 
 
 def _tool_pose(F, t):
@@ -61,9 +68,10 @@ def test_compiled_pass_equals_the_general_path(fanuc, tools_m, monkeypatch):
     assert float((fast.q_nominal[clear] - ref.q_nominal[clear]).abs().max()) < 1e-9
     assert float(pose_error(fast.command_target[clear], ref.command_target[clear]).abs().max()) < 1e-9
     assert torch.equal(fast.converged, fast.compensation.converged & fast.compensation.within_limits)
-    # the calibrated commands put the identified tool on the target (independent of either solver)
+    # the calibrated commands put the identified tool on the target, the tool set's frame (.toolset) in the
+    # target's orientation (independent of either solver)
     with torch.no_grad():
-        reach = _tool_pose(model.flange(fast.q, s, base=False), model.tools()[tool])
+        reach = tool_poses(model, fast.q, tool, s)
     assert float(pose_error(reach[fast.converged], T[fast.converged]).norm(dim=-1).max()) < 1e-9
     assert all((r == "") == bool(c) for r, c in zip(fast.reason, fast.converged.tolist()))
     c = fast.compensation
@@ -94,7 +102,7 @@ def test_rows_the_pass_hands_on_are_solved_and_explained(fanuc, tools_m, monkeyp
     assert bool((status[12:] == DONE).any())
     # the far seeds: the general path's damped IK still reaches the target from them
     with torch.no_grad():
-        reach = _tool_pose(model.flange(res.q, s, base=False), model.tools()[tool])
+        reach = tool_poses(model, res.q, tool, s)
     err = pose_error(reach, T).norm(dim=-1)
     far_ok = res.converged[:10]
     assert int(far_ok.sum()) >= 5 and float(err[:10][far_ok].max()) < 1e-9
@@ -151,13 +159,13 @@ def test_compensate_compiled_pass_equals_the_batched_solver(fanuc, tools_m):
     assert q.shape[0] >= newton.FUSED_MIN_POSES
     res = newton.compensate(model, q, s)
     ref = newton._solve(model, q, s, 1e-10, 30, 1e-5, None, 50, 0.5, 1.0, 1e-12, False, True, 2, True,
-                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, None)
+                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, None, _g_inv(model))
     both = res.converged & ref.converged
     assert int(both.sum()) > 900 and int((res.converged != ref.converged).sum()) <= 5
     assert float((res.q[both] - ref.q[both]).abs().max()) < 1e-9
     assert torch.equal(res.within_limits, ((res.q >= model.command_limits[:, 0]) & (res.q <= model.command_limits[:, 1])).all(-1))
     with torch.no_grad():  # (46) met: the modeled flange at q is the nominal flange at q_nom
-        err = pose_error(model.flange(res.q, s, base=False), model.nominal_flange(q))
+        err = pose_error(model.flange(res.q, s, base=False), compensation_goal(model, q))
     assert float(err[res.converged].norm(dim=-1).max()) < 1e-11
     assert torch.allclose(res.correction, (res.q - q).abs().amax(-1))
 
@@ -203,7 +211,7 @@ def test_compiled_pass_keeps_large_corrections_on_the_branch(fanuc, tools_m):
         ft = configuration_flags(model, q + t * (res.q - q))
         assert torch.equal(ft[ok], f0[ok])
     ref = newton._solve(model, q, None, 1e-10, 30, 1e-5, None, 50, 0.5, 1.0, 1e-12, False, True, 2, True,
-                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, None)
+                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, None, _g_inv(model))
     both = res.converged & ref.converged
     assert int((res.converged != ref.converged).sum()) <= 0.02 * q.shape[0]
     assert float((res.q[both] - ref.q[both]).abs().max()) < 1e-8

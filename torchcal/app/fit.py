@@ -212,10 +212,17 @@ def table6(evaluations: dict[str, dict]) -> list[dict]:
 
 def compensation_targets(model, q_nom: torch.Tensor, tool: torch.Tensor) -> torch.Tensor:
     """Where compensation must put each tool (B, 3) m, measurement frame: the nominal flange F_n(q_nom)
-    seen through the nominal measurement frame, carrying the identified tool vector (the tool is not
-    part of the robot, so compensation cannot and should not undo its error)."""
+    seen through the nominal measurement frame, carrying the identified tool set's frame in its place
+    (:mod:`torchcal.compensate.toolset`): each tool lands on the nominal robot's point for its nominal
+    vector, up to the tool set's own non-rigid difference (a bent tool is not the robot's error, so
+    compensation cannot and should not undo it)."""
+    from ..compensate.toolset import inverse, model_tool_set_frame
+
     with torch.no_grad():
         F = model.base.nominal @ model.nominal_flange(q_nom)
+        G = model_tool_set_frame(model)
+        if G is not None:
+            F = F @ inverse(G).to(F)
         p_t = model.tools()[tool]
         return (F[:, :3, :3] @ p_t[..., None])[..., 0] + F[:, :3, 3]
 

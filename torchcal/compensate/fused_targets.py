@@ -217,7 +217,7 @@ def pose_scratch(work, n):
 @njit(parallel=True, cache=True, fastmath=FAST)
 def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, eyeR, zero_p,
-                T, t_nom, t_act, G1p, G2p, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol,
+                T, t_nom, t_act, G1p, G2p, gR, gp, GR2, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol,
                 max_iter, contraction, length,
                 max_corr, path_above, sigma_floor, refresh, refresh_floor, lipschitz,
                 q_out, qn_out, de_out, step_out, it_out, status_out, C, threads):
@@ -225,7 +225,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
     the target T[b] (B, 4, 4), then (47)-(51) for the modeled flange (errors, base, directions sT) to the
     flange for the identified tool point t_act from there, then det J's sign and the nominal tool pose at the
     solution (the corrected target, into C (B, 4, 4)). Writes q_out, qn_out (n, B), de_out (6, B), step_out,
-    it_out (B,), status_out (B,) int8 (module constants); G1p, G2p (3, B) the flange goals' positions.
+    it_out (B,), status_out (B,) int8 (module constants); G1p, G2p (3, B) the flange goals' positions;
+    gR (3, 3), gp (3,): the inverse of the model's tool-set frame (:func:`.toolset.tool_set_frame`), taken on the
+    right of the compensation's goal (GR2 (B, 3, 3): that goal's rotations) so that the identified tool set,
+    not the bare flange, reaches it;
     (the inputs pose-first as the caller's tensors hold them: no transposed copies);
     from_seed: no IK, the goal is the seed's nominal flange (compensation of commands; T (B, 3, 3), G2p are written);
     want_command: False skips the nominal flange at the solution where the branch test does not need it
@@ -235,9 +238,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
     flange_w, pose_w = flange_work(threads, n), pose_work(threads, n)
     # the arrays the calls below take, borrowed (.fused.borrowed): the caller's outlive the loop
     (q_out, sT, coupling, offset, ecoupling, eoffset, lo, width, table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp,
-     baseR, basep, eyeR, zero_p, T, G1p, G2p) = borrowed((q_out, sT, coupling, offset, ecoupling, eoffset, lo, width,
-                                                          table, oR, op, axes, Ka, Ka2, prismatic, tipR, tipp, baseR,
-                                                          basep, eyeR, zero_p, T, G1p, G2p))
+     baseR, basep, eyeR, zero_p, T, G1p, G2p, gR, gp, GR2) = borrowed((q_out, sT, coupling, offset, ecoupling, eoffset,
+                                                                       lo, width, table, oR, op, axes, Ka, Ka2,
+                                                                       prismatic, tipR, tipp, baseR, basep, eyeR,
+                                                                       zero_p, T, G1p, G2p, gR, gp, GR2))
     for c in numba.prange(nchunks):
         th, ue, cs, sn, zs, os_, ws, ds = flange_scratch(flange_w, n)
         mdl = (coupling, offset, ecoupling, eoffset, lo, width, table, has_bl)
@@ -267,6 +271,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                                               + T[b, k, 2] * t_nom[b, 2])
                     G2p[k, b] = T[b, k, 3] - (T[b, k, 0] * t_act[b, 0] + T[b, k, 1] * t_act[b, 1]
                                               + T[b, k, 2] * t_act[b, 2])
+            for k in range(3):  # the compensation's goal times the tool-set frame's inverse (identity: unchanged)
+                G2p[k, b] += T[b, k, 0] * gp[0] + T[b, k, 1] * gp[1] + T[b, k, 2] * gp[2]
+                for j in range(3):
+                    GR2[b, k, j] = T[b, k, 0] * gR[0, j] + T[b, k, 1] * gR[1, j] + T[b, k, 2] * gR[2, j]
             # 1. the controller's nominal IK: Newton with the nominal Jacobian, stopped as (51)
             for it in range(0 if from_seed else ik_iter + 1):
                 flange_pose_inlined(q_out, b, sT, False, False, mdl, chn, eyeR, zero_p, FR, Fp, FJ, True, scr, 0, False)
@@ -329,7 +337,7 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
                         if fro2 * floor * floor >= 1.0:
                             singular = True
                             break
-                    tr = pose_error(FR, Fp, 0, T, G2p, b, de)
+                    tr = pose_error(FR, Fp, 0, GR2, G2p, b, de)
                     res = weighted_norm(de, length)
                     if res < best:
                         best = res
@@ -430,7 +438,7 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
                   direction: torch.Tensor | None, *, ik_tol: float, ik_max_iter: int, tol: float, residual_tol: float,
                   max_iter: int, contraction: float, length: float, max_correction: torch.Tensor | None,
                   path_above: float, sigma_floor: float, refresh: int, refresh_floor: float,
-                  lipschitz: float | None) -> dict:
+                  lipschitz: float | None, tool_set_inverse: torch.Tensor | None = None) -> dict:
     """The compiled pass over B targets.
 
     fused: a :class:`.fused.FusedFlange` of the model; target: (B, 4, 4) tool poses (nominal base frame, SI);
@@ -438,8 +446,9 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     commands; direction: (B, 6) or None; the tolerances as :func:`.newton.compensate` (max_correction: (6,) or
     None); sigma_floor: m / rad, the chord's floor at the nominal IK's command; refresh, refresh_floor:
     re-linearizations of a row that does not contract and their floor (newton's ``refresh`` and
-    ``null_damping``); lipschitz: as :func:`.branch.jacobian_lipschitz` (None: every row takes the det test).
-    -> dict of q, q_nominal (B, 6), pose_error (B, 6), step (B,), iterations (B,) long, status (B,) int8,
+    ``null_damping``); lipschitz: as :func:`.branch.jacobian_lipschitz` (None: every row takes the det test);
+    tool_set_inverse: (4, 4) the inverse of the model's tool-set frame (None: identity; t_actual is then the
+    identified tool point in that frame). -> dict of q, q_nominal (B, 6), pose_error (B, 6), step (B,), iterations (B,) long, status (B,) int8,
     command (B, 4, 4) (the nominal tool pose at q: the corrected target); float64 CPU tensors; rows with
     status != DONE hold no result.
     """
@@ -451,10 +460,12 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     de, step = np.full((6, B), np.nan), np.full(B, np.nan)
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     C, G1p, G2p = np.empty((B, 4, 4)), np.empty((3, B)), np.empty((3, B))
+    gR, gp = _inverse_parts(tool_set_inverse)
     threads = kernel_threads("targets")
     with numba.parallel_chunksize(1):  # dynamic: a thread beside a busy neighbour does not hold up the call
         targets_soa(rows(seed), s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
-                    rows(target), rows(t_nominal), rows(t_actual), G1p, G2p, False, True, float(ik_tol),
+                    rows(target), rows(t_nominal), rows(t_actual), G1p, G2p, gR, gp, np.empty((B, 3, 3)), False, True,
+                    float(ik_tol),
                     int(ik_max_iter), IK_TRUST,
                     float(tol), float(residual_tol), int(max_iter), float(contraction), float(length), corr,
                     float(path_above), float(sigma_floor), int(refresh), float(refresh_floor),
@@ -467,7 +478,7 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
 def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *, tol: float, residual_tol: float,
                    max_iter: int, contraction: float, length: float, max_correction: torch.Tensor | None,
                    path_above: float, sigma_floor: float, refresh: int, refresh_floor: float,
-                   lipschitz: float | None) -> dict:
+                   lipschitz: float | None, tool_set_inverse: torch.Tensor | None = None) -> dict:
     """The compiled pass for Paper II's compensation of commands (46)-(52): q_nom (B, 6) -> dict of q (B, 6),
     pose_error (B, 6), step (B,), iterations (B,), status (B,) int8 (rows with status != DONE hold no result);
     arguments as :func:`solve_targets`."""
@@ -480,16 +491,25 @@ def solve_commands(fused, q_nom: torch.Tensor, direction: torch.Tensor | None, *
     it, status = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.int8)
     goal, G2p = np.empty((B, 3, 3)), np.empty((3, B))
     none = np.empty((0, 3))
+    gR, gp = _inverse_parts(tool_set_inverse)
     threads = kernel_threads("targets")
     with numba.parallel_chunksize(1):
         targets_soa(rows(q_nom), s, direction is not None, *fused.model, *fused.chain, *fused.base, *fused.no_base,
-                    goal, none, none, none, G2p, True, False, 0.0, 0, 0.0,
+                    goal, none, none, none, G2p, gR, gp, np.empty((B, 3, 3)), True, False, 0.0, 0, 0.0,
                     float(tol), float(residual_tol), int(max_iter), float(contraction), float(length), corr,
                     float(path_above), float(sigma_floor), int(refresh), float(refresh_floor),
                     -1.0 if lipschitz is None else float(lipschitz), q, qn, de, step, it, status,
                     np.empty((0, 4, 4)), threads)
     t = torch.from_numpy
     return {"q": t(q).T, "pose_error": t(de).T, "step": t(step), "iterations": t(it), "status": t(status)}
+
+
+def _inverse_parts(G_inv: torch.Tensor | None) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 4) or None (identity) -> its rotation (3, 3) and translation (3,) as contiguous float64 arrays."""
+    if G_inv is None:
+        return np.eye(3), np.zeros(3)
+    g = G_inv.detach().to(torch.float64).cpu().numpy()
+    return np.ascontiguousarray(g[:3, :3]), np.ascontiguousarray(g[:3, 3])
 
 
 __all__ = ["BEYOND", "BRANCH_SIGN", "DONE", "IK_FAILED", "IK_TRUST", "NOT_CONTRACTING", "SINGULAR", "det_sign_column",

@@ -58,6 +58,7 @@ from .bounds import (  # noqa: F401 (re-exported)
 from .branch import PATH_ABOVE, branch_changed, det_sign_soa, jacobian_lipschitz, surely_same_branch
 from .damped import damped_least_squares
 from .kernel import FlangeKernel, pose_error_soa
+from .toolset import inverse, model_tool_set_frame
 from .result import (AT_BOUND, BRANCH, CONVERGED, NOT_CONVERGED, OUT_OF_REACH, SINGULAR,  # noqa: F401 (re-export)
                      SINGULAR_FLOOR, CompensationResult, range_and_coverage)
 
@@ -345,6 +346,7 @@ def compensate(
     free_tool_axis=None,
     tool_point=None,
     target: torch.Tensor | None = None,
+    tool_set: bool = True,
 ) -> CompensationResult:
     """Compensated joint commands for many poses, Paper II (46)-(52).
 
@@ -398,6 +400,12 @@ def compensate(
         controller's nominal IK of a Cartesian target for its nominal tool, :mod:`.targets`).
     tool_point: with free_tool_axis, the point on the tool axis (flange frame, m; (3,) or (B, 3); default
         the flange origin) whose position is compensated.
+    tool_set: (with free_tool_axis: the axis is given in the tool set's frame, tool_point in the modeled
+        flange's, as ``model.tools()`` holds the identified tool points) the frame that reaches the goal (F_n(q_nom) or ``target``) is the modeled flange carried by the
+        identified tool set's rigid motion G (:mod:`.toolset`: point data fix the flange only up to G when the
+        tools are identified, so any two models that predict the same points give the same commands, and the
+        tools land on the nominal robot's points); False: the bare flange, (46) as printed. Identical where the
+        identified tools equal the nominal ones.
     null_damping: Tikhonov damping toward q_nom on the damped path (m / rad,
         like ``length``-weighted singular values): directions of the Jacobian
         with singular values well below it (the q4/q6 combination that does
@@ -428,6 +436,13 @@ def compensate(
         tol, residual_tol = max(tol, FLOAT32_TOL), max(residual_tol, FLOAT32_RESIDUAL_TOL)
     args = (tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length, residual_tol, sigma, broyden,
             refresh, refresh_model, max_step, max_correction, null_damping, branch, free_tool_axis, tool_point)
+    G = model_tool_set_frame(model) if tool_set else None
+    g_inv = None if G is None else inverse(G)
+    if G is not None and free_tool_axis is not None and free_tool_axis is not False:
+        # the axis is the tool's, given in the tool set's frame: in the modeled flange it is turned by G
+        a = torch.tensor([0.0, 0.0, 1.0]) if free_tool_axis is True else torch.as_tensor(free_tool_axis)
+        free_tool_axis = G[:3, :3] @ a.to(G)
+        args = args[:16] + (free_tool_axis, tool_point)
     with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.core.threads)
         eligible = (target is None and branch and broyden and refresh_model and not sigma and free_tool_axis is None
                     and tool_point is None
@@ -438,8 +453,9 @@ def compensate(
                                                            length=length, residual_tol=residual_tol, refresh=refresh,
                                                            max_correction=max_correction, null_damping=null_damping))
             if setup is not None:
-                return _with_rest(model, q_nom, direction, _compiled_pass(setup, q_nom, direction), length, args)
-        return _solve(model, q_nom, direction, *args, target)
+                return _with_rest(model, q_nom, direction, _compiled_pass(setup, q_nom, direction, g_inv), length, args,
+                                  g_inv)
+        return _solve(model, q_nom, direction, *args, target, g_inv)
 
 
 def compiled_pass_setup(model, q: torch.Tensor, options: dict):
@@ -471,7 +487,7 @@ def _compensate_defaults() -> dict:
             if p.default is not inspect.Parameter.empty}
 
 
-def _compiled_pass(setup, q_nom, direction) -> dict:
+def _compiled_pass(setup, q_nom, direction, g_inv=None) -> dict:
     """:func:`.fused_targets.solve_commands` over every row (the same iteration as :func:`_solve`'s fast path, pose
     by pose in one compiled pass), in chunks."""
     from .fused_targets import solve_commands
@@ -479,7 +495,7 @@ def _compiled_pass(setup, q_nom, direction) -> dict:
     fused, opts = setup
     B, size = q_nom.shape[0], 262144  # chunks: progress on long batches, bounded scratch
     parts = [solve_commands(fused, q_nom[c0:c0 + size], None if direction is None else direction[c0:c0 + size],
-                            **opts) for c0 in _chunks(B, size, "compensation, compiled pass (chunks)")]
+                            **opts, tool_set_inverse=g_inv) for c0 in _chunks(B, size, "compensation, compiled pass (chunks)")]
     return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -502,13 +518,14 @@ def fill_rows(cols: dict, rows: torch.Tensor, res: CompensationResult) -> None:
         cols[k][rows] = getattr(res, k)
 
 
-def _with_rest(model, q_nom, direction, fast, length, args) -> CompensationResult:
+def _with_rest(model, q_nom, direction, fast, length, args, g_inv=None) -> CompensationResult:
     """The compiled pass's rows, with the rows it handed on (near a singularity, beyond its bounds, a possible
     branch change) solved by :func:`_solve`, in input order."""
     c = compiled_rows(fast, length)
     rest = (~c["done"]).nonzero()[:, 0]
     if rest.numel():
-        fill_rows(c, rest, _solve(model, q_nom[rest], None if direction is None else direction[rest], *args, None))
+        fill_rows(c, rest, _solve(model, q_nom[rest], None if direction is None else direction[rest], *args, None,
+                                  g_inv))
     q = c["q"]
     within, outside = range_and_coverage(model, q, direction)
     return CompensationResult(q, c["converged"], c["iterations"], c["pose_error"], c["residual"], c["step"],
@@ -526,8 +543,9 @@ def _chunks(count: int, chunk_size: int, name: str):
 @torch.no_grad()
 def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length,
            residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction, null_damping, branch,
-           free_tool_axis, tool_point, target=None):
-    """:func:`compensate`'s work, on the calling thread count."""
+           free_tool_axis, tool_point, target=None, g_inv=None):
+    """:func:`compensate`'s work, on the calling thread count; g_inv: (4, 4) the inverse of the tool-set frame
+    taken on the right of every goal, or None."""
     _check_inputs(model, q_nom, direction)
     if target is not None and (target.shape != (q_nom.shape[0], 4, 4) or target.device != q_nom.device):
         raise ValueError(f"compensate: target must be ({q_nom.shape[0]}, 4, 4) poses on {q_nom.device}, "
@@ -576,6 +594,10 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
         Rn, pn, J = kernel.nominal_flange_jacobian(qT)
         if target is not None:
             Rn, pn = target[sl, :3, :3].permute(1, 2, 0).contiguous(), target[sl, :3, 3].T.contiguous()
+        if g_inv is not None:  # goal G^-1: the tool set's frame F_a G reaches the goal (.toolset)
+            g = g_inv.to(dtype)
+            pn = pn + torch.einsum("ijb,j->ib", Rn, g[:3, 3])
+            Rn = torch.einsum("ijb,jk->ikb", Rn, g[:3, :3])
         targets_R[..., sl], targets_p[:, sl] = Rn, pn
         if sigma:
             sig[sl] = sigma_min_soa(J, length)

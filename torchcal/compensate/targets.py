@@ -37,6 +37,7 @@ from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
 from .damped import damped_least_squares
 from .newton import CompensationResult, compensate, compiled_pass_setup, compiled_rows, fill_rows
 from .result import JOINT_LIMIT, range_and_coverage
+from .toolset import inverse, model_tool_set_frame
 
 FAST_MIN_TARGETS = 64
 """Batches smaller than this skip the compiled pass (its first call in a process loads numba's cached code)."""
@@ -132,10 +133,13 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     if bool(((tool < 0) | (tool >= model.tools.count)).any()):
         raise ValueError(f"compensate_targets: tool indices must lie in 0..{model.tools.count - 1}")
     t_nominal = model.tools.nominal.to(dev, dt)[tool]
-    t_actual = model.tools().to(dev, dt)[tool]
+    t_identified = model.tools().to(dev, dt)[tool]
     if free_tool_axis is not None and free_tool_axis is not False:
-        options = dict(options, free_tool_axis=free_tool_axis, tool_point=t_actual)
-    fast = _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)
+        options = dict(options, free_tool_axis=free_tool_axis, tool_point=t_identified)
+    # the identified tool point in the tool set's frame (.toolset), which compensate() puts on the flange goal
+    G = model_tool_set_frame(model) if options.get("tool_set", True) else None
+    t_actual = t_identified if G is None else (t_identified - G[:3, 3].to(dt)) @ G[:3, :3].to(dt)
+    fast = _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options, G)
     if fast is None:
         return _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)
     return _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)
@@ -166,10 +170,11 @@ def _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max
 
 # options the compiled pass reads (or that only concern rows it leaves to the general path)
 _FAST_OPTIONS = {"tol", "max_iter", "residual_tol", "contraction", "length", "max_correction", "max_step", "damping",
-                 "max_damped_iter", "null_damping", "refresh", "refresh_model", "chunk_size"}
+                 "max_damped_iter", "null_damping", "refresh", "refresh_model", "chunk_size", "tool_set"}
 
 
-def _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> dict | None:
+def _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options,
+               G=None) -> dict | None:
     """:mod:`.fused_targets`' compiled pass over every row, or None where it does not apply (no numba, not CPU
     float64, not 6 joints, a live model (compliance, fine tables), 5-DOF, an option it does not implement)."""
     if model.n != 6 or not set(options) <= _FAST_OPTIONS or target.shape[0] < FAST_MIN_TARGETS:
@@ -181,7 +186,7 @@ def _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_m
 
     fused, opts = setup
     return solve_targets(fused, target, t_nominal, t_actual, seed, direction, ik_tol=ik_tol, ik_max_iter=ik_max_iter,
-                         **opts)
+                         **opts, tool_set_inverse=None if G is None else inverse(G))
 
 
 def _merged(model, fast, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options) -> TargetResult:

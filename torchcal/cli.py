@@ -621,7 +621,7 @@ def export_urdf_cmd(
     output: Annotated[Path, typer.Argument(help="URDF to write (.urdf); the robot's joint-map YAML goes next to it (same stem, .yaml).")],
     base: Annotated[str, typer.Option("--base", help="joint: fold the base correction into the first joint's origin; link: a new root link with a fixed joint carrying it.")] = "joint",
     measurement_frame: Annotated[bool, typer.Option("--measurement-frame", help="Also fold in the measurement frame: the URDF's root is the tracker frame.")] = False,
-    constants: Annotated[str, typer.Option("--constants", help="fit: constants fitted to the full model over the joint limits (best); c0: the order-0 coefficients as identified (exact only for an order-0 model).")] = "fit",
+    constants: Annotated[str, typer.Option("--constants", help="fit: constants fitted to the full model at the identification data's poses (best); c0: the order-0 coefficients as identified (exact only for an order-0 model).")] = "fit",
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
 ):
     """A calibrated URDF: the constant part of a robot model in the joint origins, compared on the run's data (mm)."""
@@ -641,7 +641,7 @@ def export_urdf_cmd(
     if exp.joint_map is not None:
         typer.echo(f"wrote {exp.joint_map}")
     how = "fitted to the full model" if constants == "fit" else "order-0 coefficients (c0)"
-    typer.echo(f"constants: {how}; vs the full model at {exp.commands} commands over the joint limits: "
+    typer.echo(f"constants: {how}; vs the full model at {exp.commands} commands ({exp.region}): "
                f"RMS {exp.misfit_rms_mm:.4f} mm, max {exp.misfit_max_mm:.4f} mm")
     if res.comparison is None:
         typer.echo("warning: the run's config names no readable identification or validation file: not compared",
@@ -662,7 +662,8 @@ def export_urdf_cmd(
         hint = ("; export with --constants fit (the default)" if constants == "c0" else
                 "; the full model is worse than the nominal robot there too: do not deploy this run"
                 if c.full.mean > c.nominal.mean else
-                ": the joint-dependent errors dominate, use the full model (torchcal predict / compensate)")
+                ": the joint-dependent errors dominate (no constant holds them), use the full model (torchcal "
+                "predict / compensate)")
         typer.echo(f"warning: the URDF alone is worse than the nominal robot on the {which} data (mean "
                    f"{c.urdf.mean:.4f} mm against {c.nominal.mean:.4f} mm, RMS {rms['urdf']:.4f} against "
                    f"{rms['nominal']:.4f} mm){hint}", err=True)

@@ -142,8 +142,21 @@ def test_cli_export_urdf(tmp_path, fanuc, tools_m):
 
     loaded = load_model(run)
     val = read_measurements(tmp_path / "val.csv", fanuc, 3)
-    cmp = compare_urdf(loaded, export_urdf(loaded, tmp_path / "again.urdf"), val)
+    # the constants are fitted at the identification data's poses (each once), where the model is known
+    import pandas as pd
+
+    poses = pd.read_csv(tmp_path / "ident.csv").drop_duplicates("pose")
+    q_ident = torch.deg2rad(torch.tensor(poses[[f"q{i}" for i in range(1, 7)]].to_numpy()))
+    assert f"at {q_ident.shape[0]} commands (the identification data's poses)" in r.output
+    cmp = compare_urdf(loaded, export_urdf(loaded, tmp_path / "again.urdf", commands=q_ident), val)
     assert f"{cmp.urdf.mean:.4f}" in r.output and f"{cmp.nominal.mean:.4f}" in r.output
+    # the joint map goes beside the URDF under its stem: a YAML there that is no joint map (the user's fit
+    # config) is never replaced, --force or not
+    cfg = tmp_path / "out" / "mine.yaml"
+    cfg.write_text("robot: fanuc_lrmate200i\ndata: {identification: ident.csv}\n")
+    r = runner.invoke(app, ["export-urdf", str(run), str(cfg.with_suffix(".urdf")), "--force"])
+    assert r.exit_code == 2 and "is no joint map" in r.output and "mine_calibrated.urdf" in " ".join(r.output.split())
+    assert cfg.read_text().startswith("robot: fanuc_lrmate200i") and not cfg.with_suffix(".urdf").exists()
     assert load_robot(out.with_suffix(".yaml")).chain.joint_names == fanuc.chain.joint_names
     # an existing output is refused without --force, and left alone
     before = out.read_text()
@@ -160,3 +173,22 @@ def test_cli_export_urdf(tmp_path, fanuc, tools_m):
     assert r.exit_code == 2 and "--constants" in r.output
     r = runner.invoke(app, ["export-urdf", str(run), str(tmp_path / "x.yaml")])
     assert r.exit_code == 2 and ".urdf" in r.output
+
+
+def test_projection_commands_stay_in_the_data_span(fanuc, tools_m):
+    """A model that records its identification data's span is projected there (a series extrapolates beyond
+    it); one that records none, over the joint limits."""
+    model = RobotModel(fanuc, tools_m, orders=2)
+    lim = fanuc.joint_map.limits
+    q = projection_commands(fanuc, 256, 0, model=model)
+    assert bool(((q >= lim[:, 0]) & (q <= lim[:, 1])).all())
+    spread = (q.amax(0) - q.amin(0)) / (lim[:, 1] - lim[:, 0])
+    assert float(spread.min()) > 0.9  # no span recorded: the whole range
+    data_q = random_commands(fanuc, 40, 3) * 0.3
+    model.record_data_span(data_q)
+    q = projection_commands(fanuc, 256, 0, model=model)
+    outside = model.outside_data(q)
+    assert not bool(outside.any())
+    span = model.data_span
+    u = model.error_variables(q)
+    assert bool(((u.amax(0) - u.amin(0)) > 0.9 * (span[:, 1] - span[:, 0])).all())  # and it fills it

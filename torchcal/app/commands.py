@@ -165,7 +165,9 @@ def export_urdf(run_dir, out, base: str = "joint", measurement_frame: bool = Fal
         if path and Path(path).is_file():
             data, which = Path(path), key
             break
-    return export_run_urdf(run_dir, out, base, measurement_frame, constants, data, force), which
+    ident = cfg.data.identification
+    fit_data = Path(ident) if ident and Path(ident).is_file() else None  # the constants fitted where the model is known
+    return export_run_urdf(run_dir, out, base, measurement_frame, constants, data, force, fit_data), which
 
 
 def write_report(run_dir, out=None) -> Path:

@@ -127,3 +127,19 @@ def test_blocked_full_test_equals_the_column_by_column_test(seed, P, rank_defici
     full = _greedy_full(Bt, 1e-7, block)
     assert torch.equal(full, _greedy(Bt, torch.ones(1, P, dtype=torch.bool), 1e-7)[0])
     assert int(full.sum()) == P - int(torch.linalg.matrix_rank(A))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), P=st.integers(2, 60), rows=st.integers(1, 30), block=st.integers(1, 40))
+def test_fewer_rows_than_columns_pins_all_but_the_rank(seed, P, rows, block):
+    """Three poses of one tool give 9 rows for hundreds of parameters: the blocked test must pin every column
+    beyond the rows' rank (it crashed where a block had more columns than the data had rows) and agree with
+    the column-by-column test."""
+    from torchcal.identify.gauge import _greedy, _greedy_full, _unit_columns_in_order
+
+    rows = min(rows, P - 1)
+    A = torch.randn(rows, P, dtype=torch.float64, generator=torch.Generator().manual_seed(seed))
+    Bt, _ = _unit_columns_in_order(A, torch.arange(P))
+    full = _greedy_full(Bt, 1e-7, block)
+    assert torch.equal(full, _greedy(Bt, torch.ones(1, P, dtype=torch.bool), 1e-7)[0])
+    assert int(full.sum()) == P - int(torch.linalg.matrix_rank(A))

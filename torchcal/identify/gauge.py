@@ -105,8 +105,9 @@ def _greedy_full(Bt: torch.Tensor, rtol: float, block: int = 16) -> torch.Tensor
             c = min(s + block, P)
             W = _project_out(Bt[None, s:c], Q[None, :K])[0]  # (L, n)
             q, r = torch.linalg.qr(W.T, mode="reduced")  # (n, L), (L, L)
-            small = (torch.diagonal(r).abs() < rtol).nonzero()
-            j = int(small[0, 0]) if small.numel() else c - s
+            diag = torch.diagonal(r)  # fewer entries than the block's columns where the rows run out (n < L)
+            small = (diag.abs() < rtol).nonzero()
+            j = int(small[0, 0]) if small.numel() else min(c - s, diag.numel())
             Q[K:K + j] = q[:, :j].T
             K += j
             if j < c - s:

@@ -152,6 +152,36 @@ def test_missing_files_say_not_available(run, tmp_path):
     assert _cells(text)["validation.modeled.mean"][0] == metrics["sets"]["validation"]["modeled"]["mean"]
 
 
+def test_without_metrics_json_the_warnings_are_unknown_not_absent(run, tmp_path):
+    """The run's warnings live in metrics.json: a report regenerated without it must not say 'no warnings'."""
+    bare = tmp_path / "nometrics"
+    shutil.copytree(run, bare)
+    (bare / "metrics.json").unlink()
+    (bare / "report.html").unlink()
+    text = write_report(bare).read_text()
+    assert "warnings unknown: metrics.json is missing" in text or "metrics.json" in text
+    assert "No warnings: the run raised none" not in text and ">no warnings<" not in text
+
+
+def test_a_set_without_a_gamma_fit_or_a_worse_model_still_reports(run, tmp_path):
+    """One validation row has no Gamma 99 % (null in metrics.json): the report shows '–'; a model worse than the
+    nominal robot is said to be worse, not '-27.5 % less'."""
+    odd = tmp_path / "odd"
+    shutil.copytree(run, odd)
+    (odd / "report.html").unlink()
+    metrics = json.loads((odd / "metrics.json").read_text())
+    for r in metrics["table6"]:
+        if r.get("set") == "Validation":
+            r["gamma99"] = None
+            if str(r.get("residual")).startswith("Modeled"):
+                r["mean_decrease"] = -27.5
+    (odd / "metrics.json").write_text(json.dumps(metrics))
+    text = write_report(odd).read_text()
+    assert "27.5 % more: worse than before" in text and "-27.5 % less" not in text
+    card = re.search(r"Gamma 99 %, held-out validation</div><div class=\"v\">(.*?)</div>", text)
+    assert card is not None and card.group(1) == "–"
+
+
 @pytest.mark.parametrize("estimated", [False, True])
 def test_tools_say_whether_the_alignment_estimated_them(run, tmp_path, estimated):
     """alignment.json lists the tools either way; only where it estimated them may the report say so."""
@@ -162,7 +192,7 @@ def test_tools_say_whether_the_alignment_estimated_them(run, tmp_path, estimated
                                                       "tools_mm": tools}))
     text = write_report(bare).read_text()
     if estimated:
-        assert "60.500, 80.250, 120.000 mm (estimated from the data)" in text
+        assert "60.500, 80.250, 120.000 mm (estimated from the data by the alignment" in text
     else:
         assert "estimated from the data" not in text and "mm (flange frame, from the config" in text
 

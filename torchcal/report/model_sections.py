@@ -139,7 +139,7 @@ def solver(run: RunFiles) -> str:
              ("Cost (whitened residual, ½ sum of squares)", _g(f.get("cost", get(run.metrics, "fit", "cost")))),
              ("Time (s)", None if f.get("time_s") is None else f"{f['time_s']:.2f}"),
              ("Parameters / pinned by the gauge", f"{f.get('parameters')} / {f.get('pinned')}" if f else None),
-             ("Joint errors eliminated per row", f.get("joint_errors")),
+             ("Joint errors eliminated (rows × joints)", f.get("joint_errors")),
              ("Order selection", get(run.metrics, "order_selection") or "fixed orders (config)"),
              ("Prior from a fleet", _fleet_prior(f.get("fleet_prior"), get(run.metrics, "fleet_prior")))]
     out = kv([(k, v) for k, v in pairs if v is not None])

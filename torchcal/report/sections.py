@@ -73,21 +73,30 @@ def _held_out(run: RunFiles):
     return None
 
 
+def _mm(v) -> str:
+    """A length in mm for a card, or '–' where the run has none (a Gamma fit needs more than one row)."""
+    return "–" if not isinstance(v, (int, float)) else f"{v:.4f} mm"
+
+
 def summary(run: RunFiles) -> str:
     held = _held_out(run)
     cards = []
     if held:
         name, nom, mod = held
         label = "held-out validation" if name == "Validation" else name.lower()
-        cards.append(("Position error, " + label, f"{mod['mean']:.4f} mm",
-                      f"mean after calibration; {nom['mean']:.4f} mm before ({mod.get('mean_decrease') or 0:.1f} % less)"))
-        cards.append(("Gamma 99 %, " + label, f"{mod['gamma99']:.4f} mm",
-                      f"99 % of positions within this; {nom['gamma99']:.4f} mm before"))
-        cards.append(("Largest error, " + label, f"{mod['max']:.4f} mm", f"{nom['max']:.4f} mm before"))
+        d = mod.get("mean_decrease")
+        change = "" if d is None else f" ({d:.1f} % less)" if d >= 0 else f" ({-d:.1f} % more: worse than before)"
+        cards.append(("Position error, " + label, _mm(mod.get("mean")),
+                      f"mean after calibration; {_mm(nom.get('mean'))} before{change}"))
+        cards.append(("Gamma 99 %, " + label, _mm(mod.get("gamma99")),
+                      f"99 % of positions within this (Paper II's Gamma fit, not the largest error); "
+                      f"{_mm(nom.get('gamma99'))} before"))
+        cards.append(("Largest error, " + label, _mm(mod.get("max")), f"{_mm(nom.get('max'))} before"))
     converged = get(run.metrics, "fit", "converged", default=get(run.fit, "converged"))
     warnings = _all_warnings(run)
-    cards.append(("Fit", "converged" if converged else ("not converged" if converged is False else "unknown"),
-                  f"{len(warnings)} warning(s) on the data and the model" if warnings else "no warnings"))
+    said = (f"{len(warnings)} warning(s) on the data and the model" if warnings else
+            "warnings unknown: metrics.json is missing" if isinstance(run.metrics, Missing) else "no warnings")
+    cards.append(("Fit", "converged" if converged else ("not converged" if converged is False else "unknown"), said))
     body = "".join(f'<div class="card"><div class="k">{esc(k)}</div><div class="v">{esc(v)}</div>'
                    f'<div class="d">{esc(d)}</div></div>' for k, v, d in cards)
     text = "" if held else not_available("accuracy summary", "metrics.json holds no residual table")
@@ -101,7 +110,8 @@ def _tools(run: RunFiles):
     # alignment.json holds the tools whether or not they were estimated: the flag says which (a listed tool set
     # passes through it unchanged when only the frame was estimated)
     if isinstance(aligned, list) and get(run.alignment, "estimated_tools", default=True) is not False:
-        return [(f"tool {i}", ", ".join(f"{v:.3f}" for v in t) + " mm (estimated from the data)") for i, t in enumerate(aligned)]
+        return [(f"tool {i}", ", ".join(f"{v:.3f}" for v in t) + " mm (estimated from the data by the alignment, "
+                 "before the fit; its corrections are among the parameters)") for i, t in enumerate(aligned)]
     if isinstance(tools, list):
         return [(f"tool {i}", ", ".join(f"{float(v):g}" for v in t) + " mm (flange frame, from the config; the fit's "
                                                                    "corrections are among the parameters)")
@@ -119,7 +129,8 @@ def instrument(run: RunFiles) -> str:
     pairs = [("Kind", kind_of(run)), ("Robot / machine description", _robot_source(run)),
              ("Error model", f"{get(cfg, 'model', 'kind', default='joint_dependent')}, Chebyshev order "
                              f"{get(cfg, 'model', 'order')}"
-                             + (", backlash" if get(cfg, "model", "backlash") else "")
+                             + (", backlash" if get(cfg, "model", "backlash") and get(
+                                 cfg, "model", "kind", default="joint_dependent") == "joint_dependent" else "")
                              + (", gravity compliance" if get(cfg, "model", "compliance") else "")
                              + (", fine joint tables" if get(cfg, "model", "fine") else ""))]
     orders = get(run.metrics, "orders")
@@ -207,7 +218,9 @@ def data_checks(run: RunFiles) -> str:
     warnings = _all_warnings(run)
     if warnings:
         out.append('<ul class="warnings">' + "".join(f"<li>{esc(w)}</li>" for w in warnings) + "</ul>")
-    elif not isinstance(run.metrics, Missing) or not isinstance(run.log, Missing):
+    elif isinstance(run.metrics, Missing):  # the run's warnings live there: their absence says nothing
+        out.append(not_available("warnings", f"{run.metrics.reason}; run.log names none"))
+    elif not isinstance(run.log, Missing) or not isinstance(run.metrics, Missing):
         out.append('<p class="ok">No warnings: the run raised none on the data or the model.</p>')
     checks = get(run.metrics, "data_checks")
     if not isinstance(checks, dict):

@@ -490,7 +490,8 @@ def compensate_cmd(
     _warn(out.warnings)
     if out.flagged:
         _console(stderr=True).print(
-            f"warning: {out.flagged} of {out.rows} commands flagged ({out.not_converged} did not converge, "
+            f"warning: {out.flagged} of {out.rows} commands flagged ({out.not_converged} did not converge or are out "
+            "of reach, "
             f"{out.outside_limits} outside the controller range); they are kept, marked in 'converged' / 'within_limits'",
             markup=False)
     else:

@@ -118,6 +118,18 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     said = " ".join(r.output.split())
     assert r.exit_code == 0 and "t0.csv: no 'tool' column: every target is for tool 0" in said, said
     assert "backlash terms are left out" not in said
+    # a target out of reach is counted among those that did not converge (the count agrees with the file)
+    far = df.copy()
+    far.loc[0, "x"] += 3000.0
+    far.to_csv(tmp_path / "t_far.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "t_far.csv"), str(tmp_path / "out_far.csv")])
+    got = pd.read_csv(tmp_path / "out_far.csv", keep_default_na=False)
+    bad = int((~got.converged.astype(bool)).sum())
+    within = got.within_limits.astype(bool)
+    said = " ".join(r.output.split())
+    assert got.reason[0].startswith("out of reach") and bad >= 1
+    assert (f"{bad} of 20 commands flagged ({int((~got.converged.astype(bool) & within).sum())} did not converge or "
+            f"are out of reach, {int((~within).sum())} outside") in said, said
     # targets in metres, and an orientation given twice: refused, nothing written
     metres = df.copy()
     metres[["x", "y", "z"]] = metres[["x", "y", "z"]] / 1000.0

@@ -381,7 +381,9 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     out["reason"] = res.reason
     write_table(output, out)
     flagged = int((~converged).sum())
-    return CompensationFile(len(df), int((~comp.converged).sum()), int((~comp.within_limits).sum()), flagged,
+    within = comp.within_limits.cpu()
+    # a target the nominal IK cannot reach (or with no seed for its flags) is a row that did not converge too
+    return CompensationFile(len(df), int((~converged & within).sum()), int((~within).sum()), flagged,
                             0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp, said)
 
 

@@ -152,3 +152,38 @@ def test_fit_path_modules_do_not_import_scipy_stats():
             "print('scipy.stats' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_wrong_inputs_to_the_python_api_are_named_torchcal_errors():
+    """Shapes, dtypes, indices and names a researcher gets wrong: each a TorchcalError naming the call and the
+    argument (torch's own messages name neither), and nothing silently taken."""
+    import numpy as np
+    import pytest
+    import torch
+
+    import torchcal
+    from torchcal.core.exceptions import InputError
+
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    model = torchcal.RobotModel(robot, torch.zeros(2, 3, dtype=torch.float64), orders=1)
+    tool = torch.zeros(4, dtype=torch.long)
+    for q, said in ((torch.zeros(4, 5, dtype=torch.float64), "(B, 6) commands, got shape (4, 5)"),
+                    (torch.zeros(6, dtype=torch.float64), "q[None] makes one pose a batch"),
+                    (torch.zeros(4, 6, dtype=torch.float32), "q is torch.float32, the model torch.float64"),
+                    (np.zeros((4, 6)), "got ndarray")):
+        with pytest.raises(InputError, match=r"RobotModel\.points: ") as err:
+            model.points(q, tool)
+        assert said in str(err.value)
+    with pytest.raises(torchcal.TorchcalError, match="tool indices must be >= 0"):
+        torchcal.Measurements.from_tensors(torch.zeros(4, 6), tool=-1)
+    with pytest.raises(torchcal.TorchcalError, match="direction must be -1, 0 or \\+1, got 2.0 at row 0, joint 1"):
+        torchcal.Measurements.from_tensors(torch.zeros(4, 6), tool=0, direction=torch.full((4, 6), 2.0))
+    with pytest.raises(torchcal.TorchcalError, match="direction must have q's shape"):
+        torchcal.Measurements.from_tensors(torch.zeros(4, 6), tool=0, direction=torch.ones(4, 5))
+    with pytest.raises(torchcal.TorchcalError, match="compensate: q_nom must be a \\(B, 6\\)"):
+        torchcal.compensate(model, torch.zeros(4, 5, dtype=torch.float64))
+    # a misspelt group to hold fixed would fit what the user meant to hold: refused, the valid names listed
+    data = torchcal.Measurements.from_tensors(torch.zeros(4, 6, dtype=torch.float64), tool=0,
+                                              xyz=torch.zeros(4, 3, dtype=torch.float64))
+    with pytest.raises(torchcal.TorchcalError, match="fixed: 'tool' names no parameter group.*tools"):
+        torchcal.fit(model, data, fixed=("tool",))

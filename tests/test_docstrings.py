@@ -48,3 +48,26 @@ def test_docstring_examples(name):
     res = doctest.testmod(mod, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE, verbose=False)
     assert res.failed == 0
     assert res.attempted > 0  # each listed module has at least one example
+
+
+def _facade_names():
+    import torchcal
+
+    return [n for n in torchcal.__all__ if n != "__version__"]
+
+
+@pytest.mark.parametrize("name", _facade_names())
+def test_facade_examples_run_as_copied(name):
+    """A user copies an example from a facade name's docstring: only what the example imports (and the name
+    itself) may be used, not the defining module's globals (which testmod above lends them)."""
+    import torchcal
+
+    obj = getattr(torchcal, name)
+    if name == "compensate":
+        obj = torchcal.compensate.compensate
+    finder = doctest.DocTestFinder(recurse=False)
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    for test in finder.find(obj, name, globs={name: obj}):
+        if test.examples:
+            runner.run(test, out=lambda s: None)
+    assert runner.summarize(verbose=False).failed == 0

@@ -75,6 +75,7 @@ _LAZY = {
     "fit_fleet": ("torchcal.identify.fleet", "fit_fleet"),
     "CompensationResult": ("torchcal.compensate", "CompensationResult"),
     "simulate": ("torchcal.sim", "simulate"),
+    "sim": ("torchcal.sim", None),  # the simulators' subpackage (quasi_random_commands, fleets), as examples use it
     "TruthRobot": ("torchcal.sim", "TruthRobot"),
     "plan_poses": ("torchcal.analysis.planning", "plan_poses"),
     # config-driven runs

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.exceptions import InputError
+
 
 class ToolAxis:
     """A free tool axis ``axis`` (3,) in the flange frame (normalized here) through the tool point ``point``
@@ -26,7 +28,7 @@ class ToolAxis:
     def __init__(self, axis, point=None, dtype=torch.float64, device="cpu", batch: int | None = None):
         a = torch.as_tensor(axis, dtype=dtype, device=device).reshape(-1)
         if a.shape != (3,) or not bool(torch.isfinite(a).all()) or float(a.norm()) == 0.0:
-            raise ValueError(f"compensate: free_tool_axis must be a nonzero 3-vector in the flange frame, got {axis!r}")
+            raise InputError(f"compensate: free_tool_axis must be a nonzero 3-vector in the flange frame, got {axis!r}")
         a = a / a.norm()
         # b1: the unit vector farthest from a among x, y, z, made orthogonal; b2 = a x b1
         e = torch.eye(3, dtype=dtype, device=device)[int(a.abs().argmin())]
@@ -40,10 +42,10 @@ class ToolAxis:
         c = torch.zeros(3, dtype=dtype, device=device) if point is None else torch.as_tensor(point, dtype=dtype, device=device)
         if c.ndim == 1:
             if c.shape != (3,):
-                raise ValueError(f"compensate: tool_point must be (3,) or (B, 3), got {tuple(c.shape)}")
+                raise InputError(f"compensate: tool_point must be (3,) or (B, 3), got {tuple(c.shape)}")
             c = c.expand(batch if batch is not None else 1, 3)
         if c.ndim != 2 or c.shape[1] != 3 or (batch is not None and c.shape[0] != batch):
-            raise ValueError(f"compensate: tool_point must be (3,) or ({batch}, 3), got {tuple(c.shape)}")
+            raise InputError(f"compensate: tool_point must be (3,) or ({batch}, 3), got {tuple(c.shape)}")
         self.point = c  # (B, 3)
 
     def subset(self, rows: torch.Tensor) -> "ToolAxis":
@@ -97,7 +99,7 @@ def tool_axis(free_tool_axis, tool_point, dtype, device, batch: int) -> ToolAxis
     flange z axis) or a (3,) direction in the flange frame; tool_point: None, (3,) or (batch, 3), m."""
     if free_tool_axis is None or free_tool_axis is False:
         if tool_point is not None:
-            raise ValueError("compensate: tool_point is used with free_tool_axis only (6-DOF compensation of the "
+            raise InputError("compensate: tool_point is used with free_tool_axis only (6-DOF compensation of the "
                              "flange pose reaches every tool point)")
         return None
     axis = [0.0, 0.0, 1.0] if free_tool_axis is True else free_tool_axis

@@ -10,6 +10,8 @@ import math
 
 import torch
 
+from ..core.exceptions import InputError
+
 DEFAULT_BOUND = "default"
 """compensate()'s default bounds: max_correction 30 deg per revolute joint (:data:`DEFAULT_CORRECTION_DEG`),
 max_step 5 deg (:data:`DEFAULT_STEP_DEG`), 5 mm per prismatic joint for both."""
@@ -38,7 +40,7 @@ def per_joint_bound(bound, n: int, dtype, device, name: str = "bound", prismatic
         return None
     if isinstance(bound, str):
         if bound != DEFAULT_BOUND:
-            raise ValueError(f"compensate: {name} must be a number, one per joint, None or '{DEFAULT_BOUND}', got {bound!r}")
+            raise InputError(f"compensate: {name} must be a number, one per joint, None or '{DEFAULT_BOUND}', got {bound!r}")
         pr = torch.zeros(n, dtype=torch.bool) if prismatic is None else torch.as_tensor(prismatic, dtype=torch.bool).cpu()
         deg = DEFAULT_STEP_DEG if name == "max_step" else DEFAULT_CORRECTION_DEG
         bound = torch.where(pr, torch.tensor(DEFAULT_PRISMATIC_MM * 1e-3, dtype=torch.float64),
@@ -46,7 +48,7 @@ def per_joint_bound(bound, n: int, dtype, device, name: str = "bound", prismatic
     t = torch.as_tensor(bound, dtype=dtype, device=device)
     t = t.expand(n).clone() if t.ndim == 0 else t
     if t.shape != (n,):
-        raise ValueError(f"compensate: {name} must be a number or one value per joint ({n}), got shape {tuple(t.shape)}")
+        raise InputError(f"compensate: {name} must be a number or one value per joint ({n}), got shape {tuple(t.shape)}")
     if not bool((t > 0).all()):
-        raise ValueError(f"compensate: {name} must be positive, got {t.tolist()}")
+        raise InputError(f"compensate: {name} must be positive, got {t.tolist()}")
     return t

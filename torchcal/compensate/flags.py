@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.exceptions import InputError
+
 from ..kinematics.fk import chain_frames
 from .damped import damped_least_squares
 
@@ -112,10 +114,10 @@ def seeds_for_flags(model, target: torch.Tensor, flags: torch.Tensor, tool=0, st
 
     B = target.shape[0]
     if target.shape[1:] != (4, 4) or flags.shape != (B, 3):
-        raise ValueError(f"seeds_for_flags: target must be (B, 4, 4) and flags (B, 3), got {tuple(target.shape)} "
+        raise InputError(f"seeds_for_flags: target must be (B, 4, 4) and flags (B, 3), got {tuple(target.shape)} "
                          f"and {tuple(flags.shape)}")
     if not bool(((flags == 1) | (flags == -1)).all()):
-        raise ValueError("seeds_for_flags: every flag must be +1 or -1")
+        raise InputError("seeds_for_flags: every flag must be +1 or -1")
     dt, dev = model.dtype, model.device
     lim = model.command_limits.to(dt)
     ref = (lim[:, 0] + lim[:, 1]) / 2 if reference is None else reference.to(dt)

@@ -46,6 +46,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.exceptions import InputError
+
 from ..kinematics.transforms import homogeneous
 from ..core.measurements import first_invalid_direction
 from ..core.progress import task as progress_task
@@ -258,24 +260,24 @@ def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
     require(model, "compensate commands", "compensate")  # the model contract (torchcal.core.contract)
     if not isinstance(q_nom, torch.Tensor) or q_nom.ndim != 2 or q_nom.shape[1] != model.n:
         shape = tuple(q_nom.shape) if isinstance(q_nom, torch.Tensor) else type(q_nom).__name__
-        raise ValueError(f"compensate: q_nom must be a (B, {model.n}) tensor of commands, got {shape}")
+        raise InputError(f"compensate: q_nom must be a (B, {model.n}) tensor of commands, got {shape}")
     if q_nom.device != model.device:
-        raise ValueError(f"compensate: q_nom is on {q_nom.device}, the model on {model.device}; move one of them")
+        raise InputError(f"compensate: q_nom is on {q_nom.device}, the model on {model.device}; move one of them")
     if not q_nom.is_floating_point():
         raise TypeError(f"compensate: q_nom must be floating point (rad / m), got {q_nom.dtype}")
     bad = ~torch.isfinite(q_nom)
     if bad.any():
         i, j = (int(x) for x in bad.nonzero()[0])
-        raise ValueError(f"compensate: q_nom is not finite at pose {i}, joint {j + 1} ({float(q_nom[i, j])})")
+        raise InputError(f"compensate: q_nom is not finite at pose {i}, joint {j + 1} ({float(q_nom[i, j])})")
     if direction is not None:
         if direction.shape != q_nom.shape:
-            raise ValueError(f"compensate: direction must have the shape of q_nom {tuple(q_nom.shape)}, got {tuple(direction.shape)}")
+            raise InputError(f"compensate: direction must have the shape of q_nom {tuple(q_nom.shape)}, got {tuple(direction.shape)}")
         if direction.device != model.device:
-            raise ValueError(f"compensate: direction is on {direction.device}, the model on {model.device}")
+            raise InputError(f"compensate: direction is on {direction.device}, the model on {model.device}")
         bad = first_invalid_direction(direction)
         if bad is not None:
             i, j = bad
-            raise ValueError(f"compensate: direction must be -1, 0 or +1, got {float(direction[i, j])} at pose {i}, joint {j + 1}")
+            raise InputError(f"compensate: direction must be -1, 0 or +1, got {float(direction[i, j])} at pose {i}, joint {j + 1}")
 
 
 def nominal_sigma_min(model, q: torch.Tensor, length: float = 1.0) -> torch.Tensor:
@@ -548,7 +550,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
     taken on the right of every goal, or None."""
     _check_inputs(model, q_nom, direction)
     if target is not None and (target.shape != (q_nom.shape[0], 4, 4) or target.device != q_nom.device):
-        raise ValueError(f"compensate: target must be ({q_nom.shape[0]}, 4, 4) poses on {q_nom.device}, "
+        raise InputError(f"compensate: target must be ({q_nom.shape[0]}, 4, 4) poses on {q_nom.device}, "
                          f"got {tuple(target.shape)} on {target.device}")
     dtype, device = model.dtype, model.device
     if target is not None:

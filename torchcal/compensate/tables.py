@@ -188,6 +188,7 @@ def compensation_tables(ap_or_model, points_per_table: int = DEFAULT_POINTS, pai
     :class:`TableSizeError` for K < 2.
 
     Example:
+        >>> import torch
         >>> from torchcal.error_models.axis_perturbation import AxisPerturbation
         >>> ap = AxisPerturbation(torch.tensor([[0.0, 1.0], [-3.0, 3.0]], dtype=torch.float64), [True, False], 2)
         >>> with torch.no_grad():

@@ -32,6 +32,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ..core.exceptions import InputError
+
 from ..core.contract import require
 from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
 from .damped import damped_least_squares
@@ -124,14 +126,14 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     """
     require(model, "compensate commands", "compensate_targets")
     if target.ndim != 3 or target.shape[1:] != (4, 4):
-        raise ValueError(f"compensate_targets: target must be (B, 4, 4) poses, got {tuple(target.shape)}")
+        raise InputError(f"compensate_targets: target must be (B, 4, 4) poses, got {tuple(target.shape)}")
     B = target.shape[0]
     if seed.shape != (B, model.n):
-        raise ValueError(f"compensate_targets: seed must be ({B}, {model.n}) commands, got {tuple(seed.shape)}")
+        raise InputError(f"compensate_targets: seed must be ({B}, {model.n}) commands, got {tuple(seed.shape)}")
     dev, dt = model.device, seed.dtype
     tool = torch.as_tensor(tool, device=dev, dtype=torch.long).expand(B)
     if bool(((tool < 0) | (tool >= model.tools.count)).any()):
-        raise ValueError(f"compensate_targets: tool indices must lie in 0..{model.tools.count - 1}")
+        raise InputError(f"compensate_targets: tool indices must lie in 0..{model.tools.count - 1}")
     t_nominal = model.tools.nominal.to(dev, dt)[tool]
     t_identified = model.tools().to(dev, dt)[tool]
     if free_tool_axis is not None and free_tool_axis is not False:

@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.exceptions import InputError
+
 LINE_TOL = 1e-3
 """m: tools whose second spread (singular value of the centred nominal vectors) is below this lie on one line
 (or coincide): G's rotation is then left out (identity)."""
@@ -46,7 +48,7 @@ def tool_set_frame(nominal: torch.Tensor, identified: torch.Tensor) -> torch.Ten
         [0.0, 0.0, 0.002]
     """
     if nominal.shape != identified.shape or nominal.ndim != 2 or nominal.shape[1] != 3:
-        raise ValueError(f"tool_set_frame: nominal and identified must both be (T, 3), got {tuple(nominal.shape)} "
+        raise InputError(f"tool_set_frame: nominal and identified must both be (T, 3), got {tuple(nominal.shape)} "
                          f"and {tuple(identified.shape)}")
     a, b = nominal.to(torch.float64), identified.to(torch.float64)
     G = torch.eye(4, dtype=torch.float64, device=a.device)

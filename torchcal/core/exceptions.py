@@ -24,3 +24,9 @@ class TorchcalError(Exception):
 
 class ConfigError(TorchcalError, ValueError):
     """A config that cannot be used; the message names the file (or override) and the key."""
+
+
+class InputError(TorchcalError, ValueError):
+    """An argument of a library call that cannot be used (its shape, dtype, device or values); the message
+    names the call and the argument."""
+

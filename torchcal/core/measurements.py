@@ -11,6 +11,8 @@ from dataclasses import dataclass, field, replace
 
 import torch
 
+from .exceptions import InputError
+
 
 @dataclass
 class Measurements:
@@ -43,7 +45,7 @@ class Measurements:
         for name in ("tool", "xyz", "direction", "pose", "rows"):
             t = getattr(self, name)
             if t.shape[0] != R:
-                raise ValueError(f"Measurements.{name} has {t.shape[0]} rows, q has {R}")
+                raise InputError(f"Measurements.{name} has {t.shape[0]} rows, q has {R}")
 
     def __len__(self) -> int:
         return self.q.shape[0]
@@ -60,11 +62,31 @@ class Measurements:
     def from_tensors(cls, q, tool, xyz=None, direction=None, pose=None, source: str = "") -> "Measurements":
         """Build from plain tensors; missing pose ids / directions get defaults."""
         q = torch.as_tensor(q, dtype=torch.float64)
+        if q.ndim != 2:
+            raise InputError(f"Measurements.from_tensors: q must be (R, n) commands, got shape {tuple(q.shape)}")
         R = q.shape[0]
-        tool = torch.as_tensor(tool, dtype=torch.long).expand(R).clone()
+        tool = torch.as_tensor(tool)
+        if tool.is_floating_point() and not bool((tool == tool.round()).all()):
+            raise InputError("Measurements.from_tensors: tool must hold integer tool indices")
+        tool = tool.to(torch.long)
+        if tool.ndim > 1 or (tool.ndim == 1 and tool.shape[0] not in (1, R)):
+            raise InputError(f"Measurements.from_tensors: tool must be one index or ({R},) indices, got shape "
+                             f"{tuple(tool.shape)}")
+        tool = tool.expand(R).clone()
+        if R and int(tool.min()) < 0:
+            raise InputError(f"Measurements.from_tensors: tool indices must be >= 0, got {int(tool.min())}")
         xyz = torch.full((R, 3), float("nan"), dtype=torch.float64) if xyz is None else torch.as_tensor(xyz, dtype=torch.float64)
+        if xyz.ndim != 2 or xyz.shape[1] != 3:
+            raise InputError(f"Measurements.from_tensors: xyz must be ({R}, 3) points, got shape {tuple(xyz.shape)}")
         has_dir = direction is not None
         direction = torch.zeros_like(q) if direction is None else torch.as_tensor(direction, dtype=torch.float64)
+        if direction.shape != q.shape:
+            raise InputError(f"Measurements.from_tensors: direction must have q's shape {tuple(q.shape)}, got "
+                             f"{tuple(direction.shape)}")
+        bad = first_invalid_direction(direction)
+        if bad is not None:
+            raise InputError(f"Measurements.from_tensors: direction must be -1, 0 or +1, got "
+                             f"{float(direction[bad])} at row {bad[0]}, joint {bad[1] + 1}")
         pose = torch.arange(R) if pose is None else torch.as_tensor(pose, dtype=torch.long)
         return cls(q, tool, xyz.to(q.device), direction.to(q.device), pose.to(q.device), torch.arange(1, R + 1), has_dir, source)
 

@@ -33,6 +33,8 @@ class ParamGroup:
         Chebyshev orders, switched-off terms do not).
 
     Example:
+        >>> import torch
+        >>> from torchcal.core.params import ANGLE, ParamGroup
         >>> g = ParamGroup("base.twist", "frame", ["base.eps_x"], [ANGLE], torch.tensor([0.1]), torch.tensor([True]))
         >>> g.units
         ['rad']

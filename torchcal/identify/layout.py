@@ -10,6 +10,8 @@ from __future__ import annotations
 from typing import Iterable
 
 import torch
+
+from ..core.exceptions import InputError
 from torch import nn
 
 from ..core.params import ANGLE, ParamGroup
@@ -64,8 +66,14 @@ class ParameterLayout:
     def __init__(self, model: nn.Module, fixed: Iterable[str] = (), masks: dict[str, torch.Tensor] | None = None,
                  groups: list[ParamGroup] | None = None):
         self.model = model
-        self.fixed = tuple(fixed)
+        self.fixed = (fixed,) if isinstance(fixed, str) else tuple(fixed)
         self._all_groups = parameter_groups(model) if groups is None else groups
+        names = [g.name for g in self._all_groups]
+        unknown = [f for f in self.fixed if not any(n == f or n.startswith(f + ".") for n in names)]
+        if unknown:  # a misspelt group would fit what the user meant to hold fixed, and say nothing
+            prefixes = sorted({n.split(".")[0] for n in names} | set(names))
+            raise InputError(f"fixed: {', '.join(repr(f) for f in unknown)} names no parameter group of the model; "
+                             f"give a name or a prefix of: {', '.join(prefixes)}")
         params = dict(model.named_parameters())
         self.entries: list[tuple[str, nn.Parameter, torch.Tensor]] = []
         self.groups: list[ParamGroup] = []

@@ -233,3 +233,24 @@ class ChainBuffers:
     @property
     def device(self) -> torch.device:
         return self.origins.device
+
+    def check_commands(self, q, where: str) -> None:
+        """Raise :class:`~torchcal.core.exceptions.InputError` naming ``where`` for commands that are not a
+        (B, n) tensor of the model's dtype and device (torch's own message names none of them). Shapes and
+        dtypes only, no values: nothing here waits for a GPU. Inside a torch.func transform (rows vmapped one
+        by one) the shape is the transform's business."""
+        from ..core.exceptions import InputError
+
+        if not isinstance(q, torch.Tensor):
+            raise InputError(f"{where}: q must be a torch tensor (B, {self.n}) of commands (rad / m), got "
+                             f"{type(q).__name__}; torch.as_tensor(q, dtype={self.dtype}) converts an array")
+        if torch._C._functorch.peek_interpreter_stack() is not None:
+            return
+        if q.ndim != 2 or q.shape[1] != self.n:
+            raise InputError(f"{where}: q must be (B, {self.n}) commands, got shape {tuple(q.shape)}"
+                             + ("; q[None] makes one pose a batch" if q.ndim == 1 and q.shape[0] == self.n else ""))
+        if q.dtype != self.dtype:
+            raise InputError(f"{where}: q is {q.dtype}, the model {self.dtype}: convert one of them "
+                             f"(q.to({self.dtype}) or model.to({q.dtype}))")
+        if q.device != self.device:
+            raise InputError(f"{where}: q is on {q.device}, the model on {self.device}: move one of them")

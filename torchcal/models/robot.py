@@ -164,10 +164,12 @@ class RobotModel(ChainBuffers, nn.Module):
 
     def flange(self, q, direction=None, v=None, base: bool = True) -> torch.Tensor:
         """Modeled flange pose (B, 4, 4) in the measurement frame (base=True) or the robot's nominal base frame."""
+        self.check_commands(q, "RobotModel.flange")
         return self.frames(q, direction, v, base)[2]
 
     def nominal_flange(self, q: torch.Tensor) -> torch.Tensor:
         """Nominal flange pose F_n(q) (B, 4, 4) in the robot's nominal base frame: no error terms."""
+        self.check_commands(q, "RobotModel.nominal_flange")
         return chain_frames(self.origins, self.axes, self.prismatic, self.joint_variables(q), None, self.tip)[2]
 
 
@@ -198,7 +200,11 @@ class RobotModel(ChainBuffers, nn.Module):
         return self.points(q, tool, direction, v)
 
     def points(self, q, tool, direction=None, v=None) -> torch.Tensor:
-        """Measured-point model (25): tool t's position (B, 3) in the measurement frame."""
+        """Measured-point model (25): tool t's position (B, 3) in the measurement frame.
+
+        q: (B, n) commands (rad / m) of the model's dtype and device; tool: (B,) or one index; direction:
+        (B, n) in {-1, 0, +1} or None; v: (B, n) joint errors or None."""
+        self.check_commands(q, "RobotModel.points")
         return self.tool_points(self.flange(q, direction, v), tool)
 
     def nominal_points(self, q, tool) -> torch.Tensor:

@@ -70,7 +70,7 @@ class CompensationResult:
         outside what the identification data covered (``model.coverage``), or
         None when the model carries no coverage or no directions were given.
     status: (B,) int8, how the row ended (module docstring: CONVERGED, AT_BOUND, BRANCH, OUT_OF_REACH,
-        NOT_CONVERGED), or None.
+        NOT_CONVERGED, SINGULAR), or None.
     """
 
     q: torch.Tensor

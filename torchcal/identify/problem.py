@@ -22,6 +22,8 @@ import logging
 from dataclasses import dataclass, field
 
 import torch
+
+from ..core.exceptions import InputError
 from torch.func import functional_call
 
 from ..core import units
@@ -206,7 +208,7 @@ def row_errors(model, data: Measurements, instrument: Instrument | None = None, 
     """(R,) norm of each row's raw residual (m for point targets), joint errors v (default zero)."""
     if instrument is None:
         if torch.isnan(data.xyz).any():
-            raise ValueError(f"{data.source}: data has rows without a measured x, y, z")
+            raise InputError(f"{data.source or 'the measurements'}: data has rows without a measured x, y, z")
         instrument = PointTargets(data.xyz, sigma=1.0)
     with torch.no_grad():
         r = raw_residual(model, instrument, data.q, data.tool, data.direction if data.has_direction else None, v,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core.exceptions import InputError
+
 from ..core.measurements import Measurements
 from .base import Instrument
 from .weights import CovarianceWeight, IsotropicWeight
@@ -48,7 +50,8 @@ class PointTargets(Instrument):
     def from_measurements(cls, data: Measurements, sigma: float | None = None, cov=None) -> "PointTargets":
         """The tracker points of ``data`` (its ``xyz``), raising with the file name when a row has none."""
         if torch.isnan(data.xyz).any():
-            raise ValueError(f"{data.source}: identification data has rows without a measured x, y, z")
+            raise InputError(f"{data.source or 'the measurements'}: identification data has rows without a measured "
+                             "x, y, z")
         return cls(data.xyz, sigma, cov)
 
     def predict(self, model, q, tool, direction=None, v=None) -> torch.Tensor:

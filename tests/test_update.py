@@ -236,3 +236,18 @@ def test_sensor_run_update_lands_on_the_fit_of_all_rows(sensor_runs):
     before = float((p_first - p_all).norm(dim=1).max())
     assert before > 5e-5
     assert float((p_upd - p_all).norm(dim=1).max()) < 0.02 * before
+
+
+def test_updating_with_the_validation_set_says_it_is_no_longer_held_out(runs, tmp_path):
+    """The config's validation file given as the update's data (or a copy of it): the model is fitted to it, so
+    its residual is no held-out figure: said, and not reported as 'validation'."""
+    import shutil
+
+    copy = tmp_path / "val_copy.csv"
+    shutil.copy(runs["sim"] / "validation.csv", copy)
+    r = invoke("update", runs["root"] / "run", copy, "--out", tmp_path / "u", "-q")
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "the update's data are the config's validation set" in said and "no held-out" in said
+    metrics = json.loads((tmp_path / "u" / "metrics.json").read_text())
+    assert set(metrics["sets"]) == {"update"}

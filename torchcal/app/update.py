@@ -230,11 +230,25 @@ def _lineage(parent: Path) -> list[str]:
     return list(earlier) + [str(parent)]
 
 
-def _evaluate(cfg, model, new: Measurements, progress) -> tuple[dict, list[dict]]:
-    """Residual statistics of the new rows and of the config's validation set when readable (mm; sensors: and deg)."""
+def _same_file(a, b) -> bool:
+    """Whether two paths hold the same data: the same file, or byte-identical files (a copy)."""
+    import filecmp
+
+    try:
+        return Path(a).resolve() == Path(b).resolve() or filecmp.cmp(a, b, shallow=False)
+    except OSError:
+        return False
+
+
+def _evaluate(cfg, model, new: Measurements, progress, new_path=None) -> tuple[dict, list[dict]]:
+    """Residual statistics of the new rows and of the config's validation set when readable (mm; sensors: and deg).
+    A validation set that is the update's own data is not held out any more: said, and not reported as one."""
     sets = {"update": new}
     val = cfg.data.validation
-    if val and not Path(val).is_file():
+    if val and new_path is not None and Path(val).is_file() and _same_file(val, new_path):
+        progress.warn(f"the update's data are the config's validation set ({val}): the model has now been fitted "
+                      "to them, so no held-out (validation) residual is reported; measure a new validation set")
+    elif val and not Path(val).is_file():
         progress.warn(f"the config's validation set '{val}' is not readable: not evaluated")
     elif val:
         if is_sensor_run(cfg):
@@ -393,7 +407,7 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
         update = {**meta, "lineage": lineage, "history": history, **step.summary()}
         files["update"] = write_json(run / UPDATE_FILE, update)
         with progress.step("evaluating the residuals", quiet=True):
-            sets, table = _evaluate(cfg, model, new, progress)
+            sets, table = _evaluate(cfg, model, new, progress, new_path)
         metrics = {"units": "mm, deg, percent" if is_sensor_run(cfg) else "mm, percent", "parent": str(parent),
                    "lineage": lineage, "history": history, "update": step.summary(), "sets": sets, "table6": table,
                    "warnings": progress.warnings}

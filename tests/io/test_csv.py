@@ -431,3 +431,16 @@ def test_a_header_in_another_case_is_one_problem(tmp_path, fanuc):
     assert "lower case" in text and "Q1" in text and "X, Y, Z" in text and "missing" not in text
     with pytest.raises(DataError, match="names DIR1, DIR2"):
         read_measurements(write(tmp_path, [HEADER.replace("dir", "DIR"), *GOOD], "dirs.csv"), fanuc, n_tools=2)
+
+
+def test_a_file_without_a_header_line_is_named_as_such(tmp_path, fanuc):
+    """Rows of numbers from the first line: one message saying the header is missing, not 'column 1 appears
+    twice' or a missing column for every name."""
+    body = "\n".join(",".join(str(v) for v in [p, 0, *[10.0 * j for j in range(6)], 500.0, 0.0, 300.0])
+                     for p in range(3))
+    path = tmp_path / "noheader.csv"
+    path.write_text(body + "\n")
+    with pytest.raises(DataError) as err:
+        read_measurements(path, fanuc, n_tools=1)
+    msg = str(err.value)
+    assert "the file has no header line" in msg and "appears twice" not in msg and msg.count("\n  - ") == 1

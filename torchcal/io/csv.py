@@ -114,6 +114,14 @@ _PADDING = re.compile(r"[^\S\r\n]")
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+(?:[eE][+-]?\d+)?$")
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text.replace(",", "."))
+        return True
+    except ValueError:
+        return False
+
+
 def _delimiter(path: Path) -> str:
     """',' (the contract), ';' for a European spreadsheet export (``;`` separators, decimal commas), or a tab.
 
@@ -208,7 +216,12 @@ def read_raw_table(path: Path) -> pd.DataFrame:
     for r, (line, w) in enumerate(zip(starts, widths)):
         if w and w != len(names):
             problems.append(Problem(r + 1, None, f"has {w} fields, the header has {len(names)}", line))
-    if sep == "," and len(names) == 1 and (len(names[0].split()) > 1 or any(w > 1 for w in widths)):
+    if names and all(_is_number(n) for n in names if n):
+        # the first line holds numbers: no header at all (the column names are not optional)
+        problems = [Problem(None, None, f"the first line holds numbers ({', '.join(names[:4])}"
+                                        f"{', ...' if len(names) > 4 else ''}), not column names: the file has no "
+                                        "header line; the contract needs one first (e.g. pose,tool,q1..qN,x,y,z)")]
+    elif sep == "," and len(names) == 1 and (len(names[0].split()) > 1 or any(w > 1 for w in widths)):
         # e.g. a space-separated file: say so once instead of "column missing" for every column, or one line per row
         problems = [Problem(None, None, f"the header has one field ({names[0][:60]!r}) and the rows up to "
                                         f"{max(widths, default=0)}: the contract separates fields with ','")] + problems[:3]

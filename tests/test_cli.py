@@ -714,3 +714,16 @@ def test_written_files_print_one_per_line_not_as_a_python_dict():
     lines = _written_lines({"linuxcnc": {"X": Path("/o/x.comp"), "Y": Path("/o/y.comp")}, "csv": Path("/o/t.csv")})
     assert lines == ["wrote linuxcnc: X: /o/x.comp", "wrote linuxcnc: Y: /o/y.comp", "wrote csv: /o/t.csv"]
     assert _written_lines(Path("/o/t.csv")) == ["wrote /o/t.csv"]
+
+
+def test_a_file_without_directions_and_backlash_on_advises_turning_it_off(e2e, tmp_path):
+    """Backlash needs both approach directions: without dir columns its terms are undetermined, and the advice
+    is model.backlash: false, not 'spread the poses'."""
+    ident = pd.read_csv(e2e["sim"] / "identification.csv")
+    ident.drop(columns=[f"dir{i}" for i in range(1, 7)]).to_csv(tmp_path / "nodir.csv", index=False)
+    r = invoke("fit", e2e["sim"] / "fit.yaml", "model.order=1", "model.backlash=true", "data.truth=null",
+               f"data.identification={tmp_path / 'nodir.csv'}", "plots=false", "report=false",
+               f"out={tmp_path / 'run'}", "-q")
+    said = " ".join(r.output.split())
+    assert r.exit_code == 0, r.output
+    assert "are backlash terms, which need approach directions" in said and "set model.backlash: false" in said

@@ -626,10 +626,17 @@ def check_data(cfg, inp: FitInputs, model, make, orders, result: FitResult, prog
             count = len(result.pinned) - len(structural)
             if count > 0 and extra:
                 out["undetermined"] = extra
+                backlash = [n for n in extra if ".backlash" in n or "backlash." in n]
+                advice = ("Spread the poses over the joint ranges and measure every tool, or lower model.order")
+                if backlash and not ident.has_direction:
+                    # backlash needs both approach directions; a file without dir columns gives none
+                    advice = (f"{len(backlash)} of them are backlash terms, which need approach directions: the "
+                              f"file has no dir1..dir{ident.q.shape[1]} columns, so set model.backlash: false"
+                              + ("; for the rest, spread the poses over the joint ranges and measure every tool, "
+                                 "or lower model.order" if len(backlash) < len(extra) else ""))
                 progress.warn(f"{src}: the data cannot determine {count} of the model's {P} parameters (beyond the "
                               f"{len(structural)} that no data can tell apart); they stay at their start values "
-                              f"(fit.json 'pinned_names'): {_names_short(extra)}. Spread the poses over the joint "
-                              "ranges and measure every tool, or lower model.order")
+                              f"(fit.json 'pinned_names'): {_names_short(extra)}. {advice}")
     try:  # what is left free but barely determined: torchcal.analysis.identifiability at the solution
         from ..analysis.identifiability import identifiability
 

@@ -273,3 +273,14 @@ def test_tracker_errors_are_torchcal_errors(tmp_path):
         import_tracker(joints, [], [], None, 0.1, False, 1.0)
     with pytest.raises(ValueError, match="file not found"):  # still a ValueError for older except clauses
         read_rows(tmp_path / "missing.txt", ["x", "y", "z"])
+
+
+def test_a_semicolon_file_with_decimal_commas_is_read(tmp_path):
+    """A European spreadsheet export of a tracker file (';' between fields, ',' as the decimal mark) reads as
+    the same numbers as its plain form (it said 'has 4 fields, expected 3')."""
+    plain = tmp_path / "plain.txt"
+    plain.write_text("2641.5495 162.21378 -7.8522\n2890.9784 33.593321 -193.29479\n")
+    euro = tmp_path / "euro.txt"
+    euro.write_text("2641,5495;162,21378;-7,8522\n2890,9784;33,593321;-193,29479\n")
+    a, b = read_rows(plain, ["x", "y", "z"]), read_rows(euro, ["x", "y", "z"])
+    assert np.array_equal(a.values, b.values)

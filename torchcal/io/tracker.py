@@ -38,6 +38,7 @@ naming the file, the row (and line) and the column.
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -96,13 +97,18 @@ def read_rows(path, columns: list[str]) -> RowFile:
     C = len(columns)
     values = np.full((len(records), C), np.nan)
     lines = []
+    # a European spreadsheet export: ';' between fields, ',' as the decimal mark (as read_table reads it)
+    european = any(";" in s for _, s in records)
+    if european:
+        logging.getLogger("torchcal").warning("%s: fields separated by ';': read with ',' as the decimal mark", path)
     for r, (ln, s) in enumerate(records):
         row = r + 1
         lines.append(ln)
         if not s:
             problems.append(Problem(row, None, "blank line between data rows; remove it (rows are never skipped)", ln))
             continue
-        fields = [f for f in _SPLIT.split(s.strip(", \t")) if f != ""]
+        fields = ([f.strip().replace(",", ".") for f in s.strip("; \t").split(";")] if european else
+                  [f for f in _SPLIT.split(s.strip(", \t")) if f != ""])
         if len(fields) != C:
             problems.append(Problem(row, None, f"has {len(fields)} fields, expected {C} ({', '.join(columns)})", ln))
             continue

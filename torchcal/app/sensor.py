@@ -234,7 +234,7 @@ def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[di
                                                        "decrease_percent": percent_decrease(ps[0].mean, ps[1].mean)},
                      "orientation_deg": {"nominal": vars(rs[0]), "modeled": vars(rs[1]),
                                          "decrease_percent": percent_decrease(rs[0].mean, rs[1].mean)}}
-        progress.info(f"{name}: position mean {ps[0].mean:.4f} -> {ps[1].mean:.4f} mm (p99 {ps[1].gamma99:.4f}, max "
+        progress.info(f"{name}: position mean {ps[0].mean:.4f} -> {ps[1].mean:.4f} mm (Gamma 99 % {ps[1].gamma99:.4f}, max "
                       f"{ps[1].max:.4f}); orientation mean {rs[0].mean:.4f} -> {rs[1].mean:.5f} deg")
     return out, table
 

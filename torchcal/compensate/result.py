@@ -143,7 +143,8 @@ class CompensationResult:
         return out
 
     def summary(self) -> dict:
-        """Counts and worst errors as plain Python numbers."""
+        """Counts and worst errors as plain Python numbers, SI (the unit in each key; a prismatic joint's correction
+        counts in metres under ``max_correction_converged_rad``)."""
         c = self.converged
         return {
             "poses": int(c.numel()),
@@ -153,6 +154,6 @@ class CompensationResult:
             "max_iterations": int(self.iterations.max()) if c.numel() else 0,
             "max_position_error_converged_m": float(self.position_error[c].max()) if c.any() else 0.0,
             "max_orientation_error_converged_rad": float(self.orientation_error[c].max()) if c.any() else 0.0,
-            "max_correction_converged": float(self.correction[c].max()) if self.correction is not None and c.any() else 0.0,
+            "max_correction_converged_rad": float(self.correction[c].max()) if self.correction is not None and c.any() else 0.0,
             "direction_outside": int(self.direction_outside.sum()) if self.direction_outside is not None else None,
         }

@@ -33,7 +33,6 @@ from __future__ import annotations
 import torch
 
 from ..core.exceptions import InputError
-
 from ..kinematics.fk import chain_frames
 from .damped import damped_least_squares
 

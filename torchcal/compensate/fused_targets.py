@@ -217,8 +217,8 @@ def pose_scratch(work, n):
 @njit(parallel=True, cache=True, fastmath=FAST)
 def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width, table, has_bl,
                 oR, op, axes, Ka, Ka2, prismatic, z_axes, tipR, tipp, baseR, basep, eyeR, zero_p,
-                T, t_nom, t_act, G1p, G2p, gR, gp, GR2, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol, residual_tol,
-                max_iter, contraction, length,
+                T, t_nom, t_act, G1p, G2p, gR, gp, GR2, from_seed, want_command, ik_tol, ik_iter, ik_trust, tol,
+                residual_tol, max_iter, contraction, length,
                 max_corr, path_above, sigma_floor, refresh, refresh_floor, lipschitz,
                 q_out, qn_out, de_out, step_out, it_out, status_out, C, threads):
     """Per pose b: the nominal IK from seed[b] to the flange that puts the nominal tool point t_nom[b] on
@@ -448,8 +448,8 @@ def solve_targets(fused, target: torch.Tensor, t_nominal: torch.Tensor, t_actual
     re-linearizations of a row that does not contract and their floor (newton's ``refresh`` and
     ``null_damping``); lipschitz: as :func:`.branch.jacobian_lipschitz` (None: every row takes the det test);
     tool_set_inverse: (4, 4) the inverse of the model's tool-set frame (None: identity; t_actual is then the
-    identified tool point in that frame). -> dict of q, q_nominal (B, 6), pose_error (B, 6), step (B,), iterations (B,) long, status (B,) int8,
-    command (B, 4, 4) (the nominal tool pose at q: the corrected target); float64 CPU tensors; rows with
+    identified tool point in that frame). -> dict of q, q_nominal (B, 6), pose_error (B, 6), step (B,),
+    iterations (B,) long, status (B,) int8, command (B, 4, 4) (the nominal tool pose at q: the corrected target); float64 CPU tensors; rows with
     status != DONE hold no result.
     """
     B, n = seed.shape

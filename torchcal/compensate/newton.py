@@ -47,7 +47,6 @@ from __future__ import annotations
 import torch
 
 from ..core.exceptions import InputError
-
 from ..kinematics.transforms import homogeneous
 from ..core.measurements import first_invalid_direction
 from ..core.progress import task as progress_task
@@ -402,12 +401,13 @@ def compensate(
         controller's nominal IK of a Cartesian target for its nominal tool, :mod:`.targets`).
     tool_point: with free_tool_axis, the point on the tool axis (flange frame, m; (3,) or (B, 3); default
         the flange origin) whose position is compensated.
-    tool_set: (with free_tool_axis: the axis is given in the tool set's frame, tool_point in the modeled
-        flange's, as ``model.tools()`` holds the identified tool points) the frame that reaches the goal (F_n(q_nom) or ``target``) is the modeled flange carried by the
-        identified tool set's rigid motion G (:mod:`.toolset`: point data fix the flange only up to G when the
-        tools are identified, so any two models that predict the same points give the same commands, and the
-        tools land on the nominal robot's points); False: the bare flange, (46) as printed. Identical where the
-        identified tools equal the nominal ones.
+    tool_set: the frame that reaches the goal (F_n(q_nom) or ``target``) is the modeled flange carried by
+        the identified tool set's rigid motion G (:mod:`.toolset`: point data fix the flange only up to G
+        when the tools are identified, so any two models that predict the same points give the same
+        commands, and the tools land on the nominal robot's points); False: the bare flange, (46) as
+        printed. Identical where the identified tools equal the nominal ones. With free_tool_axis the axis
+        is given in the tool set's frame, tool_point in the modeled flange's (as ``model.tools()`` holds
+        the identified tool points).
     null_damping: Tikhonov damping toward q_nom on the damped path (m / rad,
         like ``length``-weighted singular values): directions of the Jacobian
         with singular values well below it (the q4/q6 combination that does
@@ -436,15 +436,14 @@ def compensate(
         # float32 (a GPU's fast path) carries ~1e-7 of a metre: the float64 tolerances cannot be met, so every row
         # would be flagged; these are the float32 floor (measured: commands within ~1e-5 rad of float64's)
         tol, residual_tol = max(tol, FLOAT32_TOL), max(residual_tol, FLOAT32_RESIDUAL_TOL)
-    args = (tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length, residual_tol, sigma, broyden,
-            refresh, refresh_model, max_step, max_correction, null_damping, branch, free_tool_axis, tool_point)
     G = model_tool_set_frame(model) if tool_set else None
     g_inv = None if G is None else inverse(G)
     if G is not None and free_tool_axis is not None and free_tool_axis is not False:
         # the axis is the tool's, given in the tool set's frame: in the modeled flange it is turned by G
         a = torch.tensor([0.0, 0.0, 1.0]) if free_tool_axis is True else torch.as_tensor(free_tool_axis)
         free_tool_axis = G[:3, :3] @ a.to(G)
-        args = args[:16] + (free_tool_axis, tool_point)
+    args = (tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length, residual_tol, sigma, broyden,
+            refresh, refresh_model, max_step, max_correction, null_damping, branch, free_tool_axis, tool_point)
     with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.core.threads)
         eligible = (target is None and branch and broyden and refresh_model and not sigma and free_tool_axis is None
                     and tool_point is None

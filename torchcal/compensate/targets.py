@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 import torch
 
 from ..core.exceptions import InputError
-
 from ..core.contract import require
 from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
 from .damped import damped_least_squares

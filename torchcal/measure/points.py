@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 
 from ..core.exceptions import InputError
-
 from ..core.measurements import Measurements
 from .base import Instrument
 from .weights import CovarianceWeight, IsotropicWeight

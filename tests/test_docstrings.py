@@ -36,6 +36,7 @@ MODULES = [
     "torchcal.sim.sensor_truth",
     "torchcal.sim.machine_truth",
     "torchcal.compensate.tables",
+    "torchcal.compensate.toolset",
     "torchcal.export.controller",
     "torchcal.analysis.border",
     "torchcal.core.progress",

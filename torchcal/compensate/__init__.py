@@ -1,8 +1,9 @@
 """Compensation of the modeled errors, Paper II (46)-(52).
 
 ``compensate(model, q_nom, direction)`` returns commands q_new with
-``model.flange(q_new, direction, base=False) == model.nominal_flange(q_nom)``
-for many poses at once: the paper's fixed-Jacobian iteration on a fast
+``model.flange(q_new, direction, base=False) @ G == model.nominal_flange(q_nom)``
+(G: the identified tool set's rigid motion, :mod:`.toolset`, the identity where the tools are nominal;
+``compensation_goal`` gives the right side times G^-1) for many poses at once: the paper's fixed-Jacobian iteration on a fast
 flange-only kernel, damped least squares for the rows that do not contract.
 Every command stays within ``max_correction`` (default 30 deg) of its nominal
 one and on its branch (configuration flags, :mod:`.branch`); rows that would need more, another
@@ -36,6 +37,7 @@ from .tables import (
     apply_tables,
     compensation_tables,
 )
+from .toolset import compensation_goal, tool_poses, tool_set_frame
 
 __all__ = [
     "DEFAULT_BOUND",
@@ -53,10 +55,14 @@ __all__ = [
     "TableSlopeWarning",
     "apply_tables",
     "compensate",
+    "compensation_goal",
+    "compensation_goal",
     "compensation_tables",
     "damped_least_squares",
     "fixed_jacobian_iterations",
     "nominal_sigma_min",
+    "tool_poses",
+    "tool_set_frame",
     "per_joint_bound",
     "pose_error_soa",
 ]

@@ -4,7 +4,10 @@ For a nominal command q_nom the compensated command q_new makes the modeled
 robot reach the pose the nominal robot would have reached (46):
 
     E_base · F_a(q_new, s) = F_n(q_nom),
-    i.e. ``model.flange(q_new, direction, base=False) == model.nominal_flange(q_nom)``.
+    i.e. ``model.flange(q_new, direction, base=False) == model.nominal_flange(q_nom)``,
+
+with the identified tool set's rigid motion G on the left (F_a G: :mod:`.toolset`, our reading for tools that
+the fit identifies; ``tool_set=False`` is the equation as printed, and the two agree for nominal tools).
 
 The paper's iteration (47)-(51): Ω = F_a(q^r)^-1 F_n(q_nom), de from Ω (48),
 dq = J(q_nom)^-1 de (49), q <- q + dq (50) until ||dq|| < tol (51). With the

@@ -227,6 +227,18 @@ def test_compensate_flags_rows_and_keeps_them(e2e):
     flagged = (~out.converged.astype(bool)) | (~out.within_limits.astype(bool))
     assert flagged.sum() >= 1 and not flagged.iloc[2]
     assert f"{int(flagged.sum())} of 3 commands flagged" in r.output
+    # compensate's own output, flagged rows beyond the range included, reads back into predict: those rows are
+    # predicted and marked, the others are unchanged
+    beyond = ~out.within_limits.astype(bool)
+    assert beyond.any()
+    r = invoke("predict", e2e["run"], root / "edge_out.csv", root / "edge_pred.csv")
+    assert r.exit_code == 0, r.output
+    pred = pd.read_csv(root / "edge_pred.csv")
+    tools = len(pred) // len(out)  # a commands file: every row for every tool of the run, tool-major
+    assert len(pred) == tools * len(out)
+    assert list(pred["within_limits"].astype(bool)) == list(~beyond) * tools
+    said = " ".join(r.output.split())
+    assert f"{int(beyond.sum())} of 3 rows command a joint outside the controller range" in said
 
 
 def test_bad_inputs_exit_2_with_one_message(e2e, tmp_path):

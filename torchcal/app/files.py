@@ -110,11 +110,14 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
 
     T = model.tools.count
     with progress_task(f"reading {input}"):
-        data, df = read_table(input, model.robot, None, require_xyz=False)
+        # commands beyond the controller range are predicted and marked (compensate keeps its flagged rows, so its
+        # own output must stay readable), not refused
+        data, df = read_table(input, model.robot, None, require_xyz=False, outside_limits="mark")
         per_tool = "tool" not in df.columns
         if not per_tool:  # the rows name their tools: checked against the run's
-            data = parse_table(df, input, model.robot, T, require_xyz=False)
+            data = parse_table(df, input, model.robot, T, require_xyz=False, outside_limits="mark")
     _refuse_radians(input, data, model, units_checked)
+    beyond = data.extra.pop("outside_limits").numpy()
     data = data.to(model.device)
     # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
     tools = range(T) if per_tool else [None]
@@ -134,6 +137,12 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
     # every tool's part holds the same commands: one judgement, repeated per part
     count = _mark_outside_data(out, None if outside is None else np.tile(outside, len(tools)), input, said)
+    if beyond.any():
+        out["within_limits"] = ~np.tile(beyond, len(tools))
+        rows = np.flatnonzero(beyond)
+        said.append(f"{input}: {rows.size} of {len(df)} rows command a joint outside the controller range (rows "
+                    f"{', '.join(str(r + 1) for r in rows[:5])}{', ...' if rows.size > 5 else ''}): predicted there "
+                    "all the same (the model extrapolates) and marked within_limits=False")
     write_table(output, out)
     return PredictFile(len(out), count, said)
 

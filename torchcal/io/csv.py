@@ -360,6 +360,7 @@ def parse_table(
     n_tools: int | None,
     require_xyz: bool = True,
     require_pose: bool | None = None,
+    outside_limits: str = "refuse",
 ) -> Measurements:
     """Validate a raw text table (as read by :func:`read_table`) and convert it to SI :class:`Measurements`.
 
@@ -370,7 +371,11 @@ def parse_table(
     is read when all three columns are there (empty cells allowed, NaN) and is
     NaN where absent. require_pose: default = require_xyz; without a 'pose'
     column every row is its own pose. Duplicate (pose, tool) rows are an error
-    in measured data only.
+    in measured data only. outside_limits: 'refuse' (a joint beyond the
+    controller range is a problem of its row and column) or 'mark' (read, and
+    the rows listed in ``extra['outside_limits']``, (R,) bool: what a model
+    predicts there is an extrapolation, but e.g. compensate's own flagged rows
+    must not make its output unreadable).
     """
     path = str(path)
     n = robot.joint_map.n
@@ -416,12 +421,16 @@ def parse_table(
     # joints: numbers inside the controller range
     q = np.zeros((R, n))
     limits = _file_limits(robot)
+    beyond = np.zeros(R, dtype=bool)
     for i, c in enumerate(qcols):
         if c not in cols:
             continue
         q[:, i] = parse_numbers(df, c, problems)
         lo, hi = limits[i]
         outside = np.isfinite(q[:, i]) & ((q[:, i] < lo - LIMIT_TOL) | (q[:, i] > hi + LIMIT_TOL))
+        if outside_limits == "mark":
+            beyond |= outside
+            continue
         for r in np.flatnonzero(outside):
             problems.append(Problem(int(r) + 1, c, f"{q[r, i]:.6g} {unit[i]} is outside the controller range "
                                                     f"[{lo:.6g}, {hi:.6g}] {unit[i]} of '{robot.name}'"))
@@ -494,18 +503,20 @@ def parse_table(
     interpreted |= set(dcols) if has_direction else set()
     interpreted |= set(XYZ) if has_xyz else set()
     extra = {c: df[c].to_numpy(dtype=object) for c in df.columns if c not in interpreted}
+    if outside_limits == "mark":
+        extra["outside_limits"] = torch.from_numpy(beyond)
     return _to_measurements(q, tool, xyz, direction, pose, has_direction, path, extra, prismatic)
 
 
-def read_table(path, robot, n_tools: int | None, require_xyz: bool = True, require_pose: bool | None = None
-               ) -> tuple[Measurements, pd.DataFrame]:
+def read_table(path, robot, n_tools: int | None, require_xyz: bool = True, require_pose: bool | None = None,
+               outside_limits: str = "refuse") -> tuple[Measurements, pd.DataFrame]:
     """Read and validate a CSV; returns SI :class:`Measurements` and the raw text table (for carrying columns through).
 
     See :func:`parse_table` for the arguments. Raises :class:`DataError`.
     """
     path = Path(path)
     df = read_raw_table(path)
-    return parse_table(df, path, robot, n_tools, require_xyz, require_pose), df
+    return parse_table(df, path, robot, n_tools, require_xyz, require_pose, outside_limits), df
 
 
 _ODD_BREAKS = re.compile("[\r\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")

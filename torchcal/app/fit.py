@@ -216,13 +216,10 @@ def compensation_targets(model, q_nom: torch.Tensor, tool: torch.Tensor) -> torc
     (:mod:`torchcal.compensate.toolset`): each tool lands on the nominal robot's point for its nominal
     vector, up to the tool set's own non-rigid difference (a bent tool is not the robot's error, so
     compensation cannot and should not undo it)."""
-    from ..compensate.toolset import inverse, model_tool_set_frame
+    from ..compensate.toolset import compensation_goal
 
     with torch.no_grad():
-        F = model.base.nominal @ model.nominal_flange(q_nom)
-        G = model_tool_set_frame(model)
-        if G is not None:
-            F = F @ inverse(G).to(F)
+        F = model.base.nominal @ compensation_goal(model, q_nom)
         p_t = model.tools()[tool]
         return (F[:, :3, :3] @ p_t[..., None])[..., 0] + F[:, :3, 3]
 

@@ -38,7 +38,7 @@ from ..kinematics.transforms import homogeneous, matrix_to_rpy, rpy_to_matrix
 from .damped import damped_least_squares
 from .newton import CompensationResult, compensate, compiled_pass_setup, compiled_rows, fill_rows
 from .result import JOINT_LIMIT, range_and_coverage
-from .toolset import inverse, model_tool_set_frame
+from .toolset import in_tool_set, inverse, model_tool_set_frame
 
 FAST_MIN_TARGETS = 64
 """Batches smaller than this skip the compiled pass (its first call in a process loads numba's cached code)."""
@@ -139,7 +139,7 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
         options = dict(options, free_tool_axis=free_tool_axis, tool_point=t_identified)
     # the identified tool point in the tool set's frame (.toolset), which compensate() puts on the flange goal
     G = model_tool_set_frame(model) if options.get("tool_set", True) else None
-    t_actual = t_identified if G is None else (t_identified - G[:3, 3].to(dt)) @ G[:3, :3].to(dt)
+    t_actual = t_identified if G is None else in_tool_set(G, t_identified)
     fast = _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options, G)
     if fast is None:
         return _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options)

@@ -98,6 +98,12 @@ def compensation_goal(model, q_nom: torch.Tensor, target: torch.Tensor | None = 
         return goal if G is None else goal @ inverse(G).to(goal)
 
 
+def in_tool_set(G: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Points t (..., 3) of the modeled flange expressed in the tool set's frame: G^-1 t (the identified tool
+    vectors become the nominal ones, up to the tool set's non-rigid difference)."""
+    return (t - G[:3, 3].to(t)) @ G[:3, :3].to(t)
+
+
 def tool_poses(model, q: torch.Tensor, tool: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
     """Tool poses (B, 4, 4) in the robot's nominal base frame at commands q (B, n): the identified tool point
     ``tool`` (B,) with the tool set's orientation (the frame compensation puts in the nominal flange's place);
@@ -107,10 +113,10 @@ def tool_poses(model, q: torch.Tensor, tool: torch.Tensor, direction: torch.Tens
         t = model.tools()[tool]
         G = model_tool_set_frame(model)
         if G is not None:
-            F, t = F @ G, (t - G[:3, 3]) @ G[:3, :3]
+            F, t = F @ G, in_tool_set(G, t)
         out = F.clone()
         out[:, :3, 3] = F[:, :3, 3] + (F[:, :3, :3] @ t[..., None])[..., 0]
         return out
 
 
-__all__ = ["LINE_TOL", "compensation_goal", "tool_poses", "inverse", "model_tool_set_frame", "tool_set_frame"]
+__all__ = ["LINE_TOL", "compensation_goal", "in_tool_set", "tool_poses", "inverse", "model_tool_set_frame", "tool_set_frame"]

@@ -110,6 +110,15 @@ class Measurements:
         return self.subset(torch.isin(self.pose, ids))
 
 
+def pose_first_rows(pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The distinct pose ids (N,) of ``pose`` (R,), sorted, and each one's first row (N,) long: one row per
+    pose (its commands), in the order of the ids."""
+    poses, inv = torch.unique(pose, return_inverse=True)
+    first = torch.full((poses.numel(),), pose.numel(), dtype=torch.long, device=pose.device)
+    first = first.scatter_reduce(0, inv, torch.arange(pose.numel(), device=pose.device), reduce="amin")
+    return poses, first
+
+
 def first_invalid_direction(direction: torch.Tensor) -> tuple[int, int] | None:
     """(pose, joint index) of the first approach direction that is not -1, 0 or +1, or None.  direction: (B, n)."""
     bad = ~((direction == 1) | (direction == -1) | (direction == 0))

@@ -313,7 +313,7 @@ def _check_joint_map_output(path: Path, urdf: Path, force: bool, inputs) -> None
                                 f"(e.g. {urdf.stem}_calibrated.urdf); --force never replaces it")
     try:
         check_output(path, force, inputs)
-    except OutputExistsError as exc:
+    except OutputExistsError:
         if path.exists() and not force:
             raise OutputExistsError(f"{path}: already exists (the joint map written beside {urdf.name}); pass "
                                     "--force to overwrite it or choose another name for the .urdf") from None
@@ -591,6 +591,7 @@ def export_run_urdf(run_dir, out, base: str = "joint", measurement_frame: bool =
     """
     from ..core.exceptions import ConfigError
     from ..io.atomic import check_output
+    from ..core.measurements import pose_first_rows
     from ..io.csv import read_measurements
     from ..io.rundir import RunDirError, load_model
     from ..models.robot import RobotModel
@@ -610,10 +611,7 @@ def export_run_urdf(run_dir, out, base: str = "joint", measurement_frame: bool =
     commands, region = None, None
     if fit_data is not None:
         fitted_on = read_measurements(fit_data, model.robot, int(model.tools.count))
-        first = torch.unique(fitted_on.pose, return_inverse=True)[1]
-        rows = torch.zeros(int(first.max()) + 1, dtype=torch.long).scatter_reduce(
-            0, first, torch.arange(first.numel()), "amin", include_self=False)
-        q = fitted_on.q[rows]
+        q = fitted_on.q[pose_first_rows(fitted_on.pose)[1]]
         if q.shape[0] > FIT_DATA_POSES:  # evenly over the file
             q = q[torch.linspace(0, q.shape[0] - 1, FIT_DATA_POSES).round().long()]
         commands, region = q.to(model.device), "the identification data's poses"

@@ -57,7 +57,7 @@ from torch import nn
 
 from ..core import progress
 from ..core.exceptions import TorchcalError
-from ..core.measurements import Measurements
+from ..core.measurements import Measurements, pose_first_rows
 from ..core.threads import threads_for_work
 from .fit import fit, resolve_noise, warns_once
 from .layout import ParameterLayout
@@ -1100,19 +1100,12 @@ def border_rows(data: Measurements, axes, limits: torch.Tensor, k: int = 30, n: 
     """
     from ..analysis.border import border_points  # another engineer's module: imported when needed
 
-    poses, first = _unique_first(data.pose)
+    poses, first = pose_first_rows(data.pose)
     q = data.q[first][:, list(axes)]
     lim = limits.to(q)[list(axes)]
     pts = 2.0 * (q - lim[:, 0]) / (lim[:, 1] - lim[:, 0]) - 1.0
     idx = border_points(pts, k=k, n=n)
     return torch.isin(data.pose, poses[idx.to(poses.device)])
-
-
-def _unique_first(pose: torch.Tensor):
-    poses, inv = torch.unique(pose, return_inverse=True)
-    first = torch.full((poses.numel(),), pose.numel(), dtype=torch.long, device=pose.device)
-    first = first.scatter_reduce(0, inv, torch.arange(pose.numel(), device=pose.device), reduce="amin")
-    return poses, first
 
 
 @warns_once

@@ -1,6 +1,7 @@
 """The console entry end to end on a tiny simulated set: simulate -> fit -> predict -> compensate, and bad inputs."""
 
 import json
+import math
 import re
 import subprocess
 import sys
@@ -105,6 +106,30 @@ def test_fit_writes_the_run_directory(e2e):
     again = load_config(run / "config.yaml")
     assert Path(again.data.identification) == (e2e["sim"] / "identification.csv").resolve()
     assert again.model.order == 1 and again.seed == 3
+
+
+def test_compensation_csv_recomputes_table_7(e2e):
+    """Every number of Table 7's compensated row from compensation.csv: the mean and max of its residuals, the flag
+    count, and the compensated commands are the model's compensation of the nominal ones (recomputed here)."""
+    from torchcal.compensate import compensate
+
+    run = e2e["run"]
+    metrics = json.loads((run / "metrics.json").read_text())
+    rows = pd.read_csv(run / "compensation.csv", keep_default_na=False)
+    val = pd.read_csv(e2e["sim"] / "validation.csv")
+    assert len(rows) == len(val)
+    comp = [r for r in metrics["table7"] if r["residual"] == "Compensated"][0]
+    assert rows.compensated_mm.mean() == pytest.approx(comp["mean"], rel=1e-9)
+    assert rows.compensated_mm.max() == pytest.approx(comp["max"], rel=1e-9)
+    flagged = ~(rows.converged.astype(str).eq("True") & rows.within_limits.astype(str).eq("True"))
+    assert int(flagged.sum()) == metrics["compensation"]["flagged"]
+    assert all((r == "") != bool(f) for r, f in zip(rows.reason, flagged))
+    cols = [f"q{i}" for i in range(1, 7)]
+    q = torch.tensor(rows[cols].to_numpy()[:20] * math.pi / 180)
+    d = torch.tensor(rows[[f"dir{i}" for i in range(1, 7)]].to_numpy()[:20], dtype=torch.float64)
+    res = compensate(e2e["result"].model, q, d)
+    again = res.q.numpy() * 180 / math.pi
+    assert abs(again - rows[[c + "_compensated" for c in cols]].to_numpy()[:20]).max() < 1e-8
 
 
 def test_reloaded_model_reproduces_in_memory_model(e2e, fanuc):

@@ -453,12 +453,19 @@ def compensate_cmd(
                                                  "(drill, spindle, torch, reflector): the rotation about the tool axis "
                                                  "is left free.")] = False,
     tool_axis: Annotated[str, typer.Option(help="The tool axis X,Y,Z in the flange frame (with --free-tool-axis).")] = "0,0,1",
+    dof: Annotated[str, typer.Option(help="What the commands restore: 6 (the flange pose), 3 (the tool point's position "
+                                          "only), 5 (with --free-tool-axis), or auto: what the run's tools observe (one "
+                                          "tool: 3, two or tools on one line: 5 about their line, else 6).")] = "auto",
     device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
     force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
     units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
                                                                     ", points that look like metres): the file really is deg / mm.")] = False,
 ):
     """Compensated joint commands: where to send the robot so that it reaches the nominal flange pose (Paper II (46)-(52)).
+
+    A run fitted from one measured point per pose (one tool) has no observed
+    flange orientation: by default its commands restore the tool point's
+    position only, with the smallest joint motion (--dof auto; a note says so).
 
     A file of Cartesian targets (a robot program's poses) gets the calibrated
     joint commands and, in x_cmd .. rz_cmd, the corrected target to send to a
@@ -485,7 +492,7 @@ def compensate_cmd(
         _check_output(output, force, input, *_run_files(run_dir))
         with _progress(_console(stderr=True)):
             out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg,
-                                  units_checked, _tool_axis(tool_axis) if free_tool_axis else None)
+                                  units_checked, _tool_axis(tool_axis) if free_tool_axis else None, dof)
     typer.echo(f"compensated {out.rows} commands -> {output}")
     _warn(out.warnings)
     if out.flagged:
@@ -704,10 +711,11 @@ def import_tmac_cmd(
         from .app.commands import import_tmac_file
 
         _check_output(output, force, source, _robot_file(robot))
-        path = import_tmac_file(source, output, robot, convention, exclude or ())
+        path, said = import_tmac_file(source, output, robot, convention, exclude or ())
     if exclude:
         typer.echo(f"left out data rows {sorted(set(exclude))}")
     typer.echo(f"wrote {path}")
+    _warn(said)
 
 
 # ------------------------------------------------------------------ plan-poses

@@ -159,7 +159,7 @@ def test_compensate_compiled_pass_equals_the_batched_solver(fanuc, tools_m):
     assert q.shape[0] >= newton.FUSED_MIN_POSES
     res = newton.compensate(model, q, s)
     ref = newton._solve(model, q, s, 1e-10, 30, 1e-5, None, 50, 0.5, 1.0, 1e-12, False, True, 2, True,
-                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, None, _g_inv(model))
+                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, target=None, g_inv=_g_inv(model))
     both = res.converged & ref.converged
     assert int(both.sum()) > 900 and int((res.converged != ref.converged).sum()) <= 5
     assert float((res.q[both] - ref.q[both]).abs().max()) < 1e-9
@@ -211,7 +211,7 @@ def test_compiled_pass_keeps_large_corrections_on_the_branch(fanuc, tools_m):
         ft = configuration_flags(model, q + t * (res.q - q))
         assert torch.equal(ft[ok], f0[ok])
     ref = newton._solve(model, q, None, 1e-10, 30, 1e-5, None, 50, 0.5, 1.0, 1e-12, False, True, 2, True,
-                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, None, _g_inv(model))
+                        newton.DEFAULT_BOUND, newton.DEFAULT_BOUND, 1e-3, True, None, None, target=None, g_inv=_g_inv(model))
     both = res.converged & ref.converged
     assert int((res.converged != ref.converged).sum()) <= 0.02 * q.shape[0]
     assert float((res.q[both] - ref.q[both]).abs().max()) < 1e-8

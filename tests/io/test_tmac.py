@@ -143,3 +143,35 @@ def test_cli_import_tmac_excludes_named_rows(tmp_path):
     assert back.pose.tolist() == [1, 3, 5]
     res = CliRunner().invoke(app, ["import-tmac", str(src), str(tmp_path / "d.csv"), "--exclude", "9"])
     assert res.exit_code == 2 and "rows [9] to exclude are not data rows" in res.output
+
+
+def test_rows_repeated_bit_for_bit_are_kept_and_named(tmp_path):
+    """A logger that wrote one sample twice: said (with the --exclude to drop it), kept in the output. A row that
+    differs in one digit of one cell is a second measurement, not a repeat."""
+    from typer.testing import CliRunner
+
+    import torchcal
+    from torchcal.cli import app
+    from torchcal.io.sensor_csv import read_pose_measurements
+    from torchcal.io.tmac import repeated_rows
+
+    q, xyz, ang, std = _rows(6, seed=5)
+    for a in (q, xyz, ang, std):
+        a[3] = a[1]  # data row 4 repeats row 2
+        a[5] = a[1]  # row 6 too
+        a[4] = a[0]  # row 5 = row 1 ...
+    xyz[4, 2] += 1e-3  # ... but for one digit of z: a second measurement
+    src = _write(tmp_path / "m.csv", q, xyz, ang, std)
+    assert repeated_rows(read_tmac(src)) == [(4, 2), (6, 2)]
+    res = CliRunner().invoke(app, ["import-tmac", str(src), str(tmp_path / "c.csv")])
+    assert res.exit_code == 0, res.output
+    assert "2 data rows repeat an earlier row bit for bit" in res.output
+    assert "4 (= row 2), 6 (= row 2)" in res.output and "--exclude 4 --exclude 6" in res.output
+    back = read_pose_measurements(tmp_path / "c.csv", torchcal.load_robot("ur10"))
+    assert back.pose.tolist() == [1, 2, 3, 4, 5, 6]  # nothing dropped
+    res = CliRunner().invoke(app, ["import-tmac", str(src), str(tmp_path / "d.csv"), "--exclude", "4", "--exclude", "6"])
+    assert res.exit_code == 0 and "bit for bit" not in res.output
+    with pytest.warns(UserWarning, match="repeat an earlier row"):
+        from torchcal.io.tmac import convert_tmac
+
+        convert_tmac(src, tmp_path / "e.csv", torchcal.load_robot("ur10"))

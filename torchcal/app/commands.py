@@ -30,12 +30,14 @@ def import_tracker_file(output, joints, targets, bases, robot: str | None, drift
     return res
 
 
-def import_tmac_file(source, output, robot: str, convention: str, exclude=()) -> Path:
-    """``torchcal import-tmac``: a UR10 + Leica T-Mac export -> the sensor CSV ``output``; -> its path."""
+def import_tmac_file(source, output, robot: str, convention: str, exclude=()) -> tuple[Path, list[str]]:
+    """``torchcal import-tmac``: a UR10 + Leica T-Mac export -> the sensor CSV ``output``; -> (its path, warnings:
+    rows repeated bit for bit, kept)."""
     from ..io.tmac import convert_tmac
     from ..kinematics import load_robot
 
-    return convert_tmac(source, output, load_robot(robot), convention, exclude or ())
+    said: list[str] = []
+    return convert_tmac(source, output, load_robot(robot), convention, exclude or (), warnings=said), said
 
 
 def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=None, min_distance_mm: float = 200.0,

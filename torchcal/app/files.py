@@ -212,14 +212,57 @@ def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: in
     return out
 
 
+DOF_CHOICES = ("auto", "6", "5", "3")
+"""``torchcal compensate --dof``: what of the tool's pose the commands restore (auto: what the run's tools observe)."""
+
+
+def compensation_dof(model, dof: str = "auto", free_tool_axis=None) -> tuple[dict, str | None]:
+    """The freedom of compensation for a run's model -> (compensate()'s free_tool_axis / position_only keywords,
+    a note for the user where 'auto' chose less than the whole pose, else None).
+
+    dof: 'auto' (:func:`torchcal.compensate.observed_dof`: one tool -> 3, two or collinear tools -> 5 about
+    their line, else 6), '6', '5' (needs free_tool_axis, the axis (3,) in the flange frame) or '3';
+    free_tool_axis given with 'auto' means '5' about it (``--free-tool-axis``)."""
+    from ..compensate import observed_dof
+    from .config import ConfigError
+
+    dof = str(dof)
+    if dof not in DOF_CHOICES:
+        raise ConfigError(f"--dof '{dof}': expected one of {', '.join(DOF_CHOICES)}")
+    if free_tool_axis is not None:
+        if dof not in ("auto", "5"):
+            raise ConfigError(f"--free-tool-axis is 5-DOF compensation; it cannot be given with --dof {dof}")
+        return {"free_tool_axis": torch.as_tensor(free_tool_axis, dtype=model.dtype, device=model.device)}, None
+    if dof == "5":
+        raise ConfigError("--dof 5 needs the free axis: give --free-tool-axis [--tool-axis X,Y,Z]")
+    if dof == "6":
+        return {}, None
+    if dof == "3":
+        return {"position_only": True}, None
+    seen, axis = observed_dof(model)
+    if seen == 6:
+        return {}, None
+    T = model.tools.count
+    if seen == 3:
+        return {"position_only": True}, (
+            ("the run's model has one tool" if T == 1 else f"the run's {T} tools sit at one point") +
+            ": its data measured one point per pose and do not fix the flange's orientation, so each command puts "
+            "the row's tool point on its programmed position only (3-DOF, the smallest joint motion); --dof 6 "
+            "compensates the whole flange pose")
+    return {"free_tool_axis": axis.to(model.device, model.dtype)}, (
+        f"the run's {T} tools lie on one line: the turn about it is not observed, so the commands leave it free "
+        "(5-DOF about the tools' line); --dof 6 compensates the whole flange pose")
+
+
 def compensate_file(run_dir, input, output, device=None, tol_deg: float | None = None, max_iter: int | None = None,
                     max_correction_deg: float | None = None, units_checked: bool = False,
-                    free_tool_axis=None) -> CompensationFile:
+                    free_tool_axis=None, dof: str = "auto") -> CompensationFile:
     """``torchcal compensate``: compensated commands for every row of a CSV (q1..qN [, dir1..dirN], deg / mm).
 
-    free_tool_axis: None (6-DOF), or the tool axis (3,) in the flange frame whose rotation is left free
+    free_tool_axis: None, or the tool axis (3,) in the flange frame whose rotation is left free
     (axisymmetric tools: 5-DOF compensation); the point on the axis is the identified tool of each row's
-    'tool' column, else the flange origin.
+    'tool' column, else the flange origin. dof: :func:`compensation_dof` ('auto': 3-DOF for a run with one
+    tool, 5-DOF for tools on one line, the point being each row's tool, else tool 0).
 
     Writes q1..qN compensated plus converged, iterations, within_limits,
     max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside]; every
@@ -240,6 +283,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         require(model, "compensate commands", f"torchcal compensate {run_dir}")
     except TypeError as exc:
         raise RunDirError(str(exc)) from None
+    freedom, dof_note = compensation_dof(model, dof, free_tool_axis)
     robot = model.robot
     from ..io.csv import parse_table, read_raw_table, target_kind
 
@@ -257,16 +301,20 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         check_point_scale(data, robot, model.tools().detach().cpu(), path=input)
 
     said = _input_warnings(model, input, df, data, targets=targets)
+    if dof_note is not None:
+        said.insert(0, dof_note)
     if targets:  # Cartesian targets: q1..qN are the controller's seeds (its branch)
         done = _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg,
-                                        free_tool_axis, unseeded)
+                                        freedom, unseeded)
         done.warnings[:0] = said
         return done
     data = data.to(model.device)
     opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
-    if free_tool_axis is not None:
-        opts["free_tool_axis"] = torch.as_tensor(free_tool_axis, dtype=model.dtype, device=model.device)
-        if "tool" in df.columns:  # each row's identified tool point lies on the free axis
+    opts.update(freedom)
+    if freedom:
+        # each row's identified tool point is the one compensated (on the free axis); without a tool column the
+        # free axis passes through the flange origin, the position-only point is tool 0
+        if "tool" in df.columns or free_tool_axis is None:
             tools = _with_run_tools(model, input, df, data).tool
             with torch.no_grad():
                 opts["tool_point"] = model.tools().to(model.device, model.dtype)[tools.to(model.device)]
@@ -345,7 +393,7 @@ def _seeds_from_flags(model, path, df):
 
 
 def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,
-                             max_correction_deg, free_tool_axis=None, unseeded=None) -> CompensationFile:
+                             max_correction_deg, freedom=None, unseeded=None) -> CompensationFile:
     """``torchcal compensate`` on Cartesian targets (x, y, z mm; rx, ry, rz deg or qw, qx, qy, qz; robot base
     frame; q1..qN the seeds on the controller's branch; tool optional, default 0): writes q1..qN calibrated,
     x_cmd .. rz_cmd the corrected target for a controller that runs nominal IK with its nominal tool data,
@@ -360,10 +408,9 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     data = data.to(model.device)
     with progress_task(f"compensating {len(df)} Cartesian targets"):
         res = compensate_targets(model, T, data.q, data.tool, data.direction if data.has_direction else None,
-                                 free_tool_axis=None if free_tool_axis is None else
-                                 torch.as_tensor(free_tool_axis, dtype=model.dtype, device=model.device),
-                                 **run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg,
-                                                            robot.joint_map.prismatic))
+                                 **(freedom or {}), **run_compensation_options(run_dir, tol_deg, max_iter,
+                                                                               max_correction_deg,
+                                                                               robot.joint_map.prismatic))
     q_file = joints_to_file(res.q, robot)
     out = df.copy()
     for i, c in enumerate(joint_columns(robot.joint_map.n)):

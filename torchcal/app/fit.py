@@ -57,7 +57,7 @@ from ..io.rundir import make_run_dir, run_log, save_model, write_json
 from ..kinematics import load_robot
 from ..core.measurements import Measurements
 from ..models.robot import RobotModel
-from .files import compensation_kwargs  # the compensation check uses the options predict/compensate use
+from .files import compensation_dof, compensation_kwargs  # the compensation check uses compensate's options
 from .common import (  # shared with app.sensor; re-exported here under the old names
     write_run_report,
     STAT_KEYS,
@@ -236,6 +236,9 @@ def compensation_check(model, truth, data: Measurements, noise: NoiseModel | Non
     from ..sim import simulate
 
     direction = data.direction if data.has_direction else None
+    if (options.get("position_only") or options.get("free_tool_axis") is not None) and "tool_point" not in options:
+        with torch.no_grad():  # 3- / 5-DOF: each row's identified tool point is the one restored
+            options = dict(options, tool_point=model.tools().detach()[data.tool.to(model.device)])
     res = compensate(model, data.q, direction, **options)
     q_comp = res.q.detach()
     xyz = torch.empty_like(data.xyz)
@@ -718,8 +721,11 @@ def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: d
     Adds 'table7' and 'compensation' to ``metrics``.
     """
     val = inp.val
+    freedom, note = compensation_dof(model)  # what `torchcal compensate` does with this run by default
+    if note is not None:
+        progress.info(f"compensation check: {note}")
     with progress.step(f"compensating {len(val)} validation commands and measuring them on the simulated truth"):
-        comp = compensation_check(model, inp.truth, val, inp.noise, int(cfg.seed) + 1,
+        comp = compensation_check(model, inp.truth, val, inp.noise, int(cfg.seed) + 1, **freedom,
                                   **compensation_kwargs(cfg.compensation.tol_deg, cfg.compensation.max_iter))
     res = comp["result"]
     flagged = int((~res.converged | ~res.within_limits).sum())
@@ -731,6 +737,7 @@ def check_compensation(cfg, inp: FitInputs, model, evaluations: dict, metrics: d
     metrics["table7"] = rows
     ok = (res.converged & res.within_limits).cpu()
     metrics["compensation"] = {**res.summary(), "flagged": flagged, "compensated": vars(cs),
+                               "dof": 3 if freedom.get("position_only") else 5 if freedom else 6,
                                # what a controller would run: flagged commands would be rejected
                                "compensated_unflagged": vars(residual_stats(comp["compensated"].cpu()[ok]).scaled(
                                    units.m_to_mm(1.0))) if ok.any() else None}
@@ -836,6 +843,7 @@ def _run_stages(cfg, console, plotter) -> RunResult:
             if inp.truth is not None:
                 comp_table, comp = check_compensation(cfg, inp, model, evaluations, metrics, progress)
                 files["metrics"] = write_json(run_dir / "metrics.json", metrics)
+                files["compensation"] = _write_compensation(run_dir / "compensation.csv", inp.val, comp, model)
                 if plotter is not None:
                     _submit_plots(plotter, plot_folder, comp=comp)
             with progress.step("checking what the data determine", quiet=True):
@@ -871,6 +879,32 @@ def _write_residuals(path: Path, sets: dict, evaluations: dict) -> Path:
             "nominal_mm": units.m_to_mm(ev["nominal"].cpu().numpy()), "modeled_mm": units.m_to_mm(ev["modeled"].cpu().numpy()),
         }))
     return write_table(path, pd.concat(frames, ignore_index=True))
+
+
+def _write_compensation(path: Path, val: Measurements, comp: dict, model) -> Path:
+    """Table 7's compensated row per validation row: the nominal command and the compensated one (deg / mm), its
+    flags and reason, and both measured residuals (mm), so that every number of the row can be recomputed."""
+    import pandas as pd
+
+    from ..io.csv import joint_columns, joints_to_file
+
+    res = comp["result"]
+    robot = model.robot
+    out = pd.DataFrame({"row": val.rows.cpu().numpy(), "pose": val.pose.cpu().numpy(), "tool": val.tool.cpu().numpy()})
+    q_nom, q_comp = joints_to_file(val.q, robot), joints_to_file(res.q, robot)
+    for i, c in enumerate(joint_columns(robot.joint_map.n)):
+        out[c] = q_nom[:, i]
+    if val.has_direction:
+        for i in range(robot.joint_map.n):
+            out[f"dir{i + 1}"] = val.direction[:, i].cpu().numpy().astype(int)
+    for i, c in enumerate(joint_columns(robot.joint_map.n)):
+        out[f"{c}_compensated"] = q_comp[:, i]
+    out["converged"] = res.converged.cpu().numpy()
+    out["within_limits"] = res.within_limits.cpu().numpy()
+    out["reason"] = res.reasons(None, robot.joint_map.prismatic)
+    out["nominal_mm"] = units.m_to_mm(comp["nominal"].detach().cpu().numpy())
+    out["compensated_mm"] = units.m_to_mm(comp["compensated"].detach().cpu().numpy())
+    return write_table(path, out)
 
 
 def _submit_plots(plotter, folder: Path, model=None, evaluations: dict | None = None, comp: dict | None = None) -> None:

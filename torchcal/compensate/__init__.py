@@ -9,7 +9,8 @@ Every command stays within ``max_correction`` (default 30 deg) of its nominal
 one and on its branch (configuration flags, :mod:`.branch`); rows that would need more, another
 branch, or cannot be reached are flagged with a reason, not swung (``CompensationResult.status``,
 ``reasons()``; ``direction_outside`` when the model records its identification data's direction
-coverage). ``free_tool_axis`` leaves the rotation about an axisymmetric tool's axis free (:mod:`.axis`).
+coverage). ``free_tool_axis`` leaves the rotation about an axisymmetric tool's axis free, ``position_only`` every
+rotation (one measured point per pose, :func:`observed_dof`) (:mod:`.axis`).
 On the CPU the rows go through one compiled pass first (:mod:`.fused_targets`); Cartesian targets:
 :mod:`.targets`, configuration flags: :mod:`.flags`.
 """
@@ -37,7 +38,7 @@ from .tables import (
     apply_tables,
     compensation_tables,
 )
-from .toolset import compensation_goal, tool_poses, tool_set_frame
+from .toolset import compensation_goal, observed_dof, tool_poses, tool_set_frame
 
 __all__ = [
     "DEFAULT_BOUND",
@@ -56,11 +57,11 @@ __all__ = [
     "apply_tables",
     "compensate",
     "compensation_goal",
-    "compensation_goal",
     "compensation_tables",
     "damped_least_squares",
     "fixed_jacobian_iterations",
     "nominal_sigma_min",
+    "observed_dof",
     "tool_poses",
     "tool_set_frame",
     "per_joint_bound",

@@ -12,6 +12,12 @@ vectors b1, b2 orthogonal to the tool axis a: de_r ⊥ a vanishes exactly when �
 i.e. when F_a's tool axis R_a a equals F_n's (for rotations below 180 deg). The body Jacobian moves to
 the tool point as Jv' = Jv - c × Jw; its orientation rows are projected the same way.
 Layouts: "soa" is the fast path's pose-last layout (rows first, poses last), "rows" the damped path's.
+
+3-DOF (``position_only``): one measured point per pose (a single reflector) fixes the modeled flange's
+orientation only up to a constant turn that the tool vector takes back (the tool set's frame, :mod:`.toolset`,
+is then a translation), so the model's orientation errors at the flange are not data but the fit's choice
+(on a real UR10 with one reflector, a 6-DOF correction turned the joints 4.2-4.7 deg). The conditions are then
+the tool point's three coordinates alone, W = [I 0], and the solver's smallest correction keeps the rest.
 """
 
 from __future__ import annotations
@@ -23,22 +29,28 @@ from ..core.exceptions import InputError
 
 class ToolAxis:
     """A free tool axis ``axis`` (3,) in the flange frame (normalized here) through the tool point ``point``
-    ((3,) or (B, 3), flange frame, m; default the flange origin). ``W``: (5, 6) the rows kept of (de_p, de_r)."""
+    ((3,) or (B, 3), flange frame, m; default the flange origin). ``W``: (5, 6) the rows kept of (de_p, de_r).
+    ``axis=None``: every rotation free, the tool point's position alone (3-DOF, W (3, 6))."""
 
     def __init__(self, axis, point=None, dtype=torch.float64, device="cpu", batch: int | None = None):
-        a = torch.as_tensor(axis, dtype=dtype, device=device).reshape(-1)
-        if a.shape != (3,) or not bool(torch.isfinite(a).all()) or float(a.norm()) == 0.0:
-            raise InputError(f"compensate: free_tool_axis must be a nonzero 3-vector in the flange frame, got {axis!r}")
-        a = a / a.norm()
-        # b1: the unit vector farthest from a among x, y, z, made orthogonal; b2 = a x b1
-        e = torch.eye(3, dtype=dtype, device=device)[int(a.abs().argmin())]
-        b1 = e - (e @ a) * a
-        b1 = b1 / b1.norm()
-        b2 = torch.linalg.cross(a, b1)
-        W = torch.zeros(5, 6, dtype=dtype, device=device)
-        W[:3, :3] = torch.eye(3, dtype=dtype, device=device)
-        W[3, 3:], W[4, 3:] = b1, b2
-        self.axis, self.W = a, W
+        if axis is None:
+            W = torch.zeros(3, 6, dtype=dtype, device=device)
+            W[:, :3] = torch.eye(3, dtype=dtype, device=device)
+            self.axis, self.W = None, W
+        else:
+            a = torch.as_tensor(axis, dtype=dtype, device=device).reshape(-1)
+            if a.shape != (3,) or not bool(torch.isfinite(a).all()) or float(a.norm()) == 0.0:
+                raise InputError(f"compensate: free_tool_axis must be a nonzero 3-vector in the flange frame, got {axis!r}")
+            a = a / a.norm()
+            # b1: the unit vector farthest from a among x, y, z, made orthogonal; b2 = a x b1
+            e = torch.eye(3, dtype=dtype, device=device)[int(a.abs().argmin())]
+            b1 = e - (e @ a) * a
+            b1 = b1 / b1.norm()
+            b2 = torch.linalg.cross(a, b1)
+            W = torch.zeros(5, 6, dtype=dtype, device=device)
+            W[:3, :3] = torch.eye(3, dtype=dtype, device=device)
+            W[3, 3:], W[4, 3:] = b1, b2
+            self.axis, self.W = a, W
         c = torch.zeros(3, dtype=dtype, device=device) if point is None else torch.as_tensor(point, dtype=dtype, device=device)
         if c.ndim == 1:
             if c.shape != (3,):
@@ -47,6 +59,13 @@ class ToolAxis:
         if c.ndim != 2 or c.shape[1] != 3 or (batch is not None and c.shape[0] != batch):
             raise InputError(f"compensate: tool_point must be (3,) or ({batch}, 3), got {tuple(c.shape)}")
         self.point = c  # (B, 3)
+
+    @property
+    def position_only(self) -> bool:
+        """3-DOF: every rotation free. The fast path then takes the position error and its Jacobians in the world
+        frame: the flange's orientation is no datum there, and a residual taken in its frame would make the chord
+        iteration's pick among the many solutions depend on the fit's choice of it."""
+        return self.axis is None
 
     def subset(self, rows: torch.Tensor) -> "ToolAxis":
         """The same axis with the tool points of ``rows`` only."""
@@ -66,15 +85,23 @@ class ToolAxis:
         return p + (R * cT[None]).sum(1)
 
     def project_soa(self, de: torch.Tensor) -> torch.Tensor:
-        """(6, B) -> (5, B)."""
+        """(6, B) -> (k, B), k = 5 (free axis) or 3 (position only)."""
         return self.W @ de
 
     def jacobian_soa(self, J: torch.Tensor, cT: torch.Tensor) -> torch.Tensor:
-        """Body Jacobian at the flange (6, n, B) -> kept rows at the tool point (5, n, B)."""
+        """Body Jacobian at the flange (6, n, B) -> kept rows at the tool point (k, n, B)."""
         Jv, Jw = J[:3], J[3:]
         c = cT[:, None, :].expand_as(Jw)
         Jv = Jv - torch.linalg.cross(c, Jw, dim=0)
         return torch.einsum("kr,rnb->knb", self.W, torch.cat([Jv, Jw], 0))
+
+    @staticmethod
+    def world_jacobian_soa(R: torch.Tensor, J: torch.Tensor, xT: torch.Tensor) -> torch.Tensor:
+        """Body Jacobian (6, n, B) of a frame turned by R (3, 3, B) -> the world-frame velocity (3, n, B) of its
+        point xT (3, B) (3-DOF)."""
+        Jw = J[3:]
+        Jv = J[:3] - torch.linalg.cross(xT[:, None, :].expand_as(Jw), Jw, dim=0)
+        return torch.einsum("ijb,jnb->inb", R, Jv)
 
     # ---------------------------------------------------------------- rows layout (damped path)
     @staticmethod
@@ -90,17 +117,24 @@ class ToolAxis:
         return torch.cat([Jv, Jw], 1)
 
     def project_rows(self, x: torch.Tensor) -> torch.Tensor:
-        """(M, 6) or (M, 6, n) -> (M, 5) or (M, 5, n)."""
+        """(M, 6) or (M, 6, n) -> (M, k) or (M, k, n)."""
         return self.W @ x if x.ndim == 3 else x @ self.W.T
 
 
-def tool_axis(free_tool_axis, tool_point, dtype, device, batch: int) -> ToolAxis | None:
+def tool_axis(free_tool_axis, tool_point, dtype, device, batch: int, position_only: bool = False) -> ToolAxis | None:
     """compensate()'s options -> a :class:`ToolAxis` or None. free_tool_axis: None/False (6-DOF), True (the
-    flange z axis) or a (3,) direction in the flange frame; tool_point: None, (3,) or (batch, 3), m."""
-    if free_tool_axis is None or free_tool_axis is False:
+    flange z axis) or a (3,) direction in the flange frame; tool_point: None, (3,) or (batch, 3), m;
+    position_only: the tool point's position alone (3-DOF)."""
+    free = not (free_tool_axis is None or free_tool_axis is False)
+    if position_only:
+        if free:
+            raise InputError("compensate: position_only leaves every rotation free; free_tool_axis (one free rotation) "
+                             "cannot be given with it")
+        return ToolAxis(None, tool_point, dtype, device, batch)
+    if not free:
         if tool_point is not None:
-            raise InputError("compensate: tool_point is used with free_tool_axis only (6-DOF compensation of the "
-                             "flange pose reaches every tool point)")
+            raise InputError("compensate: tool_point is used with free_tool_axis or position_only only (6-DOF "
+                             "compensation of the flange pose reaches every tool point)")
         return None
     axis = [0.0, 0.0, 1.0] if free_tool_axis is True else free_tool_axis
     return ToolAxis(axis, tool_point, dtype, device, batch)

@@ -158,7 +158,8 @@ def fixed_jacobian_iterations(
        step (B,) ||dq^r||, iterations (B,) updates made, ok (B,) bool, far (B,)
        bool: reached (51) outside max_correction (not ok).
     axis, cT: a :class:`.axis.ToolAxis` and the rows' tool points (3, B): 5-DOF, P is (n, 5, B), pn the
-    tool points' targets, de the full error at the tool point.
+    tool points' targets, de the full error at the tool point; 3-DOF (position only), P is (n, 3, B) of the
+    world-frame Jacobian (:meth:`.axis.ToolAxis.world_jacobian_soa`).
     Finished rows leave the working set, so a few slow rows do not make the
     whole batch iterate.
 
@@ -199,8 +200,8 @@ def fixed_jacobian_iterations(
         if axis is not None:
             p = axis.shift_soa(R, p, st["c"])
         de_full = de = pose_error_soa(R, p, st["R"], st["p"])
-        if axis is not None:
-            de = axis.project_soa(de)  # the rotation about the tool axis is free
+        if axis is not None:  # the rotation about the tool axis is free; 3-DOF: every rotation, world frame
+            de = st["p"] - p if axis.position_only else axis.project_soa(de)
         res = _weighted_norm(de, length)
         better = res < st["best_res"]  # NaN compares False: a blown-up row keeps its last good iterate
         st["best_res"] = torch.where(better, res, st["best_res"])
@@ -351,6 +352,7 @@ def compensate(
     tool_point=None,
     target: torch.Tensor | None = None,
     tool_set: bool = True,
+    position_only: bool = False,
 ) -> CompensationResult:
     """Compensated joint commands for many poses, Paper II (46)-(52).
 
@@ -402,8 +404,11 @@ def compensate(
         F_n(q_nom); q_nom is then the start, the reference of the bounds and of the branch, and the point
         where the chord Jacobian is taken: a command near the target on the controller's branch (e.g. the
         controller's nominal IK of a Cartesian target for its nominal tool, :mod:`.targets`).
-    tool_point: with free_tool_axis, the point on the tool axis (flange frame, m; (3,) or (B, 3); default
+    tool_point: with free_tool_axis or position_only, the point (flange frame, m; (3,) or (B, 3); default
         the flange origin) whose position is compensated.
+    position_only: 3-DOF, the tool point's position alone, every rotation left free (:mod:`.axis`): for a
+        model identified from one measured point per pose, whose flange orientation the data do not fix
+        (:func:`observed_dof`); the correction is the smallest the solver finds, as for free_tool_axis.
     tool_set: the frame that reaches the goal (F_n(q_nom) or ``target``) is the modeled flange carried by
         the identified tool set's rigid motion G (:mod:`.toolset`: point data fix the flange only up to G
         when the tools are identified, so any two models that predict the same points give the same
@@ -446,10 +451,11 @@ def compensate(
         a = torch.tensor([0.0, 0.0, 1.0]) if free_tool_axis is True else torch.as_tensor(free_tool_axis)
         free_tool_axis = G[:3, :3] @ a.to(G)
     args = (tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length, residual_tol, sigma, broyden,
-            refresh, refresh_model, max_step, max_correction, null_damping, branch, free_tool_axis, tool_point)
+            refresh, refresh_model, max_step, max_correction, null_damping, branch, free_tool_axis, tool_point,
+            position_only)
     with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.core.threads)
         eligible = (target is None and branch and broyden and refresh_model and not sigma and free_tool_axis is None
-                    and tool_point is None
+                    and tool_point is None and not position_only
                     and model.n == 6 and (q_nom.shape[0] >= FUSED_MIN_POSES or _fused_warm()))
         if eligible:
             _check_inputs(model, q_nom, direction)
@@ -547,7 +553,7 @@ def _chunks(count: int, chunk_size: int, name: str):
 @torch.no_grad()
 def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damped_iter, contraction, length,
            residual_tol, sigma, broyden, refresh, refresh_model, max_step, max_correction, null_damping, branch,
-           free_tool_axis, tool_point, target=None, g_inv=None):
+           free_tool_axis, tool_point, position_only=False, target=None, g_inv=None):
     """:func:`compensate`'s work, on the calling thread count; g_inv: (4, 4) the inverse of the tool-set frame
     taken on the right of every goal, or None."""
     _check_inputs(model, q_nom, direction)
@@ -562,7 +568,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
     prismatic = model.robot.joint_map.prismatic if hasattr(model, "robot") else None
     max_step = per_joint_bound(max_step, n, dtype, device, "max_step", prismatic)
     max_correction = per_joint_bound(max_correction, n, dtype, device, "max_correction", prismatic)
-    ax = tool_axis(free_tool_axis, tool_point, dtype, device, B)
+    ax = tool_axis(free_tool_axis, tool_point, dtype, device, B, position_only)
     if direction is not None:
         direction = direction.to(dtype)
     # the compiled kernel's first call in a process costs ~0.5-0.8 s (numba loads its cached machine code and
@@ -596,6 +602,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
         qT = q_nom[sl].T.contiguous()
         sT = None if direction is None else direction[sl].T.contiguous()
         Rn, pn, J = kernel.nominal_flange_jacobian(qT)
+        R_chord = Rn  # the frame of J (the nominal flange's)
         if target is not None:
             Rn, pn = target[sl, :3, :3].permute(1, 2, 0).contiguous(), target[sl, :3, 3].T.contiguous()
         if g_inv is not None:  # goal G^-1: the tool set's frame F_a G reaches the goal (.toolset)
@@ -608,8 +615,13 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
         if branch:
             sign0[sl] = det_sign_soa(J)
         cT = None if ax is None else ax.pointT(torch.arange(sl.start, sl.stop, device=device))
-        if ax is not None:  # 5-DOF: the tool point's target, the kept rows of the Jacobian
-            pn, J = ax.shift_soa(Rn, pn, cT), ax.jacobian_soa(J, cT)
+        xT = cT  # the tool points in the chord's frame: G^-1 c in the nominal flange's (the goal is F_n G^-1)
+        if cT is not None and g_inv is not None:
+            g = g_inv.to(dtype)
+            xT = g[:3, :3] @ cT + g[:3, 3, None]
+        if ax is not None:  # 5- / 3-DOF: the tool point's target, the kept rows of the Jacobian
+            pn = ax.shift_soa(Rn, pn, cT)
+            J = ax.world_jacobian_soa(R_chord, J, xT) if ax.position_only else ax.jacobian_soa(J, cT)
         P, invertible = nominal_jacobian_inverse(J, 0.1 * null_damping, length)
         clear[sl] = invertible
         if lipschitz is not None:
@@ -629,7 +641,9 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
                 break
             sf = None if sT is None else sT[:, f]
             Rf, _, Jf = (kernel.flange_jacobian(qc[:, f], sf) if refresh_model else kernel.nominal_flange_jacobian(qc[:, f]))
-            if ax is not None:
+            if ax is not None and ax.position_only:
+                Jf = ax.world_jacobian_soa(Rf, Jf, (cT if refresh_model else xT)[:, f])
+            elif ax is not None:
                 Jf = ax.jacobian_soa(Jf, cT[:, f])
             # (a stricter floor here: at a row's best iterate the modeled joint may sit just off a
             # singularity that the solution lies on, where a chord step moves the null space freely)
@@ -704,7 +718,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
             again = branch_changed(kernel, q_nom, q_out, ok & damped & clear & ~sure, sign_from=sign0)
             ok &= ~again
             status[again] = BRANCH
-    _mark_singular_ends(kernel, q_out, direction, status, length)
+    _mark_singular_ends(kernel, q_out, direction, status, length, ax)
 
     lim = model.command_limits.to(dtype)
     within = ((q_out >= lim[:, 0]) & (q_out <= lim[:, 1])).all(-1)
@@ -719,15 +733,18 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
     return CompensationResult(q_out, ok, iters, de_out, residual, step, damped, within, sig, correction, outside, status)
 
 
-def _mark_singular_ends(kernel, q, direction, status, length: float) -> None:
+def _mark_singular_ends(kernel, q, direction, status, length: float, ax=None) -> None:
     """Rows that ran out of iterations (NOT_CONVERGED) where the modeled Jacobian at their best command has lost
     rank -> SINGULAR, in place: they ended on a singular surface of the model, which the flag then names.
-    q: (B, n); direction: (B, n) or None; status: (B,) int8."""
+    q: (B, n); direction: (B, n) or None; status: (B,) int8; ax: a :class:`.axis.ToolAxis` (the rank of its kept
+    rows: a wrist singularity does not stop a 3-DOF solve) or None."""
     k = (status == NOT_CONVERGED).nonzero()[:, 0]
     if k.numel() == 0:
         return
     s = None if direction is None else direction[k].T.contiguous()
     _, _, J = kernel.flange_jacobian(q[k].T.contiguous(), s)
+    if ax is not None:
+        J = ax.jacobian_soa(J, ax.pointT(k))
     status[k[sigma_min_soa(J, length) < SINGULAR_FLOOR]] = SINGULAR
 
 

@@ -96,7 +96,8 @@ def flange_for(T: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, direction: torch.Tensor | None = None,
-                       ik_tol: float = 1e-10, ik_max_iter: int = 100, free_tool_axis=None, **options) -> TargetResult:
+                       ik_tol: float = 1e-10, ik_max_iter: int = 100, free_tool_axis=None, position_only: bool = False,
+                       **options) -> TargetResult:
     """Calibrated joint commands and corrected Cartesian targets for tool poses in the robot's base frame.
 
     model: a model that compensates commands (:class:`torchcal.models.robot.RobotModel`,
@@ -107,7 +108,8 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     the nominal IK's step tolerance and iterations; free_tool_axis: None (6-DOF) or True / a (3,) direction
     in the flange frame: an axisymmetric tool, the rotation about its axis (through the model's identified
     tool point) left free in the compensation (:mod:`.axis`; the tool point and the axis's direction are
-    reached, with less joint motion next to the wrist); options: for :func:`.newton.compensate`
+    reached, with less joint motion next to the wrist); position_only: the identified tool point's position
+    alone (3-DOF, a model fitted from one point per pose); options: for :func:`.newton.compensate`
     (max_correction, tol, ...). -> :class:`TargetResult`.
 
     Example:
@@ -137,6 +139,8 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     t_identified = model.tools().to(dev, dt)[tool]
     if free_tool_axis is not None and free_tool_axis is not False:
         options = dict(options, free_tool_axis=free_tool_axis, tool_point=t_identified)
+    if position_only:
+        options = dict(options, position_only=True, tool_point=t_identified)
     # the identified tool point in the tool set's frame (.toolset), which compensate() puts on the flange goal
     G = model_tool_set_frame(model) if options.get("tool_set", True) else None
     t_actual = t_identified if G is None else in_tool_set(G, t_identified)
@@ -177,7 +181,7 @@ _FAST_OPTIONS = {"tol", "max_iter", "residual_tol", "contraction", "length", "ma
 def _fast_pass(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max_iter, options,
                G=None) -> dict | None:
     """:mod:`.fused_targets`' compiled pass over every row, or None where it does not apply (no numba, not CPU
-    float64, not 6 joints, a live model (compliance, fine tables), 5-DOF, an option it does not implement)."""
+    float64, not 6 joints, a live model (compliance, fine tables), 5- or 3-DOF, an option it does not implement)."""
     if model.n != 6 or not set(options) <= _FAST_OPTIONS or target.shape[0] < FAST_MIN_TARGETS:
         return None
     setup = compiled_pass_setup(model, seed, options)

@@ -79,6 +79,30 @@ def model_tool_set_frame(model) -> torch.Tensor | None:
         return tool_set_frame(nominal, identified).to(identified.device, identified.dtype)
 
 
+def observed_dof(model) -> tuple[int, torch.Tensor | None]:
+    """How much of the tool set's pose the model's point data fix: -> (dof, axis).
+
+    (6, None) for three or more tools off one line; (5, axis) for two tools or tools on one line, ``axis`` (3,)
+    their line's direction in the modeled flange frame (the turn about it is seen by no tool); (3, None) for one
+    tool (a single reflector: no orientation at all). Judged on the identified tool vectors (a set whose tools are
+    only counted has zero nominal vectors). A model without tool vectors (a sensor rig) -> (6, None).
+    """
+    tools = getattr(model, "tools", None)
+    if tools is None or not callable(tools):
+        return 6, None
+    with torch.no_grad():
+        t = tools().detach().to(torch.float64)
+    if t.shape[0] < 2:
+        return 3, None
+    c = t - t.mean(0)
+    _, S, Vh = torch.linalg.svd(c)
+    if t.shape[0] >= 3 and float(S[1]) > LINE_TOL:
+        return 6, None
+    if float(S[0]) <= LINE_TOL:  # tools that coincide: one point
+        return 3, None
+    return 5, Vh[0].to(tools().dtype)
+
+
 def inverse(G: torch.Tensor) -> torch.Tensor:
     """The inverse (4, 4) of a rigid motion G (4, 4)."""
     out = torch.eye(4, dtype=G.dtype, device=G.device)
@@ -119,4 +143,5 @@ def tool_poses(model, q: torch.Tensor, tool: torch.Tensor, direction: torch.Tens
         return out
 
 
-__all__ = ["LINE_TOL", "compensation_goal", "in_tool_set", "tool_poses", "inverse", "model_tool_set_frame", "tool_set_frame"]
+__all__ = ["LINE_TOL", "compensation_goal", "in_tool_set", "tool_poses", "inverse", "model_tool_set_frame", "observed_dof",
+           "tool_set_frame"]

@@ -182,11 +182,29 @@ def read_trafo(path) -> torch.Tensor:
     return T
 
 
-def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=()) -> Path:
+def repeated_rows(data: Measurements) -> list[tuple[int, int]]:
+    """(row, earlier row) for every data row whose joints and measurement (position, rotation, scatter) equal an
+    earlier row's bit for bit: a logger that wrote one sample twice, not a second measurement (two measurements
+    of one pose differ in the tracker's last digits). Rows are the 1-based data rows (``data.rows``)."""
+    import numpy as np
+
+    parts = [data.q, data.xyz, data.extra["rotation"].reshape(len(data), 9)]
+    if "pose_std" in data.extra:
+        parts.append(data.extra["pose_std"])
+    key = torch.cat(parts, 1).numpy()
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    earliest = first[inverse.reshape(-1)]
+    rows = data.rows.tolist()
+    return [(rows[i], rows[int(j)]) for i, j in enumerate(earliest) if j != i]
+
+
+def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=(), warnings: list | None = None) -> Path:
     """Write a T-Mac export as the sensor CSV contract (:func:`torchcal.io.sensor_csv.write_pose_measurements`).
 
     exclude: 1-based data rows to leave out (e.g. the known bad rows of a series); each must exist,
     else a DataError naming it. The pose ids stay the source rows, so what was left out stays visible.
+    Rows repeated bit for bit (:func:`repeated_rows`) are kept and said: appended to ``warnings`` where a list
+    is given, else a Python warning.
     """
     from .sensor_csv import rotation_fit, transposed_message, write_pose_measurements
 
@@ -199,6 +217,18 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=()) -> P
             raise DataError(src, [Problem(None, None, f"rows {missing} to exclude are not data rows of the file "
                                                       f"(1..{len(data)})")])
         data = data.subset(~torch.isin(data.rows, torch.tensor(exclude)))
+    repeats = repeated_rows(data)
+    if repeats:
+        shown = ", ".join(f"{r} (= row {f})" for r, f in repeats[:10]) + (" ..." if len(repeats) > 10 else "")
+        said = (f"{src}: {len(repeats)} data row{'s' if len(repeats) > 1 else ''} repeat an earlier row bit for bit "
+                f"(joints and measurement): {shown}; a logger's repeat counts one measurement twice in the fit. Kept; "
+                "leave them out with " + " ".join(f"--exclude {r}" for r, _ in repeats[:10]))
+        if warnings is None:
+            import warnings as _warnings
+
+            _warnings.warn(said, stacklevel=2)
+        else:
+            warnings.append(said)
     msg = transposed_message(rotation_fit(data.q, data.extra["rotation"], robot), "measurement_rx/ry/rz")
     if msg:
         raise DataError(src, [Problem(None, "measurement_rx/ry/rz", msg + f"; is the Euler convention '{convention}' "
@@ -206,4 +236,4 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=()) -> P
     return write_pose_measurements(dst, data, robot)
 
 
-__all__ = ["TMAC_EULER", "TMAC_JOINTS", "convert_tmac", "read_tmac", "read_tmac_table", "read_trafo"]
+__all__ = ["TMAC_EULER", "TMAC_JOINTS", "convert_tmac", "read_tmac", "read_tmac_table", "read_trafo", "repeated_rows"]

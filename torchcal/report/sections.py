@@ -279,7 +279,7 @@ def accuracy(run: RunFiles) -> str:
                  cls="wide", numeric=(2, 3, 4, 5, 6, 7, 8))
     note = (f'<p class="note">Units: {esc(units)} (angles in degrees). Nominal: the robot as described, before '
             "calibration; Calibrated: the identified model's residual; Compensated: commands corrected by the model "
-            "and measured again. Gamma 99 %: the 99 % quantile of a Gamma law fitted to the residuals (Paper II, "
+            "and measured again (every row, with its commands and flags, in compensation.csv). Gamma 99 %: the 99 % quantile of a Gamma law fitted to the residuals (Paper II, "
             "Figure 13). Decrease: percent against the nominal residual of the same set. "
             + ("RMS from residuals.csv." if res else "RMS: not available (no residuals.csv in this run).") + "</p>")
     return html + note + iso9283(run)

@@ -404,6 +404,37 @@ def predict_cmd(
     _warn(res.warnings)
 
 
+# ---------------------------------------------------------------------- verify
+@app.command("verify")
+def verify_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="Run directory written by `torchcal fit` or `torchcal update`.")],
+    data: Annotated[Path, typer.Argument(help="CSV of new measurements in the run's contract (mm, deg): a verification set.")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="Per-row CSV to write: row, pose, tool, x/y/z_model, nominal_mm, "
+                                                              "modeled_mm [, nominal_deg, modeled_deg] [, outside_data].")] = None,
+    new_frame: Annotated[bool, typer.Option("--new-frame", help="The tracker was moved: re-estimate the measurement frame "
+                                                                "(a rigid motion of the predictions, nothing else refitted).")] = False,
+    device: Annotated[str, typer.Option(help="torch device.")] = "cpu",
+    force: Annotated[bool, typer.Option("--force", help=FORCE_HELP)] = False,
+    units_checked: Annotated[bool, typer.Option("--units-checked", help="Skip the unit-slip checks (joints that look like radians"
+                                                                    ", points that look like metres): the file really is deg / mm.")] = False,
+):
+    """Judge a run's model on new measurements (a verification set, another day, a new tracker placement): nothing is refitted."""
+    with _user_errors():
+        from .app.verify import verify_file
+
+        if out is not None:
+            _check_output(out, force, data, *_run_files(run_dir))
+        with _progress(_console(stderr=True)):
+            res = verify_file(run_dir, data, out, _device(device), new_frame, units_checked)
+    _console().print(results_table(res.table, f"Verification on {data.name} (Paper II, Table 6 layout)"))
+    if res.frame is not None:
+        typer.echo(f"measurement frame re-estimated: moved {res.frame['moved_mm']:.3f} mm at the robot base, turned "
+                   f"{res.frame['turned_deg']:.4f} deg")
+    _warn(res.warnings)
+    if res.output is not None:
+        typer.echo(f"wrote {res.output}")
+
+
 # ---------------------------------------------------------------------- update
 @app.command("update")
 def update_cmd(

@@ -133,7 +133,7 @@ def require(model, capability: str, who: str | None = None) -> None:
         >>> require(object(), "compensate commands", "compensate")  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        TypeError: compensate: object cannot compensate commands (it can: nothing). Compensation solves ...
+        TypeError: compensate: object cannot compensate commands (it has none of: ...). Compensation solves ...
     """
     try:
         proto = CAPABILITIES[capability]
@@ -142,8 +142,9 @@ def require(model, capability: str, who: str | None = None) -> None:
     if implements(model, proto):
         return
     has = capabilities(model)
-    raise TypeError(f"{who or 'torchcal'}: {type(model).__name__} cannot {capability} (it can: "
-                    f"{', '.join(has) if has else 'nothing'}). {_instead(model, capability, has)}".rstrip())
+    can = f"it can: {', '.join(has)}" if has else f"it has none of: {', '.join(CAPABILITIES)}"
+    raise TypeError(f"{who or 'torchcal'}: {type(model).__name__} cannot {capability} ({can}). "
+                    f"{_instead(model, capability, has)}".rstrip())
 
 
 __all__ = ["CAPABILITIES", "CalibratedModel", "CompensatesCommands", "ExportsTables", "PredictsPoints",

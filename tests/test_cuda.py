@@ -172,3 +172,23 @@ def test_damped_graphs_match_the_eager_loop(setup, monkeypatch):
     assert float((on.status == off.status).double().mean()) >= 0.99
     ok = on.converged & off.converged
     assert torch.allclose(on.q[ok], off.q[ok], rtol=0, atol=1e-9)
+
+
+def test_position_only_compensation_on_cuda_matches_cpu(setup):
+    """3-DOF (one reflector per pose): the same commands on the GPU as on the CPU, and the tool point reached."""
+    robot, _, _ = setup
+    tool = TOOLS[:1]
+    cpu = torchcal.RobotModel(robot, tool, orders=3, backlash=False)
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(5)
+        cpu.joint_errors.coef.copy_(torch.randn(cpu.joint_errors.coef.shape, generator=g, dtype=torch.float64) * 1e-4
+                                    * cpu.joint_errors.mask)
+    gpu = torchcal.RobotModel(robot, tool, orders=3, backlash=False).to("cuda")
+    gpu.load_state_dict(cpu.state_dict())
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 2000, 3)
+    c = cpu.tools()[0].detach()
+    rc = compensate(cpu, q, position_only=True, tool_point=c)
+    rg = compensate(gpu, q.cuda(), position_only=True, tool_point=c.cuda())
+    both = rc.converged & rg.converged.cpu()
+    assert int(both.sum()) > 1900
+    assert float((rg.q.cpu()[both] - rc.q[both]).abs().max()) < 1e-9

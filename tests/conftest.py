@@ -72,6 +72,25 @@ def random_commands(robot, count: int, seed: int) -> torch.Tensor:
     return lim[:, 0] + torch.rand(count, lim.shape[0], generator=g) * (lim[:, 1] - lim[:, 0])
 
 
+def write_targets(path, T: torch.Tensor, seeds: torch.Tensor, **columns):
+    """A Cartesian targets CSV (x, y, z mm, rx, ry, rz deg URDF roll-pitch-yaw, q1..qN seeds in deg) for poses T
+    (B, 4, 4) in metres; ``columns`` go first (label=..., tool=...)."""
+    import pandas as pd
+
+    from torchcal.compensate.targets import pose_rpy
+
+    xyzrpy = pose_rpy(T)
+    df = pd.DataFrame(dict(columns))
+    for i, c in enumerate("xyz"):
+        df[c] = xyzrpy[:, i].numpy() * 1000.0
+    for i, c in enumerate(("rx", "ry", "rz")):
+        df[c] = np.degrees(xyzrpy[:, 3 + i].numpy())
+    for j in range(seeds.shape[1]):
+        df[f"q{j + 1}"] = np.degrees(seeds[:, j].numpy())
+    df.to_csv(path, index=False)
+    return path
+
+
 def randomize(model, seed: int, rot: float = 2e-3, trans: float = 2e-4, decay: float = 2.0):
     """Fill a RobotModel with seeded random errors decaying with the Chebyshev order."""
     g = torch.Generator().manual_seed(seed)

@@ -12,9 +12,9 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from tests.conftest import random_commands, randomize
+from tests.conftest import random_commands, randomize, write_targets
 from torchcal.compensate import compensate, observed_dof
-from torchcal.compensate.targets import compensate_targets, pose_rpy
+from torchcal.compensate.targets import compensate_targets
 from torchcal.kinematics.transforms import homogeneous
 from torchcal.models.robot import RobotModel
 
@@ -185,13 +185,7 @@ def test_targets_file_of_a_one_tool_run(fanuc, tmp_path):
     with torch.no_grad():
         Fn = model.nominal_flange(q)
     T = homogeneous(Fn[:, :3, :3], Fn[:, :3, :3] @ model.tools.nominal[0] + Fn[:, :3, 3])
-    xyzrpy = pose_rpy(T)
-    df = pd.DataFrame({c: xyzrpy[:, i].numpy() * 1000.0 for i, c in enumerate("xyz")})
-    for i, c in enumerate(("rx", "ry", "rz")):
-        df[c] = np.degrees(xyzrpy[:, 3 + i].numpy())
-    for j in range(6):
-        df[f"q{j + 1}"] = np.degrees(q[:, j].numpy())
-    df.to_csv(tmp_path / "targets.csv", index=False)
+    write_targets(tmp_path / "targets.csv", T, q)
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "targets.csv"), str(tmp_path / "out.csv")])
     assert r.exit_code == 0, r.output
     assert "3-DOF" in r.output

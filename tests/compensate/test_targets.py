@@ -4,7 +4,7 @@ through the controller's nominal IK; the nominal IK recovers the controller's ow
 from __future__ import annotations
 
 import torch
-from conftest import random_commands, randomize
+from conftest import random_commands, randomize, write_targets
 
 from torchcal.compensate.toolset import tool_poses
 from torchcal.compensate import damped_least_squares, nominal_sigma_min
@@ -77,7 +77,6 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     from typer.testing import CliRunner
 
     from torchcal.cli import app
-    from torchcal.compensate.targets import pose_rpy
     from torchcal.io.rundir import save_model
 
     model = randomize(RobotModel(fanuc, tools_m, orders=2, backlash=True), 9, rot=5e-4, trans=5e-5)
@@ -88,15 +87,7 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     tool = torch.arange(20) % 3
     with torch.no_grad():
         T = _tool_pose(model.nominal_flange(q), model.tools.nominal[tool])
-    xyzrpy = pose_rpy(T)
-    df = pd.DataFrame({"label": [f"P{i}" for i in range(20)], "tool": tool.numpy()})
-    for i, c in enumerate("xyz"):
-        df[c] = xyzrpy[:, i].numpy() * 1000.0
-    for i, c in enumerate(("rx", "ry", "rz")):
-        df[c] = np.degrees(xyzrpy[:, 3 + i].numpy())
-    for j in range(6):
-        df[f"q{j + 1}"] = np.degrees(q[:, j].numpy())
-    df.to_csv(tmp_path / "targets.csv", index=False)
+    df = pd.read_csv(write_targets(tmp_path / "targets.csv", T, q, label=[f"P{i}" for i in range(20)], tool=tool.numpy()))
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "targets.csv"), str(tmp_path / "out.csv")])
     assert r.exit_code == 0, r.output
     out = pd.read_csv(tmp_path / "out.csv", keep_default_na=False)

@@ -553,6 +553,9 @@ def simulate_cmd(
     force: Annotated[bool, typer.Option("--force", help="Overwrite files already in OUT_DIR.")] = False,
     error_variable: Annotated[str, typer.Option(help="What the simulated gear errors follow: command (Paper II (24)) or joint.")] = "command",
     pose_order: Annotated[str, typer.Option(help="Visit the quasi-random poses shuffled or in the sequence's own order (the paper's).")] = "shuffled",
+    backlash_on: Annotated[str, typer.Option(help="Where the simulated gears' backlash acts: joint (Paper II (13)) or command "
+                                                  "(the controller joint's, carried by the joint map: a parallelogram's J2 "
+                                                  "backlash turns θ3 too).")] = "joint",
 ):
     """Simulated measurements of a robot with known errors (Paper II's protocol) and a ready-to-run fit.yaml."""
     with _user_errors():
@@ -560,7 +563,7 @@ def simulate_cmd(
 
         with _progress(_console(stderr=True), f"simulating {identification} + {validation} poses -> {out_dir}"):
             paths = simulate_dataset(out_dir, robot, identification, validation, validation_tool, seed, order, force,
-                                     error_variable=error_variable, pose_order=pose_order)
+                                     error_variable=error_variable, pose_order=pose_order, backlash_on=backlash_on)
     for name, p in paths.items():
         typer.echo(f"{name}: {p}")
     typer.echo(f"next: torchcal fit {paths['config']}")

@@ -98,6 +98,10 @@ class ModelConfig:
     """The variable each joint's error series is evaluated on: null (the robot's ``error_variable:``, 'command'
     by default), 'command' (the controller command q_i, Paper II (24)), 'joint' (the URDF joint variable), or a
     per-joint list of those."""
+    backlash_on: str = "joint"
+    """Where backlash acts: 'joint' (Paper II (13): about the URDF joint's own axis) or 'command' (on the controller
+    command, carried to the URDF joints by the joint map's coupling: a parallelogram arm whose J2 backlash also
+    turns θ3; the same as 'joint' for a robot whose controller commands its URDF joints)."""
     kind: str = "joint_dependent"
     """'joint_dependent' (Paper II: 6-DOF Chebyshev errors per joint, robots) or 'axis_perturbation' (Paper I:
     δq_i = Σ_j f_ij(q_j), machine tools, any serial chain)."""
@@ -968,6 +972,11 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
             fail("model.error_variable", f"has {len(ev)} entries but the robot has {n_joints} joints")
     elif ev is not None and ev not in choices:
         fail("model.error_variable", f"{ev!r}: give null (the robot's), 'command', 'joint' or a per-joint list")
+    if cfg.model.backlash_on not in choices:
+        fail("model.backlash_on", f"{cfg.model.backlash_on!r}: give 'joint' (Paper II (13)) or 'command' (through the "
+                                  "joint map's coupling)")
+    if cfg.model.backlash_on != "joint" and cfg.model.kind == "axis_perturbation":
+        fail("model.backlash_on", "a machine tool's axis perturbation model has no backlash term")
 
     if cfg.prior.enabled:
         for key in ("rotation_deg", "translation_mm", "frame_rotation_deg", "frame_translation_mm"):

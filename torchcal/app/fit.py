@@ -140,11 +140,14 @@ class ModelFactory:
     robot's (its YAML's ``error_variable:``), else 'command' / 'joint' / per joint.
     """
 
-    def __init__(self, robot, tools_m, backlash, device, base_nominal=None, compliance=False, error_variable=None):
+    def __init__(self, robot, tools_m, backlash, device, base_nominal=None, compliance=False, error_variable=None,
+                 backlash_on: str = "joint"):
         self.robot, self.backlash, self.device, self.compliance = robot, backlash, device, compliance
         self.tools_m = tools_m.detach().cpu()
         self.base_nominal = None if base_nominal is None else base_nominal.detach().cpu()
         self.extra = {} if error_variable is None else {"error_variable": error_variable}
+        if backlash_on != "joint":
+            self.extra["backlash_on"] = backlash_on
 
     def __call__(self, orders, backlash="default"):
         return RobotModel(self.robot, self.tools_m, orders=list(orders) if not isinstance(orders, int) else orders,
@@ -176,12 +179,12 @@ class MachineFactory:
 
 
 def model_factory(robot, tools_m: torch.Tensor, backlash, device, base_nominal: torch.Tensor | None = None,
-                  compliance=False, error_variable=None, kind: str = "joint_dependent"):
+                  compliance=False, error_variable=None, kind: str = "joint_dependent", backlash_on: str = "joint"):
     """make_model(orders) -> a fresh all-zero model on ``device``: a :class:`ModelFactory` (RobotModel, Paper II)
     or, for ``kind='axis_perturbation'``, a :class:`MachineFactory` (MachineModel, Paper I)."""
     if kind == "axis_perturbation":
         return MachineFactory(robot, tools_m, device, base_nominal)
-    return ModelFactory(robot, tools_m, backlash, device, base_nominal, compliance, error_variable)
+    return ModelFactory(robot, tools_m, backlash, device, base_nominal, compliance, error_variable, backlash_on)
 
 
 # ------------------------------------------------------------------ evaluation
@@ -811,7 +814,8 @@ def _run_stages(cfg, console, plotter) -> RunResult:
         with run_log(run_dir):
             write_preamble(run_dir, cfg, inp, alignment, progress, files)
             make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal,
-                                 config_compliance(cfg), config_error_variable(cfg), cfg.model.kind)
+                                 config_compliance(cfg), config_error_variable(cfg), cfg.model.kind,
+                                 cfg.model.backlash_on)
             orders, selection = choose_orders(cfg, inp, make, run_dir, progress, files)
             constraint = None
             if cfg.constraint.c is None:

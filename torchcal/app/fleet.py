@@ -88,7 +88,7 @@ def _factory(cfg, robot, device, backlash):
 
     _, base = config_frame(cfg)
     return model_factory(robot, config_tools(cfg), backlash, device, base, config_compliance(cfg),
-                         config_error_variable(cfg), cfg.model.kind)
+                         config_error_variable(cfg), cfg.model.kind, cfg.model.backlash_on)
 
 
 def _solve_threads(cfg) -> int:

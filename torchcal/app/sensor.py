@@ -165,8 +165,9 @@ class SensorRigFactory:
     fine: None, or a :class:`~torchcal.error_models.fine.FineJointErrors` whose copy every rig gets.
     """
 
-    def __init__(self, robot, backlash, device, X, M, up, compliance=False, error_variable=None, sts=True, fine=None):
-        self.robot, self.backlash, self.device = robot, backlash, device
+    def __init__(self, robot, backlash, device, X, M, up, compliance=False, error_variable=None, sts=True, fine=None,
+                 backlash_on: str = "joint"):
+        self.robot, self.backlash, self.device, self.backlash_on = robot, backlash, device, backlash_on
         self.X, self.M, self.up = X.detach().cpu(), M.detach().cpu(), up
         self.compliance, self.error_variable, self.sts, self.fine = compliance, error_variable, sts, fine
 
@@ -180,7 +181,8 @@ class SensorRigFactory:
                            list(orders) if not isinstance(orders, int) else orders,
                            self.backlash if backlash == "default" else backlash, base_nominal=self.X,
                            compliance=self.compliance, error_variable=self.error_variable,
-                           fine=copy.deepcopy(self.fine) if fine and self.fine is not None else None)
+                           fine=copy.deepcopy(self.fine) if fine and self.fine is not None else None,
+                           backlash_on=self.backlash_on)
         return SensorRig(model, self.M, self.up if self.sts else None).to(self.device)
 
 
@@ -310,7 +312,7 @@ def run_sensor_fit(cfg, console=None):
                 backlash = None
             fine, smooth, warm = config_fine(cfg, inp.robot, ident)
             make = SensorRigFactory(inp.robot, backlash, inp.device, X, M, up_vector(cfg), config_compliance(cfg),
-                                    config_error_variable(cfg), cfg.sensor.kind == "sts", fine)
+                                    config_error_variable(cfg), cfg.sensor.kind == "sts", fine, cfg.model.backlash_on)
             order = cfg.model.order
             fixed = () if cfg.sensor.kind == "sts" and not cfg.sensor.position_only else ("gravity",)
             if isinstance(order, str):

@@ -44,7 +44,8 @@ def simulated_joint_variances(robot) -> tuple[list[float], list[float]]:
 
 def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: int = 250, validation: int = 300,
                      validation_tool: int = 2, seed: int = 0, order: int = 6, force: bool = False,
-                     error_variable="command", pose_order: str = "shuffled") -> dict[str, Path]:
+                     error_variable="command", pose_order: str = "shuffled",
+                     backlash_on: str = "joint") -> dict[str, Path]:
     """Write simulated measurements in the CSV contract plus truth.json and a ready-to-run fit.yaml.
 
     Paper II's protocol (5.2, 5.5): quasi-random commands over the controller
@@ -107,7 +108,10 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     # fit.yaml and truth.json name a robot file absolutely: they are read from another folder
     robot_spec = str(Path(rob.source).resolve()) if Path(rob.source).suffix else (rob.source or rob.name)
     make = TruthRobot.fanuc_paper2 if kind == "fanuc_paper2" else TruthRobot.random
+    if backlash_on not in ("joint", "command"):
+        raise ConfigError(f"--backlash-on '{backlash_on}': give joint (Paper II (13)) or command (through the joint map)")
     truth = make(rob, tools_m, seed, error_variable=error_variable)
+    truth.backlash_on = backlash_on  # (recorded in truth.json; the fit.yaml leaves the model at the paper's reading)
     var_f, var_b = simulated_joint_variances(rob)
     sigma_mm = TRACKER_SIGMA_MM
     noise = NoiseModel.from_file_units(sigma_mm, var_f, var_b, rob.joint_map.prismatic)

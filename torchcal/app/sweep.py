@@ -324,7 +324,8 @@ def _fit_stacked(cfgs: list, run_dir: Path, cells: list[int]) -> list[dict]:
             continue
         orders = config_orders(cfg, n)
         make = model_factory(inp.robot, tools_m, config_backlash(cfg), inp.device, base_nominal, _compliance(cfg),
-                             None if cfg.model.error_variable is None else cfg.model.error_variable, cfg.model.kind)
+                             None if cfg.model.error_variable is None else cfg.model.error_variable, cfg.model.kind,
+                             cfg.model.backlash_on)
         if make.backlash is True and data.has_direction:  # as torchcal fit: the backlash order follows the data
             make.backlash, _ = default_backlash_orders(orders, data.q, data.direction, inp.robot.joint_map.limits.to(data.q))
         models[i] = make(orders)

@@ -142,6 +142,12 @@ class JointErrors(nn.Module):
             return joint_error_twists(coef, basis, self.backlash * self.backlash_mask, bb, direction.to(theta))
         return joint_error_twists(coef, basis)
 
+    def backlash_values(self, theta: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
+        """s_i Δq_ib(u_i) (B, n): each joint's backlash (13) at error variables (B, n) and directions (B, n)."""
+        lam = self.normalized(theta)
+        bb = chebyshev(lam, self.backlash.shape[-1] - 1)
+        return (bb * self.backlash * self.backlash_mask).sum(-1) * direction.to(theta)
+
     def forward(self, theta: torch.Tensor, direction: torch.Tensor | None = None) -> torch.Tensor:
         """Error transforms E_i: (B, n) -> (B, n, 4, 4)."""
         return twist_to_transform(self.twists(theta, direction))

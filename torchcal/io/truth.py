@@ -39,6 +39,7 @@ def save_truth(path, truth, kind: str, seed: int, noise=None, robot_spec: str | 
         "robot": robot_spec or truth.robot.source or truth.robot.name,
         "seed": int(seed),
         "error_variable": list(truth.error_variable),
+        "backlash_on": getattr(truth, "backlash_on", "joint"),
         "tools_mm": units.m_to_mm(truth.tools_nominal.cpu()).tolist(),
     }
     if noise is not None:
@@ -75,7 +76,8 @@ def load_truth(path, robot=None):
     tools = units.mm_to_m(torch.tensor(blob["tools_mm"], dtype=torch.float64))
     # files from before the key existed evaluated every error on the URDF joint variable
     try:
-        truth = TruthRobot(robot, tools, error_variable=blob.get("error_variable", "joint"))
+        truth = TruthRobot(robot, tools, error_variable=blob.get("error_variable", "joint"),
+                           backlash_on=blob.get("backlash_on", "joint"))
     except ValueError as exc:
         raise TruthError(f"{path}: {exc}") from None
     state = truth.state_dict()

@@ -11,6 +11,12 @@ controller command (q + v)_i normalized over the command limits (24) — the
 paper's reading and the default — or the URDF joint variable θ_i (per joint,
 ``error_variable``; the FANUC's J3 gear turns with q3 while θ3 = q2 + q3).
 
+Backlash (13) turns URDF joint i about its own Z by s_i Δq_ib(u_i) (``backlash_on='joint'``, the paper's).
+A gear's lost motion is an error of the controller joint it drives, though: where a joint map couples
+joints (a parallelogram arm, whose J2 also turns θ3), ``backlash_on='command'`` puts s_j Δq_jb(u_j) on the
+command q_j and carries it to the URDF joints by the coupling, θ = A (q + v + β) + offset (u is taken at
+q + v: β is a few hundredths of a degree). With an identity map both readings agree to first order.
+
 Everything is SI inside (m, rad); convert at the file boundary with
 :mod:`torchcal.core.units`.
 """
@@ -30,6 +36,10 @@ from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
 from ..kinematics.fk import chain_frames
 from ..kinematics.robot import ChainBuffers, Robot
 from ..kinematics.transforms import twist_to_transform
+
+
+BACKLASH_ON = ("joint", "command")
+"""Where backlash acts: the URDF joint's own axis (Paper II (13)) or the controller command, through the coupling."""
 
 
 def joint_series(je: JointErrors, u: torch.Tensor):
@@ -66,6 +76,8 @@ class RobotModel(ChainBuffers, nn.Module):
     (:class:`~torchcal.error_models.fine.FineJointErrors`, parameter
     ``fine.values``): None (off, the default), a module, or a dict of its
     keywords; like the compliance, Δθ(θ(q)) adds to the joint variables at the commanded q.
+    backlash_on: 'joint' (Paper II (13): about the URDF joint's own axis) or 'command' (on the controller
+    command, carried by the joint map's coupling: a parallelogram's motor-side backlash), see the module.
 
     Example:
         >>> import torch, torchcal
@@ -76,8 +88,11 @@ class RobotModel(ChainBuffers, nn.Module):
     """
 
     def __init__(self, robot: Robot, tools, orders=6, backlash=None, base_nominal: torch.Tensor | None = None,
-                 compliance=False, error_variable=None, fine=None):
+                 compliance=False, error_variable=None, fine=None, backlash_on: str = "joint"):
         super().__init__()
+        if backlash_on not in BACKLASH_ON:
+            raise ValueError(f"backlash_on: {backlash_on!r} is not one of {BACKLASH_ON}")
+        self.backlash_on = backlash_on
         if error_variable is not None:
             robot = robot.with_error_variable(error_variable)
         self.robot = robot
@@ -158,7 +173,12 @@ class RobotModel(ChainBuffers, nn.Module):
         base: include T_0^m (measurement frame) or work in the robot's nominal base frame.
         """
         theta, u, _ = self._variables(q, v)
-        E = self.joint_errors(u, direction)
+        if self.backlash_on == "command":
+            E = self.joint_errors(u, None)
+            if direction is not None and self.joint_errors.has_backlash:
+                theta = theta + self.joint_errors.backlash_values(u, direction) @ self.coupling.T
+        else:
+            E = self.joint_errors(u, direction)
         T0 = self.base() if base else self.base.correction()
         return chain_frames(self.origins, self.axes, self.prismatic, theta, E, self.tip, T0)
 
@@ -189,7 +209,8 @@ class RobotModel(ChainBuffers, nn.Module):
                 origins=self.origins.detach().clone(), axes=self.axes.detach().clone(),
                 prismatic=self.prismatic.detach().clone(), tip=self.tip.detach().clone(),
                 base=self.base.correction().detach().clone(),
-                live=self if (self.compliance is not None or self.fine is not None) else None)
+                live=self if (self.compliance is not None or self.fine is not None
+                              or self.backlash_on == "command") else None)
     def tool_points(self, flange: torch.Tensor, tool: torch.Tensor) -> torch.Tensor:
         """Tool positions (B, 3) for flange poses (B, 4, 4) and tool indices (B,)."""
         p_t = self.tools()[tool]
@@ -219,17 +240,21 @@ class RobotModel(ChainBuffers, nn.Module):
         je = self.joint_errors
         theta, u, comp = self._variables(q, v)
         basis, dbasis, e, de, K, Kb = joint_series(je, u)
-        s = None
+        s, db = None, None
         if je.has_backlash and direction is not None:
             s = direction.to(u)
             bl = je.backlash * je.backlash_mask
-            zpad = (2, 3)
-            e = e + torch.nn.functional.pad(((basis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
-            de = de + torch.nn.functional.pad(((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
+            if self.backlash_on == "command":  # β on the commands, to θ through the coupling; its slope kept apart
+                theta = theta + ((basis[..., :Kb] * bl).sum(-1) * s) @ self.coupling.T
+                db = (dbasis[..., :Kb] * bl).sum(-1) * s
+            else:
+                zpad = (2, 3)
+                e = e + torch.nn.functional.pad(((basis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
+                de = de + torch.nn.functional.pad(((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
         # base=None: no base frame at all (Paper I's modeled error is taken in the robot's own base frame)
         T0 = None if base is None else (self.base() if base else self.base.correction())
         jR, jp, F = chain_frames(self.origins, self.axes, self.prismatic, theta, twist_to_transform(e), self.tip, T0)
-        return dict(theta=theta, basis=basis, e=e, de=de, s=s, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp)
+        return dict(theta=theta, basis=basis, e=e, de=de, s=s, db=db, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp)
 
     def point_jacobians(self, q, tool, direction=None, v=None):
         """Tool points and their Jacobians w.r.t. every parameter group and the joint errors v.
@@ -264,7 +289,12 @@ class RobotModel(ChainBuffers, nn.Module):
         Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :rows, :]  # per θ_i
         slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, rows, n): through E_i's series
         J = {"joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
-        if d["s"] is not None:
+        if d["s"] is not None and d["db"] is not None:  # backlash on the commands: it moves θ = A β
+            Jcmd = Jax @ self.coupling  # (B, rows, n) per command
+            J["joint_errors.backlash"] = torch.einsum("bcj,bjk->bcjk", Jcmd * d["s"][:, None, :],
+                                                      d["basis"][..., : d["Kb"]])
+            slope = slope + Jcmd * d["db"][:, None, :]
+        elif d["s"] is not None:
             J["joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None], d["basis"][..., : d["Kb"]])
         else:
             J["joint_errors.backlash"] = torch.zeros(B, rows, n, d["Kb"], dtype=q.dtype, device=q.device)
@@ -296,6 +326,8 @@ class RobotModel(ChainBuffers, nn.Module):
         Je = twist_jacobian(d["jR"], d["jp"], d["e"], o[:, None, :])  # (B, n, 6, 6)
         Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, o)  # (B, 6, n) per θ_i
         slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 6, n) per u_i
+        if d["db"] is not None:  # backlash on the commands: its slope moves θ through the coupling
+            slope = slope + (Jax @ self.coupling) * d["db"][:, None, :]
         Rt = F[:, :3, :3].transpose(1, 2)
 
         def body(Js):
@@ -347,6 +379,8 @@ class RobotModel(ChainBuffers, nn.Module):
             out["compliance"] = self.compliance.spec()
         if self.fine is not None:  # likewise absent when off
             out["fine"] = self.fine.spec()
+        if self.backlash_on != "joint":  # likewise: older specs are the paper's reading
+            out["backlash_on"] = self.backlash_on
         return out
 
     @classmethod
@@ -360,7 +394,8 @@ class RobotModel(ChainBuffers, nn.Module):
         # runs written before the error variable existed evaluated every series on the URDF joint variable
         model = cls(robot, torch.tensor(spec["tools"], dtype=torch.float64), spec["orders"], backlash,
                     torch.tensor(spec["base_nominal"], dtype=torch.float64), compliance=spec.get("compliance") or False,
-                    error_variable=spec.get("error_variable", "joint"), fine=spec.get("fine"))
+                    error_variable=spec.get("error_variable", "joint"), fine=spec.get("fine"),
+                    backlash_on=spec.get("backlash_on", "joint"))
         if spec.get("coverage") is not None:
             from ..core.coverage import DirectionCoverage
 

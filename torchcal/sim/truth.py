@@ -193,11 +193,17 @@ class TruthRobot(nn.Module):
         ('command', torch.Size([2, 3]))
     """
 
-    def __init__(self, robot: Robot, tools, base_nominal: torch.Tensor | None = None, error_variable="command"):
+    def __init__(self, robot: Robot, tools, base_nominal: torch.Tensor | None = None, error_variable="command",
+                 backlash_on: str = "joint"):
         super().__init__()
         chain, jm = robot.chain, robot.joint_map
         n = chain.n
         self.robot = robot
+        if backlash_on not in ("joint", "command"):
+            raise ValueError(f"backlash_on: {backlash_on!r} is not 'joint' or 'command'")
+        # 'command': a gear's lost motion is an error of the controller joint it drives, moved to the URDF joints
+        # by the coupling (a parallelogram's motor-side J2 backlash also turns θ3); 'joint': Paper II (13)
+        self.backlash_on = backlash_on
         self.error_variable = normalize_error_variable(error_variable, n, list(chain.joint_names))
         f64 = dict(dtype=torch.float64, device=chain.device)
         self.register_buffer("origins", chain.origins.to(torch.float64).clone())
@@ -358,7 +364,11 @@ class TruthRobot(nn.Module):
         qa = q if v is None else q + v  # the gears turn with the command the joint really received
         theta = self.joint_variables(qa)
         u = self.error_variables(qa)
-        actual = theta + self.angle_error(u, direction)
+        if self.backlash_on == "command" and direction is not None:
+            back = direction.to(u) * self.error_functions(u)["backlash"]
+            actual = theta + self.angle_error(u, None) + back @ self.coupling.T.to(u)
+        else:
+            actual = theta + self.angle_error(u, direction)
         E = self.joint_transforms(u)
         return chain_frames(self.true_origins(theta), self.axes.to(theta), self.prismatic.to(theta.device),
                             actual, E, self.tip.to(theta), self.base_frame(base, theta))

@@ -117,3 +117,23 @@ def test_without_numba_there_is_nothing_to_compile_and_nothing_is_wrong(monkeypa
         compile_kernels()
     res = CliRunner().invoke(app, ["compile"])
     assert res.exit_code == 0 and "nothing to compile" in res.output and "torch forms run instead" in res.output
+
+
+def test_the_cold_compile_notice_reaches_the_console_of_a_front_end(monkeypatch):
+    """The notice is logged (run.log) and handed to the installed progress reporter (the CLI's console), once."""
+    import io
+
+    from rich.console import Console
+
+    from torchcal.core import compiled, progress
+    from torchcal.io.progress_view import ProgressView
+
+    monkeypatch.setitem(compiled.FAMILIES, "probe2", ("kmod", ("k",), "a moment"))
+    monkeypatch.setattr(compiled, "cold", lambda family: ["k"])
+    monkeypatch.setattr(compiled, "_NOTICED", set())
+    out = io.StringIO()
+    view = ProgressView(Console(file=out, width=300), bars=False, logger=None)
+    with progress.reporting(view):
+        compiled.notice("probe2")
+        compiled.notice("probe2")
+    assert out.getvalue().count("compiling torchcal's probe2 kernels for this CPU (k)") == 1, out.getvalue()

@@ -41,8 +41,34 @@ def test_unknown_engine_and_unreachable_ray_name_the_key(monkeypatch):
 
     fake.init = init
     monkeypatch.setitem(sys.modules, "ray", fake)
-    with pytest.raises(ConfigError, match="cannot start or reach Ray at 10.0.0.9:6379: ConnectionError"):
-        run_cells(_cell, [(0,)], "ray", "10.0.0.9:6379", where="fleet.yaml: key 'fleet.engine'")
+    import torchcal.app.engines as engines
+
+    with monkeypatch.context() as m:  # an address that accepts connections, where Ray itself then fails
+        m.setattr(engines, "_check_reachable", lambda address, where: None)
+        with pytest.raises(ConfigError, match="cannot start or reach Ray at 10.0.0.9:6379: ConnectionError"):
+            run_cells(_cell, [(0,)], "ray", "10.0.0.9:6379", where="fleet.yaml: key 'fleet.engine'")
+
+
+def test_an_unreachable_ray_address_fails_at_once_without_asking_ray(monkeypatch):
+    """ray.init retries an unreachable cluster for minutes: the address is tried first and named."""
+    import socket
+    import time
+
+    fake = types.ModuleType("ray")
+    fake.is_initialized = lambda: False
+    asked = []
+    fake.init = lambda **kw: asked.append(kw)
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    with socket.socket() as sk:  # a port nothing listens on
+        sk.bind(("127.0.0.1", 0))
+        port = sk.getsockname()[1]
+    t0 = time.perf_counter()
+    for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
+        with pytest.raises(ConfigError, match=f"key 'fleet.engine': cannot reach the Ray cluster at {address}"):
+            run_cells(_cell, [(0,)], "ray", address, where="key 'fleet.engine'")
+    assert time.perf_counter() - t0 < 10.0 and not asked
+    with pytest.raises(ConfigError, match="'headnode' is not host:port"):
+        run_cells(_cell, [(0,)], "ray", "headnode", where="key 'fleet.engine'")
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray not installed (pip install 'torchcal[ray]')")

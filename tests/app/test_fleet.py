@@ -163,6 +163,37 @@ def test_fleet_command_writes_unit_runs_and_reports_a_broken_unit(tmp_path, robo
     assert isinstance(model, torchcal.RobotModel)
 
 
+def test_a_fleet_unit_is_a_run_that_update_and_the_fleet_inputs_check(tmp_path, robot):
+    """Each unit directory starts like a fit's (config, versions, the data's hashes): `torchcal update` of a unit whose
+    identification file changed since is refused; an interrupted fleet (PARTIAL) is refused as a prior and as a
+    baseline."""
+    import json
+    from pathlib import Path
+
+    from torchcal.app.config import ConfigError, load_config, updated
+    from torchcal.app.fleet import run_fleet
+    from torchcal.app.fleet_baseline import baseline_units
+    from torchcal.app.fleet_prior import prior_from_fleet_run
+    from torchcal.app.update import run_update
+    from torchcal.io.rundir import PARTIAL_FILE, RunDirError
+
+    cfg = _write_fleet(tmp_path, robot, count=3)
+    run = run_fleet(cfg, out=tmp_path / "fleet-run").run_dir
+    unit = run / "units" / "unit01"
+    assert (unit / "versions.json").is_file()
+    hashes = json.loads((unit / "data_hashes.json").read_text())
+    assert Path(hashes["data.identification"]["path"]).name == "unit01.csv"
+    f = tmp_path / "ident" / "unit01.csv"
+    f.write_text(f.read_text().replace(",", ", ", 1))  # changed since the fit (one byte more)
+    with pytest.raises((ConfigError, RunDirError, ValueError), match="changed since the fit"):
+        run_update(unit, tmp_path / "ident" / "unit00.csv", tmp_path / "upd")
+    (run / PARTIAL_FILE).write_text("interrupted\n")
+    with pytest.raises(RunDirError, match="did not finish"):
+        prior_from_fleet_run(run)
+    with pytest.raises(RunDirError, match="did not finish"):
+        baseline_units(updated(load_config(cfg), {"fleet.baseline": str(run)}), "fleet.yaml")
+
+
 def test_fleet_command_fails_only_the_unit_of_another_format(tmp_path, robot):
     """A unit whose file lacks the approach directions the others have cannot share their solve (one model
     structure): it alone is reported, naming its file and why, and the others are fitted (before, the whole cell

@@ -76,6 +76,7 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
         raise ConfigError(f"{where}: ray needs Ray installed (pip install 'torchcal[ray]')") from None
     started = not ray.is_initialized()
     if started:
+        _check_reachable(address, where)
         try:
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
         except Exception as exc:  # an unreachable cluster: one line naming it, before any cell is sent
@@ -104,6 +105,29 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
     finally:
         if started:
             ray.shutdown()
+
+
+REACH_TIMEOUT_S = 5.0
+"""Seconds to wait for a cluster's address to accept a connection before Ray is asked (ray.init retries an
+unreachable GCS for minutes, printing its own errors, while nothing else moves)."""
+
+
+def _check_reachable(address: str | None, where: str) -> None:
+    """A ConfigError naming ``address`` ('host:port' or 'ray://host:port') when nothing accepts a TCP connection
+    there within :data:`REACH_TIMEOUT_S`; None, 'auto' and 'local' are Ray's to resolve."""
+    if not address or address in ("auto", "local"):
+        return
+    import socket
+
+    hostport = address.split("://", 1)[-1].rstrip("/")
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"{where}: Ray address '{address}' is not host:port (or ray://host:port)")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=REACH_TIMEOUT_S).close()
+    except OSError as exc:
+        raise ConfigError(f"{where}: cannot reach the Ray cluster at {address}: {exc} (is it running, and is the "
+                          "port open from here?)") from None
 
 
 def _interrupted() -> Interrupted:

@@ -36,7 +36,7 @@ import torch
 from ..core import units
 from ..core.progress import task
 from ..io.atomic import atomic_path, atomic_write_text
-from .common import config_backlash, config_orders, failed_row
+from .common import config_backlash, config_orders, failed_row, write_preamble_files
 from .config import ConfigError, SolverConfig, check_config, load_config, source_of, to_yaml, updated
 from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
@@ -308,7 +308,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             d.mkdir(parents=True, exist_ok=True)
             ident, val = by_name[name]
             ucfg = updated(cfg, {"data.identification": ident, "data.validation": val, "out": str(d)})
-            atomic_write_text(d / "config.yaml", to_yaml(ucfg))
+            write_preamble_files(d, ucfg, device, {})  # config, versions, data hashes: `torchcal update` checks them
             save_model(d, model, orders=u["orders"], config_file=str(d / "config.yaml"), fit=u["fit"])
             write_json(d / "metrics.json", {"units": "mm", "unit": name, **{k2: v for k2, v in rows[name].items()
                                                                             if k2 != "unit"}})

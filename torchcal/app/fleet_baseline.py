@@ -37,6 +37,9 @@ def baseline_units(cfg, label: str) -> tuple[Path, list[str]] | None:
     if not (run / "fleet.json").is_file() or not summary.is_file():
         raise ConfigError(f"{source_of(cfg, KEY, label)}: key '{KEY}': {run} is not a `torchcal fleet` run directory (it needs its "
                           "fleet.json and summary.csv)")
+    from ..io.rundir import require_finished
+
+    require_finished(run, f"the comparison with a baseline ({source_of(cfg, KEY, label)}: key '{KEY}')")
     table = pd.read_csv(summary)
     if "unit" not in table or "status" not in table:
         raise ConfigError(f"{source_of(cfg, KEY, label)}: key '{KEY}': {summary} lacks the columns 'unit' and 'status'")

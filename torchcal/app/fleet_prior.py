@@ -55,9 +55,10 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=Non
     from ..identify.fleet_prior import prior_from_parameters
     from ..identify.layout import ParameterLayout
     from ..identify.problem import Prior
-    from ..io.rundir import load_model
+    from ..io.rundir import load_model, require_finished
 
     run_dir = Path(run_dir)
+    require_finished(run_dir, "a fleet prior")  # an interrupted fleet's units are not the type's spread
     table = pd.read_csv(run_dir / "summary.csv")
     flagged = table["flagged"].fillna(False).astype(bool) if "flagged" in table else False
     # a unit with fewer equations than parameters holds the prior's values, not the type's spread

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from ..core import threads
+from ..core import threads, units
 from ..identify.online import STRATEGIES, OnlineCalibration, OnlineStep
 from ..io.atomic import atomic_path, atomic_write_text
 from .config import ConfigError, run_config, to_yaml
@@ -269,9 +269,10 @@ def _evaluate(cfg, model, new: Measurements, progress, new_path=None) -> tuple[d
     out = {name.lower(): {"rows": len(sets[name.lower()]), "poses": sets[name.lower()].n_poses,
                           "nominal": vars(ev["nominal_stats"]), "modeled": vars(ev["modeled_stats"]),
                           "decrease_percent": ev["decrease"]} for name, ev in evaluations.items()}
-    for name, s in out.items():
-        progress.info(f"{name}: mean {s['nominal']['mean']:.4f} -> {s['modeled']['mean']:.4f} mm, "
-                      f"max {s['modeled']['max']:.4f} mm")
+    for name, s in out.items():  # nominal robot -> the updated model, on each set (the file named)
+        src = new_path if name == "update" else val
+        progress.info(f"{name} ({Path(src).name if src else '?'}): mean nominal {s['nominal']['mean']:.4f} -> updated "
+                      f"model {s['modeled']['mean']:.4f} mm, max {s['modeled']['max']:.4f} mm")
     return out, table6(evaluations)
 
 
@@ -390,6 +391,14 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
                 progress.info(note)
         progress.info(f"earlier rows: {online.rows} in {online.batches} batch(es), from the parent's {history}; "
                       f"strategy '{online.strategy}'")
+        before = None
+        if instrument is None:  # the parent's model on the new rows: how far the robot moved from its calibration
+            from ..analysis.stats import point_residuals, residual_stats
+
+            with torch.no_grad():
+                before = residual_stats(units.m_to_mm(point_residuals(model, new).cpu()))
+            progress.info(f"the parent's model on the new rows: mean {before.mean:.4f} mm, max {before.max:.4f} mm "
+                          "(before the update)")
         with progress.step(f"updating with {len(new)} rows of {new_path}"):
             step = online.update(new, instrument)
         progress.info(f"update: {step.result.message} after {step.result.nit} iterations, {step.seconds:.2f} s; "
@@ -410,6 +419,7 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
             sets, table = _evaluate(cfg, model, new, progress, new_path)
         metrics = {"units": "mm, deg, percent" if is_sensor_run(cfg) else "mm, percent", "parent": str(parent),
                    "lineage": lineage, "history": history, "update": step.summary(), "sets": sets, "table6": table,
+                   "parent_model_on_new_rows_mm": None if before is None else vars(before),
                    "warnings": progress.warnings}
         files["metrics"] = write_json(run / "metrics.json", metrics)
         progress.info(f"done: {run}")

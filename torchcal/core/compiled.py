@@ -76,10 +76,14 @@ def notice(family: str) -> None:
     _NOTICED.add(family)
     missing = cold(family)
     if missing:
-        log.warning("compiling torchcal's %s kernels for this CPU (%s) into numba's cache: once per install, "
-                    "%s on a 2-core machine; later runs load them in ~0.5 s. `torchcal compile` builds every "
-                    "family ahead of time, side by side (TORCHCAL_NO_NUMBA=1 runs the torch forms instead: no "
-                    "compile, slower per pose)", family, ", ".join(missing), FAMILIES[family][2])
+        text = (f"compiling torchcal's {family} kernels for this CPU ({', '.join(missing)}) into numba's cache: once "
+                f"per install, {FAMILIES[family][2]} on a 2-core machine; later runs load them in ~0.5 s. `torchcal "
+                "compile` builds every family ahead of time, side by side (TORCHCAL_NO_NUMBA=1 runs the torch forms "
+                "instead: no compile, slower per pose)")
+        log.warning(text)
+        from . import progress
+
+        progress.note(text)  # on the console too, where a front end shows progress: a bar that stalls is no hang
 
 
 __all__ = ["FAMILIES", "cached", "cold", "notice", "quiet"]

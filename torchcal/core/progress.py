@@ -97,6 +97,14 @@ def reporting(reporter: Reporter | None):
         _REPORTER.reset(token)
 
 
+def note(text: str) -> None:
+    """A line for whoever watches (a cold compile that stalls a bar for a minute): handed to the installed
+    reporter's ``note(text)`` where it has one, else nowhere (the caller logs its own lines)."""
+    say = getattr(_REPORTER.get(), "note", None)
+    if callable(say):
+        say(text)
+
+
 @contextmanager
 def task(name: str, total: int | None = None):
     """A long stage of ``total`` items; yields the :class:`Task` to advance. Nested tasks know their parent."""

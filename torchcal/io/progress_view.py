@@ -235,6 +235,10 @@ class ProgressView(Reporter):
         with self._lock:
             self.console.log(text, markup=markup)
 
+    def note(self, text: str) -> None:
+        """:func:`torchcal.core.progress.note`: a library's line for the console (it logs the line itself)."""
+        self.message(text, markup=False)
+
     def _emit(self, line: str, task: Task | None, now: float) -> None:
         """Print and log one line (the lock is held)."""
         self._last_line = now

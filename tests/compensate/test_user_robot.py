@@ -97,3 +97,18 @@ def test_targets_on_the_7_axis_arm_reach_the_model_or_say_why(iiwa):
     with torch.no_grad():
         reach = tool_pose(model.flange(tr.q[ok], base=False), model.tools()[tool[ok]])
     assert float((reach[:, :3, 3] - T[ok, :3, 3]).norm(dim=-1).max()) < 1e-9
+
+
+def test_configuration_flags_for_a_7_axis_arm_are_refused_naming_why(iiwa, tmp_path):
+    """Flags describe 6R arms: a 7-axis targets file with shoulder, elbow, wrist columns gets a message, no traceback."""
+    import pandas as pd
+    from typer.testing import CliRunner
+
+    from torchcal.cli import app
+    from torchcal.io.rundir import save_model
+
+    save_model(tmp_path / "run", torchcal.RobotModel(iiwa, torch.zeros(1, 3, dtype=torch.float64), orders=0))
+    pd.DataFrame({"x": [500.0], "y": [0.0], "z": [600.0], "rx": [180.0], "ry": [0.0], "rz": [0.0],
+                  "shoulder": [1], "elbow": [1], "wrist": [1]}).to_csv(tmp_path / "t.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(tmp_path / "run"), str(tmp_path / "t.csv"), str(tmp_path / "o.csv")])
+    assert r.exit_code == 2 and "defined for 6R arms" in r.output and "7 joints" in r.output, r.output

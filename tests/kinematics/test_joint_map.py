@@ -1,6 +1,7 @@
 """The error variable of each joint (Paper II (24)): command q_i or URDF θ_i, whatever the coupling."""
 
 import pytest
+import torchcal
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -48,3 +49,53 @@ def test_error_variable_names_the_joint_when_wrong():
     with pytest.raises(ValueError, match="one entry per joint"):
         normalize_error_variable(["command"], 2)
     assert normalize_error_variable("joint", 3) == ["joint"] * 3
+
+
+def _robot_files(tmp_path, yaml_edit=None, urdf_edit=None):
+    """A copy of the bundled FANUC's YAML and URDF in tmp_path, each optionally edited as text."""
+    from torchcal.kinematics.robot import urdf_dir
+
+    y = (urdf_dir() / "fanuc_lrmate200i.yaml").read_text()
+    u = (urdf_dir() / "fanuc_lrmate200i.urdf").read_text()
+    (tmp_path / "fanuc_lrmate200i.urdf").write_text(urdf_edit(u) if urdf_edit else u)
+    (tmp_path / "robot.yaml").write_text(yaml_edit(y) if yaml_edit else y)
+    return tmp_path / "robot.yaml"
+
+
+@pytest.mark.parametrize("edit,message", [
+    (lambda y: y.replace("  - [0, 1, 1, 0, 0, 0]", "  - [0, 1, 1, 0, 0]"),
+     r"robot.yaml: coupling\[2\] \(URDF joint 3\) must hold 6 numbers .* got 5 numbers"),
+    (lambda y: y.replace("offset: [0, -90, 0, 0, 0, 0]", "offset: [0, -90, 0, 0, 0]"),
+     r"robot.yaml: 'offset' must hold 6 numbers .* got 5 entries"),
+    (lambda y: y.replace("upper: 100}", "upper: 1O0}", 1),
+     r"robot.yaml: joints\[0\] \('J1'\) upper: '1O0' is not a number"),
+    (lambda y: y.replace("error_variable: command", "error_varaible: joint"),
+     r"unknown key 'error_varaible' \(did you mean 'error_variable'\?\)"),
+    (lambda y: y.replace("{name: J5,", "{name: J4,"), r"joint name \['J4'\] given twice"),
+])
+def test_a_typed_joint_map_mistake_names_the_file_and_the_entry(tmp_path, edit, message):
+    from torchcal.kinematics.urdf import URDFError
+
+    with pytest.raises(URDFError, match=message):
+        torchcal.load_robot(str(_robot_files(tmp_path, edit)))
+
+
+def test_a_urdf_in_millimetres_is_named(tmp_path):
+    import re
+
+    from torchcal.kinematics.urdf import URDFError
+
+    def to_mm(u):  # every origin's xyz times 1000
+        return re.sub(r'xyz="([^"]+)"', lambda m: 'xyz="' + " ".join(str(float(v) * 1000) for v in m.group(1).split())
+                      + '"', u)
+
+    with pytest.raises(URDFError, match=r"fanuc_lrmate200i.urdf: the link offsets add up to .* look like millimetres"):
+        torchcal.load_robot(str(_robot_files(tmp_path, None, to_mm)))
+    torchcal.load_robot(str(_robot_files(tmp_path)))  # the metres themselves load
+
+
+def test_one_joint_typed_in_radians_is_warned(tmp_path, caplog):
+    path = _robot_files(tmp_path, lambda y: y.replace("lower: -90, upper: 90}", "lower: -1.571, upper: 1.571}"))
+    with caplog.at_level("WARNING", logger="torchcal"):
+        robot = torchcal.load_robot(str(path))
+    assert robot.n == 6 and "joints[4] 'J5' [-1.571, 1.571]" in caplog.text and "radians typed here?" in caplog.text

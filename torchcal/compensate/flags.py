@@ -62,9 +62,7 @@ def configuration_flags(model, q: torch.Tensor) -> torch.Tensor:
     Raises ValueError for an arm that is not 6R or whose axes 4 and 5 do not meet.
     """
     robot = model.robot
-    if robot.joint_map.n != 6 or bool(robot.joint_map.prismatic.any()):
-        raise ValueError(f"configuration flags: defined for 6R arms; '{robot.name}' has {robot.joint_map.n} joints"
-                         f"{' (prismatic ones)' if bool(robot.joint_map.prismatic.any()) else ''}: give seed commands")
+    require_6r(robot)
     q = q.to(model.dtype)
     with torch.no_grad():
         R, p, _ = chain_frames(model.origins, model.axes, model.prismatic, model.joint_variables(q), None, model.tip)
@@ -83,6 +81,14 @@ def configuration_flags(model, q: torch.Tensor) -> torch.Tensor:
     elbow = (z2 * torch.linalg.cross(o3 - o2, c - o3)).sum(-1)
     wrist = (z4 * torch.linalg.cross(z5, z6)).sum(-1)
     return torch.sign(torch.stack([shoulder, elbow, wrist], -1))
+
+
+def require_6r(robot) -> None:
+    """ValueError unless ``robot`` is a 6R arm, the only kind the flags describe (said before any IK is tried)."""
+    if robot.joint_map.n != 6 or bool(robot.joint_map.prismatic.any()):
+        raise ValueError(f"configuration flags: defined for 6R arms; '{robot.name}' has {robot.joint_map.n} joints"
+                         f"{' (prismatic ones)' if bool(robot.joint_map.prismatic.any()) else ''}: give seed commands "
+                         "q1..qN instead of shoulder, elbow, wrist")
 
 
 def seeds_for_flags(model, target: torch.Tensor, flags: torch.Tensor, tool=0, starts: int = 64, seed: int = 0,
@@ -117,6 +123,7 @@ def seeds_for_flags(model, target: torch.Tensor, flags: torch.Tensor, tool=0, st
                          f"and {tuple(flags.shape)}")
     if not bool(((flags == 1) | (flags == -1)).all()):
         raise InputError("seeds_for_flags: every flag must be +1 or -1")
+    require_6r(model.robot)
     dt, dev = model.dtype, model.device
     lim = model.command_limits.to(dt)
     ref = (lim[:, 0] + lim[:, 1]) / 2 if reference is None else reference.to(dt)

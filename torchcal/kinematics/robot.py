@@ -91,7 +91,62 @@ def _refuse_degree_limits(chain: Chain, path) -> None:
                         "(rad = deg * pi / 180); or give a joint-map YAML with the controller range in degrees")
 
 
+REACH_MAX_M = 50.0
+"""m: a chain whose link offsets add up to more than this is not a robot or machine in metres (URDF lengths are
+SI): a URDF written in millimetres puts a 1 m arm at 1000 m, and every data file would then look 'in metres'."""
+
+
+def _refuse_mm_lengths(chain: Chain, path) -> None:
+    """A URDFError naming the file where the chain's lengths look like millimetres."""
+    reach = float(chain.origins[:, :3, 3].norm(dim=-1).sum()) + (0.0 if chain.tip is None else
+                                                                  float(chain.tip[:3, 3].norm()))
+    if reach > REACH_MAX_M:
+        raise URDFError(f"{path}: the link offsets add up to {reach:.4g} m: URDF lengths are metres, and these look "
+                        "like millimetres (m = mm / 1000); a robot of that size would be the first")
+
+
+YAML_KEYS = ("urdf", "end_link", "root_link", "joints", "coupling", "offset", "error_variable", "repeatability")
+"""The keys a joint-map YAML may hold (a misspelt one would otherwise be ignored without a word)."""
+
+
+def _number(value, where: str, label: str) -> float:
+    """A YAML entry as a finite float, else a URDFError naming the file and the entry."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise URDFError(f"{label}: {where}: {value!r} is not a number") from None
+    if out != out or out in (float("inf"), float("-inf")):
+        raise URDFError(f"{label}: {where}: {value!r} is not a finite number")
+    return out
+
+
+def _matrix(value, rows: int, cols: int, key: str, label: str) -> list:
+    """A YAML list of ``rows`` lists of ``cols`` numbers (cols 0: a flat list of ``rows``), checked entry by entry."""
+    if not isinstance(value, list) or len(value) != rows:
+        shape = f"{rows} rows of {cols} numbers" if cols else f"{rows} numbers"
+        got = f"{len(value)} entries" if isinstance(value, list) else repr(value)
+        raise URDFError(f"{label}: '{key}' must hold {shape} (one per joint), got {got}")
+    if not cols:
+        return [_number(v, f"{key}[{i}]", label) for i, v in enumerate(value)]
+    out = []
+    for i, row in enumerate(value):
+        if not isinstance(row, list) or len(row) != cols:
+            got = f"{len(row)} numbers" if isinstance(row, list) else repr(row)
+            raise URDFError(f"{label}: {key}[{i}] (URDF joint {i + 1}) must hold {cols} numbers (one per controller "
+                            f"joint), got {got}")
+        out.append([_number(v, f"{key}[{i}][{j}]", label) for j, v in enumerate(row)])
+    return out
+
+
 def _joint_map_from_yaml(spec: dict, chain: Chain, label: str) -> JointMap:
+    unknown = sorted(str(k) for k in spec if k not in YAML_KEYS)
+    if unknown:
+        import difflib
+
+        hints = [f"'{k}'" + (f" (did you mean '{m[0]}'?)" if (m := difflib.get_close_matches(k, YAML_KEYS, 1)) else "")
+                 for k in unknown]
+        raise URDFError(f"{label}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(hints)}; a joint-map YAML "
+                        f"holds {', '.join(YAML_KEYS)}")
     joints = spec.get("joints")
     if not isinstance(joints, list) or len(joints) != chain.n:
         raise URDFError(f"{label}: 'joints' must list {chain.n} controller joints (the URDF has {chain.joint_names})")
@@ -108,7 +163,12 @@ def _joint_map_from_yaml(spec: dict, chain: Chain, label: str) -> JointMap:
             raise URDFError(f"{label}: joints[{i}] ('{j['name']}') unit must be 'deg' or 'mm', got {j['unit']!r}")
         names.append(str(j["name"]))
         prismatic.append(j["unit"] == "mm")
-        lims.append([float(j["lower"]), float(j["upper"])])
+        lims.append([_number(j["lower"], f"joints[{i}] ('{j['name']}') lower", label),
+                     _number(j["upper"], f"joints[{i}] ('{j['name']}') upper", label)])
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise URDFError(f"{label}: joint name{'s' if len(twice) > 1 else ''} {twice} given twice in 'joints'; each "
+                        "controller joint needs its own (the files' q1..qN columns and the reports use them)")
     prismatic_t = torch.tensor(prismatic)
     if not torch.equal(prismatic_t, chain.prismatic):
         bad = [f"joints[{i}] '{names[i]}' (URDF joint '{chain.joint_names[i]}'): unit "
@@ -122,14 +182,20 @@ def _joint_map_from_yaml(spec: dict, chain: Chain, label: str) -> JointMap:
         raise URDFError(f"{label}: every revolute joint's limits lie within +-{LIMIT_TURN:.2f} ({', '.join(turn[:3])}"
                         f"{', ...' if len(turn) > 3 else ''}): they look like radians; a joint map's limits are the "
                         "controller's, in degrees (deg = rad * 180 / pi)")
+    narrow = [f"joints[{i}] '{names[i]}' [{lims[i][0]:g}, {lims[i][1]:g}]" for i in range(chain.n)
+              if not prismatic[i] and max(abs(v) for v in lims[i]) <= LIMIT_TURN]
+    if narrow:  # one joint typed in radians among degrees: the robot would be held within a few degrees there
+        logging.getLogger("torchcal").warning(
+            "%s: %s: limits within +-%.2f deg, narrow for a robot joint; a joint map's limits are degrees "
+            "(radians typed here?)", label, ", ".join(narrow), LIMIT_TURN)
     scale = units.joint_scale(prismatic_t)
     limits = torch.tensor(lims, dtype=torch.float64) * scale[:, None]
-    coupling = torch.tensor(spec.get("coupling", torch.eye(chain.n).tolist()), dtype=torch.float64)
-    if coupling.shape != (chain.n, chain.n):
-        raise URDFError(f"{label}: coupling must be {chain.n}x{chain.n}, got {tuple(coupling.shape)}")
+    coupling = torch.tensor(_matrix(spec.get("coupling", torch.eye(chain.n).tolist()), chain.n, chain.n, "coupling",
+                                    label), dtype=torch.float64)
     # coupling maps controller units to joint units; both scale the same way per joint type
     coupling = coupling * scale[:, None] / scale[None, :]
-    offset = torch.tensor(spec.get("offset", [0.0] * chain.n), dtype=torch.float64) * scale
+    offset = torch.tensor(_matrix(spec.get("offset", [0.0] * chain.n), chain.n, 0, "offset", label),
+                          dtype=torch.float64) * scale
     try:
         return JointMap(names, coupling, offset, limits, prismatic_t, spec.get("error_variable", "command"))
     except ValueError as exc:
@@ -193,6 +259,7 @@ def load_robot(spec: str | Path) -> Robot:
             missing = [n for n, l in zip(chain.joint_names, chain.limits) if torch.isnan(l).any()]
             raise URDFError(f"{path}: joints {missing} have no limits; give a joint-map YAML with the controller range")
         _refuse_degree_limits(chain, path)
+        _refuse_mm_lengths(chain, path)
         return Robot(chain.name or path.stem, chain, JointMap.identity(chain.limits, chain.prismatic, list(chain.joint_names)), str(path))
     if not path.is_file():
         raise URDFError(f"{path}: " + ("is a directory, not a robot file (joint-map .yaml or .urdf)" if path.is_dir()
@@ -201,6 +268,7 @@ def load_robot(spec: str | Path) -> Robot:
     if not isinstance(spec_d, dict) or "urdf" not in spec_d:
         raise URDFError(f"{path}: a joint-map YAML needs a 'urdf' key")
     chain = load_urdf(path.parent / spec_d["urdf"], end_link=spec_d.get("end_link"), root_link=spec_d.get("root_link"))
+    _refuse_mm_lengths(chain, path.parent / spec_d["urdf"])
     # a bundled robot is recorded by name so that saved models reload on any install
     jm = _joint_map_from_yaml(spec_d, chain, str(path))
     return Robot(path.stem, chain, jm, spec_s if bundled else str(path.resolve()),

@@ -764,3 +764,15 @@ def test_a_file_without_directions_and_backlash_on_advises_turning_it_off(e2e, t
     said = " ".join(r.output.split())
     assert r.exit_code == 0, r.output
     assert "are backlash terms, which need approach directions" in said and "set model.backlash: false" in said
+
+
+def test_predict_says_what_it_changes(e2e, tmp_path):
+    """Measured x, y, z replaced by predictions, and a file without tools predicted for every tool: both said."""
+    val = pd.read_csv(e2e["sim"] / "validation.csv").iloc[:5]
+    val.to_csv(tmp_path / "measured.csv", index=False)
+    r = invoke("predict", e2e["run"], tmp_path / "measured.csv", tmp_path / "p1.csv")
+    assert r.exit_code == 0 and "its columns x, y, z are replaced by the predictions" in r.output, r.output
+    val[[f"q{i}" for i in range(1, 7)]].to_csv(tmp_path / "commands.csv", index=False)
+    r = invoke("predict", e2e["run"], tmp_path / "commands.csv", tmp_path / "p2.csv")
+    assert r.exit_code == 0 and "predicted for every one of the run's 3 tools (15 rows" in r.output, r.output
+    assert "replaced" not in r.output

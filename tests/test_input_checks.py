@@ -155,6 +155,13 @@ def test_update_refuses_stale_parent_data_missing_directions_and_another_robot(f
     r = invoke("update", run, root / "far.csv", "--out", root / "u2", "-q")
     assert r.exit_code == 2 and "far.csv" in r.output and "misses these points" in r.output
     assert not (root / "u2").exists()
+    # one gross row among good ones (another reflector): named by its row, not absorbed
+    gross = new.copy()
+    gross.loc[3, "x"] += 50.0
+    gross.to_csv(root / "gross.csv", index=False)
+    r = invoke("update", run, root / "gross.csv", "--out", root / "u5", "-q")
+    assert r.exit_code == 2 and "gross.csv" in r.output and "row 4" in r.output and "misses this point by 5" in r.output
+    assert not (root / "u5").exists()
     # the parent's identification file edited after the fit
     ident = sim / "identification.csv"
     keep = ident.read_bytes()
@@ -441,3 +448,33 @@ def test_near_home_degrees_are_not_refused_where_the_points_or_the_run_say_degre
     said = [ln for ln in r.output.splitlines() if "fit them read as degrees" in ln]
     assert r.exit_code == 0 and len(said) == 1 and said[0].startswith("warning:"), r.output
     # (against a run fitted over the whole range such commands are still refused: the test of section 1)
+
+
+@pytest.mark.parametrize("span_deg", [80.0, 5.0])
+def test_a_machines_rotary_axes_typed_in_radians_are_refused(machine, span_deg):
+    """On a machine tool the linear axes dominate the distances between rows, so the distance ratio cannot tell
+    rotary axes in radians; the shape of the (rigidly aligned) point cloud can. Degrees near home are not refused."""
+    from torchcal.io.unit_checks import UnitsError, check_units
+
+    g = torch.Generator().manual_seed(3)
+    lim = machine.joint_map.limits
+    n = machine.joint_map.n
+    rotary = ~machine.joint_map.prismatic
+    q = lim[:, 0] + (lim[:, 1] - lim[:, 0]) * torch.rand(60, n, generator=g, dtype=torch.float64)
+    q[:, rotary] = math.radians(span_deg) * (2 * torch.rand(60, int(rotary.sum()), generator=g, dtype=torch.float64) - 1)
+    tools = torch.tensor([[0.0, 0.0, 0.4], [0.0, 0.0, 0.5]], dtype=torch.float64)
+    tool = torch.arange(60) % 2
+    F = machine.chain.fk(machine.joint_map.to_joint(q))
+    Y = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # the tracker's frame
+    xyz = (F[:, :3, 3] + (F[:, :3, :3] @ tools[tool][..., None])[..., 0]) @ Y.T + torch.tensor([1.0, 2.0, 0.5])
+    typed = q.clone()
+    typed[:, rotary] = q[:, rotary] * math.pi / 180.0  # radians in the file, read as degrees
+
+    def rows(qq):
+        return Measurements(qq, tool, xyz, torch.zeros_like(qq), torch.arange(60) // 2, torch.arange(60), False,
+                            "machine.csv")
+
+    if span_deg > 10:
+        with pytest.raises(UnitsError, match=r"machine.csv: the rotary columns look like radians"):
+            check_units(rows(typed), machine, tools)
+    check_units(rows(q), machine, tools)  # the same points with their degrees: nothing to say

@@ -89,3 +89,18 @@ def test_an_interrupted_overwrite_leaves_no_mixed_set(tmp_path, monkeypatch):
     monkeypatch.setattr(csv, "write_measurements", real)
     paths = simulate_dataset(tmp_path / "sim", identification=8, validation=4, seed=7, force=True)
     assert json.loads(paths["truth"].read_text())["seed"] == 7
+
+
+def test_a_robot_without_repeatability_is_simulated_with_a_stand_in_that_is_said(tmp_path, caplog):
+    """No silent fallback to another robot's numbers: the stand-in is warned and written into fit.yaml."""
+    from torchcal.app.simulate import simulate_dataset
+    from torchcal.kinematics.robot import urdf_dir
+
+    with caplog.at_level("WARNING", logger="torchcal"):
+        paths = simulate_dataset(tmp_path / "bare", str(urdf_dir() / "abb_irb120.urdf"), 12, 4)
+    assert "declares no repeatability" in caplog.text and "FANUC Table 5" in caplog.text
+    assert "not this robot's" in paths["config"].read_text()
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="torchcal"):
+        paths = simulate_dataset(tmp_path / "own", "ur10", 12, 4)  # its YAML declares one: nothing to say
+    assert "declares no repeatability" not in caplog.text and "not this robot's" not in paths["config"].read_text()

@@ -135,3 +135,29 @@ def test_a_targets_file_with_flags_instead_of_seeds(tmp_path, fanuc, tools_m):
     df.to_csv(tmp_path / "bad.csv", index=False)
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "bad.csv"), str(tmp_path / "out2.csv")])
     assert r.exit_code != 0 and "bad.csv" in r.output and "elbow" in r.output and "row 4" in r.output
+
+
+def test_a_target_with_no_solution_for_its_flags_has_no_command_and_no_numbers(tmp_path, fanuc, tools_m):
+    """A flag combination the nominal IK cannot reach: q1..qN empty, and no max_dq or within_limits made up for a
+    command that does not exist; the console counts it as not converged, not as outside the range."""
+    from typer.testing import CliRunner
+
+    from torchcal.cli import app
+    from torchcal.io.rundir import save_model
+
+    model = randomize(RobotModel(fanuc, tools_m, orders=1), 9, rot=5e-4, trans=5e-5)
+    save_model(tmp_path / "run", model)
+    q = random_commands(fanuc, 60, 14).double()
+    q = q[nominal_sigma_min(model, q) > 0.03][:6]
+    df, _ = _targets_table(model, q, torch.zeros(q.shape[0], dtype=torch.long))
+    flags = configuration_flags(model, q)
+    for j, c in enumerate(("shoulder", "elbow", "wrist")):
+        df[c] = flags[:, j].numpy().astype(int)
+    df.loc[0, "z"] = 5000.0  # out of every branch's reach
+    df.to_csv(tmp_path / "t.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(tmp_path / "run"), str(tmp_path / "t.csv"), str(tmp_path / "o.csv")])
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(tmp_path / "o.csv", keep_default_na=False)
+    assert "no nominal IK solution" in out.reason[0]
+    assert out.q1[0] == "" and out.max_dq[0] == "" and out.within_limits[0] == ""
+    assert "0 outside the controller range" in r.output.replace("\n", " ")

@@ -107,7 +107,7 @@ def test_siemens_cec_program(tmp_path, tables):
         x, c = t.file_units()
         v = vals[t_idx]
         assert sorted(v) == list(range(t.size))
-        np.testing.assert_allclose([v[k] for k in range(t.size)], c.numpy(), rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose([v[k] for k in range(t.size)], c.numpy(), rtol=0, atol=0.51e-8)  # 8 decimals
         pr = params[t_idx]
         lo, hi, step = float(pr["MIN"]), float(pr["MAX"]), float(pr["STEP"])
         assert round((hi - lo) / step) + 1 == t.size
@@ -116,6 +116,11 @@ def test_siemens_cec_program(tmp_path, tables):
         assert pr["DIRECTION"] == "0" and pr["MULT_BY_TABLE"] == "0" and pr["IS_MODULO"] == "0"
     for needle in ("MD18342 $MN_MM_CEC_MAX_POINTS", "MD32710 $MA_CEC_ENABLE", "SD41300 $SN_CEC_TABLE_ENABLE", "M17"):
         assert needle in text
+    # the NC language's numbers: fixed point, no C exponent, at most 8 decimals
+    import re
+
+    numbers = re.findall(r"^\$AN_CEC(?:_STEP|_MIN|_MAX)?\[[^\]]*\]=(\S+)$", text, flags=re.M)
+    assert numbers and all(re.fullmatch(r"-?\d+(\.\d{1,8})?", v) for v in numbers), numbers[:5]
 
 
 def test_siemens_too_many_points_keeps_the_others(tmp_path, tables):

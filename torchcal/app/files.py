@@ -135,6 +135,13 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
                 out[c] = mm[:, i]  # replaces measured values if the file had them, else appends the column
             parts.append(out)
     out = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
+    if per_tool and T > 1:
+        said.append(f"{input}: no 'tool' column: each of its {len(df)} rows is predicted for every one of the run's {T} "
+                    f"tools ({len(out)} rows, tool by tool, column 'tool' added)")
+    measured = [c for c in ("x", "y", "z") if c in df.columns]
+    if measured:
+        said.append(f"{input}: its columns {', '.join(measured)} are replaced by the predictions in {output} (the "
+                    "input file is unchanged; `torchcal verify` compares a model with measured points)")
     # every tool's part holds the same commands: one judgement, repeated per part
     count = _mark_outside_data(out, None if outside is None else np.tile(outside, len(tools)), input, said)
     if beyond.any():
@@ -432,12 +439,16 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     out["converged"] = converged.numpy()
     out["within_limits"] = comp.within_limits.cpu().numpy()
     out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
+    within = comp.within_limits.cpu()
+    if unseeded is not None and bool(unseeded.any()):  # no command: nothing to measure against the limits
+        out["within_limits"] = out["within_limits"].astype(object)
+        out.loc[out.index[unseeded.numpy()], ["within_limits", "max_dq"]] = [None, np.nan]
+        within = within | unseeded  # counted as not converged, not as outside the range
     said: list[str] = []
     _mark_outside_data(out, _outside_data_column(model, res.q), input, said)
     out["reason"] = res.reason
     write_table(output, out)
     flagged = int((~converged).sum())
-    within = comp.within_limits.cpu()
     # a target the nominal IK cannot reach (or with no seed for its flags) is a row that did not converge too
     return CompensationFile(len(df), int((~converged & within).sum()), int((~within).sum()), flagged,
                             0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp, said)

@@ -7,6 +7,7 @@ options and prints the paths): Paper II's protocol (5.2, 5.5) on a
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 PAPER2_TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]
@@ -113,6 +114,13 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     truth = make(rob, tools_m, seed, error_variable=error_variable)
     truth.backlash_on = backlash_on  # (recorded in truth.json; the fit.yaml leaves the model at the paper's reading)
     var_f, var_b = simulated_joint_variances(rob)
+    stand_in = None
+    if getattr(rob, "repeatability", None) is None:  # said, and written into fit.yaml: never another robot's silently
+        stand_in = ("Paper II's FANUC Table 5" if n == 6 else "the median of Paper II's FANUC Table 5, every joint")
+        logging.getLogger("torchcal").warning(
+            "robot '%s' declares no repeatability: the simulated joint noise uses %s (noise.joint_var_fwd / _bwd in "
+            "fit.yaml); give the robot's own in its YAML ('repeatability:') or in the config for real data",
+            rob.name, stand_in)
     sigma_mm = TRACKER_SIGMA_MM
     noise = NoiseModel.from_file_units(sigma_mm, var_f, var_b, rob.joint_map.prismatic)
     limits = rob.joint_map.limits
@@ -147,7 +155,9 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
     header = (f"# Simulated '{rob.name}' data written by `torchcal simulate` (truth: {kind}, seed {seed}, "
               f"errors follow: {ev}, poses in {pose_order} order).\n"
               f"# Run:  torchcal fit {out_dir / names['config']}  [key=value ...]\n"
-              "# Units: mm, deg, deg^2. Relative paths resolve against this file's folder.\n"
+              "# Units: mm, deg, deg^2 (mm^2 for linear axes). Relative paths resolve against this file's folder.\n"
+              + (f"# noise.joint_var_fwd / _bwd: {stand_in} (the robot declares no repeatability), not this robot's.\n"
+                 if stand_in else "") +
               "# 'data.truth' enables the compensation check on the simulated robot (Paper II Table 7, Fig. 16).\n")
     atomic_write_text(out_dir / names["config"], header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None))
     paths["config"] = out_dir / names["config"]

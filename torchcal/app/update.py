@@ -338,6 +338,14 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
             f"the run's model misses these points by {modeled:.1f} mm on average (nominal {nominal:.1f} mm), far beyond "
             f"any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): data of another robot, tool set, measurement "
             f"frame or unit? An update only refines the parent's robot; fit such data with torchcal fit"))])
+    miss = units.m_to_mm(ev["modeled"].detach().cpu())
+    gross = (miss > NOMINAL_IMPLAUSIBLE_MM).nonzero()[:, 0].tolist()
+    if gross:  # one bad row would be absorbed into the model (a 50 mm row took a 0.2 mm model to 1.1 mm)
+        rows = new.rows.cpu().tolist()
+        raise DataError(new_path, [Problem(int(rows[i]), "x, y, z", (
+            f"the run's model misses this point by {float(miss[i]):.1f} mm (the file's median {float(miss.median()):.3f} "
+            f"mm), beyond any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): a gross measurement (another "
+            "reflector, a beam break)? Remove the row; an update would absorb it")) for i in gross])
 
 
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console,

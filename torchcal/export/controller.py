@@ -96,9 +96,20 @@ LINUXCNC_MAX_POINTS = 256
 
 VALUE_FORMAT = "%.9g"
 
+CEC_DECIMALS = 8
+"""Decimal places of a value in the 840D file: fixed point, no exponent (the NC language writes exponents as
+``EX``, not C's ``e``, and takes at most 8 decimal places: SINUMERIK 840D sl programming manual 12/2019, R
+parameters); 1e-8 mm or deg, far below any correction."""
+
 
 def _fmt(x: float) -> str:
     return VALUE_FORMAT % x
+
+
+def _cec(x: float) -> str:
+    """A value as the 840D reads it: fixed point, at most :data:`CEC_DECIMALS` decimals, trailing zeros dropped."""
+    out = f"{x:.{CEC_DECIMALS}f}".rstrip("0").rstrip(".")
+    return "0" if out in ("-0", "") else out
 
 
 def _unit(prismatic: bool) -> str:
@@ -236,13 +247,13 @@ def siemens_cec_program(tables, machine_axes=None, max_points: int = SIEMENS_MAX
         step = (float(x[-1]) - float(x[0])) / (t.size - 1)
         body.append(f"; table {t_index}: {t.name}, correction of {t.output_name} ({_unit(t.output_prismatic)}) "
                     f"over {t.input_name} ({_unit(t.input_prismatic)}), {t.size} points")
-        body += [f"$AN_CEC[{t_index},{k}]={_fmt(v)}" for k, v in enumerate(c.tolist())]
+        body += [f"$AN_CEC[{t_index},{k}]={_cec(v)}" for k, v in enumerate(c.tolist())]
         body += [
             f"$AN_CEC_INPUT_AXIS[{t_index}]=({ax_in})",
             f"$AN_CEC_OUTPUT_AXIS[{t_index}]=({ax_out})",
-            f"$AN_CEC_STEP[{t_index}]={_fmt(step)}",
-            f"$AN_CEC_MIN[{t_index}]={_fmt(float(x[0]))}",
-            f"$AN_CEC_MAX[{t_index}]={_fmt(float(x[0]) + step * (t.size - 1))}",
+            f"$AN_CEC_STEP[{t_index}]={_cec(step)}",
+            f"$AN_CEC_MIN[{t_index}]={_cec(float(x[0]))}",
+            f"$AN_CEC_MAX[{t_index}]={_cec(float(x[0]) + step * (t.size - 1))}",
             f"$AN_CEC_DIRECTION[{t_index}]=0",
             f"$AN_CEC_MULT_BY_TABLE[{t_index}]=0",
             f"$AN_CEC_IS_MODULO[{t_index}]={1 if modulo else 0}",

@@ -127,6 +127,24 @@ def _with_q(data, q: torch.Tensor):
     return dataclasses.replace(data, q=q.to(data.q))
 
 
+def aligned_miss(data, robot, tools_m: torch.Tensor | None, q: torch.Tensor) -> float:
+    """Median distance (m) of the measured points from the nominal ones at commands q (R, n), after the rigid
+    motion that best carries the nominal points onto the measured ones (Kabsch: the measurement frame is unknown)."""
+    from ..identify.alignment import kabsch
+
+    xyz = data.xyz.detach().cpu()
+    p = _nominal_points(robot, q, data.tool, tools_m)
+    R, t = kabsch(p, xyz)
+    return float((p @ R.T + t - xyz).norm(dim=1).median())
+
+
+RADIAN_MISS = (0.2, 0.005)
+"""Radians are also refused where, read as radians, the nominal robot misses the (rigidly aligned) points by less
+than this fraction of its miss read as degrees, and that miss exceeds this many metres: on a machine tool the
+linear axes dominate the distances between rows, so only the shape of the point cloud tells rotary axes typed in
+radians (a B axis of 1.5 read as 1.5 deg swings a 100 mm tool 2.6 mm instead of 100)."""
+
+
 def check_radians(data, robot, tools_m: torch.Tensor | None = None, path=None) -> tuple[float, float] | None:
     """Raise :class:`UnitsError` when the points fit the joints read as radians and not as degrees.
 
@@ -138,14 +156,25 @@ def check_radians(data, robot, tools_m: torch.Tensor | None = None, path=None) -
     if scales is None:
         return None
     s_deg, s_rad = scales
-    if not (RADIAN_FIT[0] <= s_rad <= RADIAN_FIT[1]) or RADIAN_FIT[0] <= s_deg <= RADIAN_FIT[1]:
-        return scales
-    raise UnitsError(
-        f"{path or data.source}: columns q1..q{robot.joint_map.n}: the joints are radians: read as radians, the "
-        f"nominal robot ('{robot.name}') moves its points as far as the tracker saw (distance ratio {s_rad:.3g}); "
-        f"read as degrees, as the contract says, {s_deg:.3g}x less. Convert "
-        f"the revolute columns (deg = rad * 180 / pi), or pass {OVERRIDE} (fit, fleet, sweep: "
-        f"data.units_checked=true) if they really are degrees")
+    fix = (f"Convert the revolute columns (deg = rad * 180 / pi), or pass {OVERRIDE} (fit, fleet, sweep: "
+           f"data.units_checked=true) if they really are degrees")
+    if RADIAN_FIT[0] <= s_rad <= RADIAN_FIT[1] and not RADIAN_FIT[0] <= s_deg <= RADIAN_FIT[1]:
+        raise UnitsError(
+            f"{path or data.source}: columns q1..q{robot.joint_map.n}: the joints are radians: read as radians, the "
+            f"nominal robot ('{robot.name}') moves its points as far as the tracker saw (distance ratio {s_rad:.3g}); "
+            f"read as degrees, as the contract says, {s_deg:.3g}x less. " + fix)
+    revolute = ~robot.joint_map.prismatic.cpu()
+    if bool(robot.joint_map.prismatic.any()) and bool(revolute.any()):  # a machine: the distances say little
+        q = data.q.detach().cpu()
+        as_rad = q.clone()
+        as_rad[:, revolute] = q[:, revolute] * (180.0 / math.pi)
+        miss_deg, miss_rad = aligned_miss(data, robot, tools_m, q), aligned_miss(data, robot, tools_m, as_rad)
+        if miss_deg > RADIAN_MISS[1] and miss_rad < RADIAN_MISS[0] * miss_deg:
+            raise UnitsError(
+                f"{path or data.source}: the rotary columns look like radians: read as radians the nominal machine "
+                f"('{robot.name}') misses the measured points by {miss_rad * 1e3:.3g} mm (median, best frame), read "
+                f"as degrees, as the contract says, by {miss_deg * 1e3:.3g} mm. " + fix)
+    return scales
 
 
 def degrees_confirmed(scales: tuple[float, float] | None) -> bool:

@@ -104,3 +104,19 @@ def test_a_robot_without_repeatability_is_simulated_with_a_stand_in_that_is_said
     with caplog.at_level("WARNING", logger="torchcal"):
         paths = simulate_dataset(tmp_path / "own", "ur10", 12, 4)  # its YAML declares one: nothing to say
     assert "declares no repeatability" not in caplog.text and "not this robot's" not in paths["config"].read_text()
+
+
+def test_the_bundled_machine_is_simulated_as_paper_ones_and_fits_as_a_machine(tmp_path):
+    """simulate -> fit -> tables for a machine builder: the XYZCB gets Paper I's machine and an axis perturbation
+    config (no robot tools, no backlash, no truth.json), which fits as written."""
+    from torchcal.app.config import load_config
+    from torchcal.app.fit import run_fit
+
+    paths = simulate_dataset(tmp_path / "m", "five_axis_xyzcb", 60, 20, order=2)
+    assert "truth" not in paths and {"identification", "validation", "config"} <= set(paths)
+    cfg = load_config(paths["config"])
+    assert cfg.model.kind == "axis_perturbation" and [t[2] for t in cfg.tools] == [402.9, 500.9]
+    res = run_fit(load_config(paths["config"], ["plots=false", "report=false", f"out={tmp_path / 'run'}"]))
+    assert res.metrics["table6"][3]["mean"] < 0.3 * res.metrics["table6"][2]["mean"]  # validation: modeled vs nominal
+    with pytest.raises(ConfigError, match="--pose-order sequence: robot options"):
+        simulate_dataset(tmp_path / "m2", "five_axis_xyzcb", 60, 20, pose_order="sequence")

@@ -95,6 +95,9 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
         raise ConfigError(f"--validation-tool {validation_tool}: tools are 0..{len(tools_mm) - 1} (Paper II Table 4)")
     rob = load_robot(robot)
     n = rob.joint_map.n
+    if rob.name == MACHINE:
+        return _simulate_machine(out_dir, names, identification, validation, seed, order, error_variable, pose_order,
+                                 backlash_on)
     # fit.yaml must pass `torchcal fit`'s own check: the same rule, not a copy of it
     from .config import make_config
 
@@ -159,6 +162,51 @@ def simulate_dataset(out_dir, robot: str = "fanuc_lrmate200i", identification: i
               + (f"# noise.joint_var_fwd / _bwd: {stand_in} (the robot declares no repeatability), not this robot's.\n"
                  if stand_in else "") +
               "# 'data.truth' enables the compensation check on the simulated robot (Paper II Table 7, Fig. 16).\n")
+    atomic_write_text(out_dir / names["config"], header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None))
+    paths["config"] = out_dir / names["config"]
+    return paths
+
+
+MACHINE = "five_axis_xyzcb"
+"""The bundled machine tool: simulated by Paper I's machine (:class:`torchcal.sim.machine_truth.MachineTruth`)."""
+
+
+def _simulate_machine(out_dir: Path, names: dict, identification: int, validation: int, seed: int, order: int,
+                      error_variable, pose_order: str, backlash_on: str) -> dict[str, Path]:
+    """Paper I's data set (4.1) on the simulated XYZCB machine and a fit.yaml for its axis perturbation model:
+    validation = interpolation + extrapolation rows (half each), both tools; no truth.json (the machine's truth
+    is Paper I's simulator, which the compensation check of robots does not run)."""
+    import yaml
+
+    from ..core.exceptions import ConfigError
+    from ..io.atomic import atomic_write_text
+    from ..sim.machine_truth import PAPER1_TOOLS_MM, MachineTruth, simulate_machine_dataset, write_machine_csv
+
+    robot_only = [f"--{k.replace('_', '-')} {v}" for k, v, d in (("error_variable", error_variable, "command"),
+                                                               ("pose_order", pose_order, "shuffled"),
+                                                               ("backlash_on", backlash_on, "joint")) if v != d]
+    if robot_only:
+        raise ConfigError(f"{', '.join(robot_only)}: robot options; the machine ({MACHINE}) is simulated as Paper I's")
+    extrap = validation // 2
+    data, split = simulate_machine_dataset(MachineTruth(seed=seed), n_commands=identification + validation, seed=seed,
+                                           n_interpolation=validation - extrap, n_extrapolation=extrap)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in ("config", "identification", "validation", "truth"):
+        (out_dir / names[name]).unlink(missing_ok=True)
+    import torch
+
+    paths = {"identification": write_machine_csv(out_dir / names["identification"], data.subset(split["identification"]))}
+    if validation:
+        paths["validation"] = write_machine_csv(out_dir / names["validation"], data.subset(
+            torch.cat([split["interpolation"], split["extrapolation"]])))
+    cfg = {"robot": MACHINE, "tools": [[0.0, 0.0, float(l)] for l in PAPER1_TOOLS_MM],
+           "data": {"identification": names["identification"], "validation": names["validation"] if validation else None},
+           "model": {"kind": "axis_perturbation", "order": order}, "noise": {"sigma_m": 0.02}, "seed": seed,
+           "out": "runs"}
+    header = (f"# Simulated '{MACHINE}' data written by `torchcal simulate` (Paper I's machine, seed {seed}).\n"
+              f"# Run:  torchcal fit {out_dir / names['config']}  [constraint.c=auto ...]\n"
+              "# then: torchcal export-tables RUN_DIR --format all TABLES_DIR\n"
+              "# Units: mm, deg. Validation: Paper I's interpolation and extrapolation rows (column 'set').\n")
     atomic_write_text(out_dir / names["config"], header + yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None))
     paths["config"] = out_dir / names["config"]
     return paths

@@ -41,7 +41,7 @@ class VerifyResult:
 
 def register(pred: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The rigid motion (R (3, 3), t (3,)) taking predicted points (R, 3) onto measured ones (R, 3) in least squares."""
-    from ..identify.alignment import kabsch
+    from ..kinematics.transforms import kabsch
 
     return kabsch(pred, xyz)
 

@@ -127,22 +127,27 @@ def _with_q(data, q: torch.Tensor):
     return dataclasses.replace(data, q=q.to(data.q))
 
 
-def aligned_miss(data, robot, tools_m: torch.Tensor | None, q: torch.Tensor) -> float:
-    """Median distance (m) of the measured points from the nominal ones at commands q (R, n), after the rigid
-    motion that best carries the nominal points onto the measured ones (Kabsch: the measurement frame is unknown)."""
-    from ..identify.alignment import kabsch
-
+def distance_miss(data, robot, tools_m: torch.Tensor | None, q: torch.Tensor) -> float | None:
+    """Median |measured - nominal| distance between consecutive rows of one tool (m) at commands q (R, n): how far
+    the point cloud's shape is from the nominal one's, whatever the (unknown) measurement frame. None: too few rows."""
     xyz = data.xyz.detach().cpu()
     p = _nominal_points(robot, q, data.tool, tools_m)
-    R, t = kabsch(p, xyz)
-    return float((p @ R.T + t - xyz).norm(dim=1).median())
+    out = []
+    for t in torch.unique(data.tool.cpu()).tolist():
+        idx = (data.tool.cpu() == t).nonzero()[:, 0]
+        if idx.numel() >= 2:
+            dm = (xyz[idx[1:]] - xyz[idx[:-1]]).norm(dim=1)
+            dn = (p[idx[1:]] - p[idx[:-1]]).norm(dim=1)
+            out.append((dm - dn).abs())
+    d = torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
+    return None if d.numel() < MIN_ROWS // 2 else float(d.median())
 
 
 RADIAN_MISS = (0.2, 0.005)
-"""Radians are also refused where, read as radians, the nominal robot misses the (rigidly aligned) points by less
-than this fraction of its miss read as degrees, and that miss exceeds this many metres: on a machine tool the
-linear axes dominate the distances between rows, so only the shape of the point cloud tells rotary axes typed in
-radians (a B axis of 1.5 read as 1.5 deg swings a 100 mm tool 2.6 mm instead of 100)."""
+"""Radians are also refused where, read as radians, the nominal robot's distances between rows miss the measured
+ones (:func:`distance_miss`) by less than this fraction of their miss read as degrees, and that miss exceeds this
+many metres: on a machine tool the linear axes dominate the distances' ratio, so only their differences tell
+rotary axes typed in radians (a B axis of 1.5 read as 1.5 deg swings a 100 mm tool 2.6 mm instead of 100)."""
 
 
 def check_radians(data, robot, tools_m: torch.Tensor | None = None, path=None) -> tuple[float, float] | None:
@@ -168,12 +173,12 @@ def check_radians(data, robot, tools_m: torch.Tensor | None = None, path=None) -
         q = data.q.detach().cpu()
         as_rad = q.clone()
         as_rad[:, revolute] = q[:, revolute] * (180.0 / math.pi)
-        miss_deg, miss_rad = aligned_miss(data, robot, tools_m, q), aligned_miss(data, robot, tools_m, as_rad)
-        if miss_deg > RADIAN_MISS[1] and miss_rad < RADIAN_MISS[0] * miss_deg:
+        miss_deg, miss_rad = distance_miss(data, robot, tools_m, q), distance_miss(data, robot, tools_m, as_rad)
+        if miss_deg is not None and miss_deg > RADIAN_MISS[1] and miss_rad < RADIAN_MISS[0] * miss_deg:
             raise UnitsError(
                 f"{path or data.source}: the rotary columns look like radians: read as radians the nominal machine "
-                f"('{robot.name}') misses the measured points by {miss_rad * 1e3:.3g} mm (median, best frame), read "
-                f"as degrees, as the contract says, by {miss_deg * 1e3:.3g} mm. " + fix)
+                f"('{robot.name}') has the measured distances between rows to {miss_rad * 1e3:.3g} mm (median), read "
+                f"as degrees, as the contract says, to {miss_deg * 1e3:.3g} mm. " + fix)
     return scales
 
 

@@ -160,6 +160,33 @@ def transform_to_twist(T: torch.Tensor) -> torch.Tensor:
     return torch.cat([so3_log(T[..., :3, :3]), T[..., :3, 3]], -1)
 
 
+def kabsch(src: torch.Tensor, dst: torch.Tensor, weights: torch.Tensor | None = None):
+    """Least-squares rigid motion (Kabsch / Umeyama without scale) taking ``src`` onto ``dst``.
+
+    src, dst: (..., N, 3); weights: (..., N) non-negative or None.
+    -> R (..., 3, 3) proper rotation, t (..., 3) minimising Σ w |R src + t - dst|².
+    """
+    if weights is None:
+        weights = torch.ones(src.shape[:-1], dtype=src.dtype, device=src.device)
+    w = weights / weights.sum(-1, keepdim=True)
+    cs = (w[..., None] * src).sum(-2)
+    cd = (w[..., None] * dst).sum(-2)
+    H = ((src - cs[..., None, :]) * w[..., None]).transpose(-1, -2) @ (dst - cd[..., None, :])  # (..., 3, 3)
+    # the optimal rotation is the proper rotation nearest to H^T (H = U S V^T -> R = V diag(1, 1, d) U^T)
+    R = nearest_rotation(H.transpose(-1, -2))
+    t = cd - (R @ cs[..., None])[..., 0]
+    return R, t
+
+
+def nearest_rotation(M: torch.Tensor) -> torch.Tensor:
+    """Closest proper rotation (Frobenius) to a 3x3 matrix.  (..., 3, 3) -> (..., 3, 3)."""
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    d = torch.where(d == 0, torch.ones_like(d), d)
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    return U @ D @ Vh
+
+
 def pose_error(T_from: torch.Tensor, T_to: torch.Tensor) -> torch.Tensor:
     """Error vector de of (47)-(48): translation and half-skew rotation of inv(T_from) @ T_to.
 

@@ -78,6 +78,9 @@ def test_json_is_strict_and_versions_complete(tmp_path):
     for key in ("python", "platform", "torchcal", "torch", "numpy", "scipy", "pytorch_kinematics", "yourdfpy", "git", "device"):
         assert key in v
     assert v["torch"] == torch.__version__ and v["device"] == "cpu"
+    from importlib import metadata
+
+    assert v["numba"] == metadata.version("numba")  # the compiled kernels' version is part of what produced a run
 
 
 def test_run_log_records_failures(tmp_path):

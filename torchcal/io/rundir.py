@@ -191,6 +191,9 @@ def collect_versions(device=None) -> dict:
         "omegaconf": _version("omegaconf"),
         "pytorch_kinematics": _version("pytorch-kinematics") or _version("pytorch_kinematics"),
         "yourdfpy": _version("yourdfpy"),
+        # the compiled kernels and the distributed engine change results' last bits and timings (None: not installed)
+        "numba": _version("numba"),
+        "ray": _version("ray"),
         "git": git_commit(),
         "device": str(dev),
         "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine(),

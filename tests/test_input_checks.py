@@ -175,6 +175,14 @@ def test_update_refuses_stale_parent_data_missing_directions_and_another_robot(f
         ident.write_bytes(keep)
     r = invoke("update", run, root / "new.csv", "--out", root / "u4", "-q")
     assert r.exit_code == 0, r.output
+    assert "repeat rows of the parent's identification file" not in r.output
+    # two of the parent's own rows given again: said by their rows (they would count twice), not refused
+    ident_rows = pd.read_csv(sim / "identification.csv").iloc[:2]
+    pd.concat([new, ident_rows], ignore_index=True).to_csv(root / "again.csv", index=False)
+    r = invoke("update", run, root / "again.csv", "--out", root / "u6")
+    assert r.exit_code == 0, r.output
+    out = " ".join(r.output.split())
+    assert f"2 rows ({len(new) + 1}, {len(new) + 2}) repeat rows of the parent's identification file" in out, out
 
 
 # ------------------------------------------------------------------------- 4. transposed rotations

@@ -106,6 +106,9 @@ def test_cli_plan_poses(fanuc, tmp_path):
     r = runner.invoke(app, ["plan-poses", "fanuc_lrmate200i", "60", str(out), "--seed", "4", "--tracker", "-1500,0,500"])
     assert r.exit_code == 0, r.output
     assert "corr" in r.output and "J2" in r.output and "wrote 60 poses" in r.output
+    assert "not visible from the tracker" in r.output
+    r2 = runner.invoke(app, ["plan-poses", "fanuc_lrmate200i", "20", str(tmp_path / "p2.csv")])
+    assert r2.exit_code == 0 and "not visible" not in r2.output  # no tracker given: no visibility to speak of
     data, _ = read_table(out, fanuc, n_tools=None, require_xyz=False, require_pose=True)
     ref = plan_poses(fanuc, 60, seed=4, tracker=[-1.5, 0.0, 0.5])
     assert torch.allclose(data.q, ref.q, atol=1e-10, rtol=0)  # 12 significant digits in deg

@@ -524,7 +524,7 @@ def compensate_cmd(
         with _progress(_console(stderr=True)):
             out = compensate_file(run_dir, input, output, _device(device), tol_deg, max_iter, max_correction_deg,
                                   units_checked, _tool_axis(tool_axis) if free_tool_axis else None, dof)
-    typer.echo(f"compensated {out.rows} commands -> {output}")
+    typer.echo(f"compensated {out.rows} {'Cartesian targets' if out.targets else 'commands'} -> {output}")
     _warn(out.warnings)
     if out.flagged:
         _console(stderr=True).print(
@@ -660,7 +660,8 @@ def _check_table_outputs(run_dir: Path, out: Path, fmt: str, force: bool) -> Non
 @app.command("export-urdf")
 def export_urdf_cmd(
     run_dir: Annotated[Path, typer.Argument(help="Run directory of a robot fit, written by `torchcal fit` or `torchcal update`.")],
-    output: Annotated[Path, typer.Argument(help="URDF to write (.urdf); the robot's joint-map YAML goes next to it (same stem, .yaml).")],
+    output: Annotated[Path, typer.Argument(help="URDF to write (.urdf); a robot given by a joint-map YAML gets that YAML next to "
+                                                "it (same stem, .yaml; a bare URDF robot has none).")],
     base: Annotated[str, typer.Option("--base", help="joint: fold the base correction into the first joint's origin; link: a new root link with a fixed joint carrying it.")] = "joint",
     measurement_frame: Annotated[bool, typer.Option("--measurement-frame", help="Also fold in the measurement frame: the URDF's root is the tracker frame.")] = False,
     constants: Annotated[str, typer.Option("--constants", help="fit: constants fitted to the full model at the identification data's poses (best); c0: the order-0 coefficients as identified (exact only for an order-0 model).")] = "fit",
@@ -822,8 +823,9 @@ def plan_poses_cmd(
     out = _console()
     out.print(table)
     rej = st["rejected"]
+    seen = "" if tracker_mm is None else f", {rej['not_visible']} not visible from the tracker"
     out.print(f"drew {st['drawn']} candidates; rejected {rej['below_plane']} below the floor plane, "
-              f"{rej['near_base']} near the base, {rej['not_visible']} not visible from the tracker", markup=False)
+              f"{rej['near_base']} near the base{seen}", markup=False)
     design = st.get("design")
     if design is not None:
         out.print(f"designed for the prior of {design['fleet']}: predicted RMS model error {design['predicted_rms_mm']:.4f} mm "

@@ -90,6 +90,7 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     df = pd.read_csv(write_targets(tmp_path / "targets.csv", T, q, label=[f"P{i}" for i in range(20)], tool=tool.numpy()))
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "targets.csv"), str(tmp_path / "out.csv")])
     assert r.exit_code == 0, r.output
+    assert "compensated 20 Cartesian targets" in r.output
     out = pd.read_csv(tmp_path / "out.csv", keep_default_na=False)
     assert list(out.label) == list(df.label) and {"x_cmd", "rz_cmd", "reason", "converged"} <= set(out.columns)
     ok = out.converged.to_numpy().astype(bool)

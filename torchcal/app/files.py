@@ -167,6 +167,8 @@ class CompensationFile:
     warnings: list[str] = field(default_factory=list)
     """What the input leaves out (no approach directions for a backlash model, targets without a tool), said
     by the CLI; the rows are still compensated."""
+    targets: bool = False
+    """The rows were Cartesian targets (not joint commands)."""
 
 
 def _input_warnings(model, input, df, data, targets: bool) -> list[str]:
@@ -451,7 +453,8 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     flagged = int((~converged).sum())
     # a target the nominal IK cannot reach (or with no seed for its flags) is a row that did not converge too
     return CompensationFile(len(df), int((~converged & within).sum()), int((~within).sum()), flagged,
-                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp, said)
+                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp, said,
+                            targets=True)
 
 
 def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:

@@ -348,6 +348,24 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
             "reflector, a beam break)? Remove the row; an update would absorb it")) for i in gross])
 
 
+def _rows_in_parent(cfg, model, new: Measurements) -> list[int]:
+    """Rows (1-based, as in the new file) whose commands and measured point equal a row of the parent's identification
+    file bit for bit: the same measurement given twice. [] where that file is not readable (nothing to compare)."""
+    ident = cfg.data.identification
+    if is_sensor_run(cfg) or not ident or not Path(ident).is_file():
+        return []
+    from ..io.csv import read_measurements
+
+    try:
+        old = read_measurements(ident, model.robot, int(model.tools.count))
+    except Exception:  # the parent's file is checked (and named) elsewhere; here it only might show repeats
+        return []
+    seen = {r.tobytes() for r in torch.cat([old.q, old.xyz], 1).cpu().numpy()}
+    key = torch.cat([new.q, new.xyz], 1).cpu().numpy()
+    rows = new.rows.cpu().tolist()
+    return [int(rows[i]) for i, r in enumerate(key) if r.tobytes() in seen]
+
+
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console,
                 units_checked: bool = False) -> UpdateResult:
     from .fit import Progress
@@ -367,6 +385,12 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
             if note:
                 progress.warn(note)
         _check_new_data(cfg, model, new, new_path)
+        repeated = _rows_in_parent(cfg, model, new)
+        if repeated:
+            shown = ", ".join(str(r) for r in repeated[:10]) + (" ..." if len(repeated) > 10 else "")
+            progress.warn(f"{new_path}: {len(repeated)} row{'s' if len(repeated) > 1 else ''} ({shown}) repeat rows of "
+                          f"the parent's identification file {cfg.data.identification} exactly: those measurements "
+                          "would count twice; leave them out unless they really were measured again")
     notes: list[str] = []
     with progress.step("loading the parent's online state (or rebuilding it from its data)", quiet=True):
         online, history = load_online(parent, cfg, model, strategy, notes, progress)

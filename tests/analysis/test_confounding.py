@@ -108,3 +108,25 @@ def test_model_without_backlash_has_no_parameters(fanuc, tools_m):
     m = RobotModel(fanuc, tools_m, orders=1, backlash=None)
     rep = backlash_confounding(sobol_data(fanuc, 40, shuffle=False), model=m)
     assert rep.parameters == [] and rep.joint_names == m.joint_errors.joint_names
+
+
+def test_few_shuffled_poses_are_judged_by_the_adjusted_r2(fanuc):
+    """A shuffled order's R² (≈ 1/3) plus what a cubic fits by chance on 30 rows passes 0.5 for one joint in six:
+    the warning reads the R² adjusted for the rows (checked against its definition in numpy), which halves those
+    chance warnings, while a sequence-ordered set of the same size still warns."""
+    import numpy as np
+
+    from torchcal.analysis.confounding import R2_THRESHOLD, adjusted_r2
+
+    assert adjusted_r2(0.51, 30, 3) == pytest.approx(1 - 0.49 * 29 / 26) and adjusted_r2(0.51, 3, 3) == 0.51
+    warned = plain = 0
+    for seed in range(40):
+        rep = backlash_confounding(sobol_data(fanuc, 30, shuffle=True, seed=seed), limits=fanuc.joint_map.limits)
+        warned += sum("confounded" in m for m in rep.warnings())
+        plain += int((rep.r2 > R2_THRESHOLD).sum())
+        for j in range(6):
+            n, r2 = int(rep.rows[j]), float(rep.r2[j])
+            assert adjusted_r2(r2, n, 3) == pytest.approx(float(1 - (1 - np.float64(r2)) * (n - 1) / (n - 4)))
+    assert plain > 20 and warned < 0.6 * plain  # 240 joints: 38 plain, 20 adjusted
+    seq = backlash_confounding(sobol_data(fanuc, 30, shuffle=False), limits=fanuc.joint_map.limits)
+    assert sum("confounded" in m for m in seq.warnings()) >= 3  # J2-J4 (R² 0.74-0.85)

@@ -21,6 +21,8 @@ import torch
 from ..analysis.stats import percent_decrease, residual_stats
 from ..core import units
 from ..core.progress import task as progress_task
+from ..kinematics.transforms import kabsch
+from ..measure.pose import rotation_error
 from .common import stats_row
 
 
@@ -37,18 +39,6 @@ class VerifyResult:
     frame: dict | None
     output: Path | None
     warnings: list[str] = field(default_factory=list)
-
-
-def register(pred: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The rigid motion (R (3, 3), t (3,)) taking predicted points (R, 3) onto measured ones (R, 3) in least squares."""
-    from ..kinematics.transforms import kabsch
-
-    return kabsch(pred, xyz)
-
-
-def angle_between(Ra: torch.Tensor, Rb: torch.Tensor) -> torch.Tensor:
-    """Rotation angle (B,) rad of Ra^T Rb for rotations (B, 3, 3); stable near zero (chord of the Frobenius norm)."""
-    return 2.0 * torch.asin(((Ra - Rb).flatten(1).norm(dim=-1) / (2.0 * 2.0**0.5)).clamp(max=1.0))
 
 
 def _predictions(model, data, sensor: bool):
@@ -104,12 +94,11 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
     xyz = data.xyz.to(pm)
     frame = None
     if new_frame:
-        Ym, tm = register(pm, xyz)
-        Yn, tn = register(pn, xyz)
+        Ym, tm = kabsch(pm, xyz)
+        Yn, tn = kabsch(pn, xyz)
         o = inner.base()[:3, 3].detach().to(pm)  # the robot base in the run's measurement frame
         frame = {"moved_mm": float(units.m_to_mm((Ym @ o + tm - o).norm())),
-                 "turned_deg": float(units.rad_to_deg(angle_between(Ym[None], torch.eye(3, dtype=Ym.dtype,
-                                                                                         device=Ym.device)[None])[0]))}
+                 "turned_deg": float(units.rad_to_deg(rotation_error(Ym, torch.eye(3).to(Ym)).norm()))}
         pm, pn = pm @ Ym.T + tm, pn @ Yn.T + tn
         if sensor:
             Rm, Rn = Ym @ Rm, Yn @ Rn
@@ -121,7 +110,7 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
     ang = None
     if sensor:
         Rmeas = data.extra["rotation"].to(Rm)
-        ang = [angle_between(Rmeas, R) for R in (Rn, Rm)]
+        ang = [rotation_error(R, Rmeas).norm(dim=-1) for R in (Rn, Rm)]  # the fit's orientation residual
         rs = [residual_stats(units.rad_to_deg(a.cpu())) for a in ang]
         table += [stats_row("Verification", "Nominal angle (deg)", rs[0], None),
                   stats_row("Verification", "Modeled angle (deg)", rs[1], rs[0])]
@@ -144,4 +133,4 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
     return VerifyResult(len(data), table, stats, frame, output, said)
 
 
-__all__ = ["VerifyResult", "angle_between", "register", "verify_file"]
+__all__ = ["VerifyResult", "verify_file"]

@@ -312,9 +312,10 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
         threads.set_threads(old_override)
 
 
-def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
+def _check_new_data(cfg, model, new: Measurements, new_path: Path):
     """Refuse rows the update cannot use as the parent's robot: no approach directions for a backlash model,
-    or points the calibrated model misses by more than any calibration error (another robot, frame or unit)."""
+    or points the calibrated model misses by more than any calibration error (another robot, frame or unit).
+    -> the parent model's residual statistics (mm) on the new rows (point runs; None for sensors)."""
     from ..io.csv import DataError, Problem
 
     je = getattr(model, "joint_errors", None)
@@ -327,7 +328,7 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
                 f"missing on rows 1..{len(new)}: the run's model has backlash terms on {', '.join(names[j] for j in on)}, "
                 f"which need each row's approach directions (+1 / -1 per joint)"))])
     if is_sensor_run(cfg):
-        return
+        return None
     from .fit import NOMINAL_IMPLAUSIBLE_MM, evaluate
 
     with torch.no_grad():
@@ -346,6 +347,7 @@ def _check_new_data(cfg, model, new: Measurements, new_path: Path) -> None:
             f"the run's model misses this point by {float(miss[i]):.1f} mm (the file's median {float(miss.median()):.3f} "
             f"mm), beyond any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): a gross measurement (another "
             "reflector, a beam break)? Remove the row; an update would absorb it")) for i in gross])
+    return ev["modeled_stats"]
 
 
 def _rows_in_parent(cfg, model, new: Measurements) -> list[int]:
@@ -384,7 +386,7 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
             note = units_note(new, model.robot, *check_units(new, model.robot, model.tools().detach().cpu(), new_path))
             if note:
                 progress.warn(note)
-        _check_new_data(cfg, model, new, new_path)
+        before = _check_new_data(cfg, model, new, new_path)
         repeated = _rows_in_parent(cfg, model, new)
         if repeated:
             shown = ", ".join(str(r) for r in repeated[:10]) + (" ..." if len(repeated) > 10 else "")
@@ -397,13 +399,15 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
     early = list(progress.warnings)  # said before the run log existed: repeated into it below
     run = make_run_dir(out)
     try:
-        return _write_update(parent, cfg, new_path, run, new, instrument, online, history, notes, early, progress, dev)
+        return _write_update(parent, cfg, new_path, run, new, instrument, online, history, notes, early, progress, dev,
+                             before)
     except KeyboardInterrupt as exc:
         exc.run_dir = run  # the CLI names the partial run directory
         raise
 
 
-def _write_update(parent, cfg, new_path, run, new, instrument, online, history, notes, early, progress, dev):
+def _write_update(parent, cfg, new_path, run, new, instrument, online, history, notes, early, progress, dev,
+                  before=None):
     """Everything written into the new run directory, in order (config, versions, update, model, state, metrics)."""
     model = online.model
     files: dict[str, Path] = {}
@@ -423,12 +427,7 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
                 progress.info(note)
         progress.info(f"earlier rows: {online.rows} in {online.batches} batch(es), from the parent's {history}; "
                       f"strategy '{online.strategy}'")
-        before = None
-        if instrument is None:  # the parent's model on the new rows: how far the robot moved from its calibration
-            from ..analysis.stats import point_residuals, residual_stats
-
-            with torch.no_grad():
-                before = residual_stats(units.m_to_mm(point_residuals(model, new).cpu()))
+        if before is not None:  # the parent's model on the new rows: how far the robot moved from its calibration
             progress.info(f"the parent's model on the new rows: mean {before.mean:.4f} mm, max {before.max:.4f} mm "
                           "(before the update)")
         with progress.step(f"updating with {len(new)} rows of {new_path}"):

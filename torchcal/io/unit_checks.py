@@ -75,6 +75,21 @@ def _nominal_points(robot, q: torch.Tensor, tool: torch.Tensor, tools_m: torch.T
     return F[:, :3, 3] + (F[:, :3, :3] @ t[:, :, None])[:, :, 0]
 
 
+def _consecutive_distances(data, robot, tools_m: torch.Tensor | None, q: torch.Tensor):
+    """Measured and nominal (at commands q (R, n)) distances between consecutive rows of one tool, every tool's
+    pairs concatenated: -> dm, dn (P,) m. Frame-free: the measurement frame moves neither."""
+    xyz = data.xyz.detach().cpu()
+    p = _nominal_points(robot, q, data.tool, tools_m)
+    dm, dn = [], []
+    for t in torch.unique(data.tool.cpu()).tolist():
+        idx = (data.tool.cpu() == t).nonzero()[:, 0]
+        if idx.numel() >= 2:
+            dm.append((xyz[idx[1:]] - xyz[idx[:-1]]).norm(dim=1))
+            dn.append((p[idx[1:]] - p[idx[:-1]]).norm(dim=1))
+    empty = torch.zeros(0, dtype=torch.float64)
+    return (torch.cat(dm), torch.cat(dn)) if dm else (empty, empty)
+
+
 def point_scale(data, robot, tools_m: torch.Tensor | None = None) -> float | None:
     """Median measured / nominal distance between consecutive rows of one tool (frame-free); None: too few rows.
 
@@ -83,18 +98,9 @@ def point_scale(data, robot, tools_m: torch.Tensor | None = None) -> float | Non
     """
     if len(data) < MIN_ROWS:
         return None
-    xyz = data.xyz.detach().cpu()
-    p = _nominal_points(robot, data.q, data.tool, tools_m)
-    ratios = []
-    for t in torch.unique(data.tool.cpu()).tolist():
-        idx = (data.tool.cpu() == t).nonzero()[:, 0]
-        if idx.numel() < 2:
-            continue
-        dm = (xyz[idx[1:]] - xyz[idx[:-1]]).norm(dim=1)
-        dn = (p[idx[1:]] - p[idx[:-1]]).norm(dim=1)
-        ok = torch.isfinite(dm) & (dn > 1e-3)  # poses a millimetre apart say nothing about the scale
-        ratios.append(dm[ok] / dn[ok])
-    r = torch.cat(ratios) if ratios else torch.zeros(0, dtype=torch.float64)
+    dm, dn = _consecutive_distances(data, robot, tools_m, data.q)
+    ok = torch.isfinite(dm) & (dn > 1e-3)  # poses a millimetre apart say nothing about the scale
+    r = dm[ok] / dn[ok]
     if r.numel() < MIN_ROWS // 2:
         return None
     return float(r.median())
@@ -130,16 +136,8 @@ def _with_q(data, q: torch.Tensor):
 def distance_miss(data, robot, tools_m: torch.Tensor | None, q: torch.Tensor) -> float | None:
     """Median |measured - nominal| distance between consecutive rows of one tool (m) at commands q (R, n): how far
     the point cloud's shape is from the nominal one's, whatever the (unknown) measurement frame. None: too few rows."""
-    xyz = data.xyz.detach().cpu()
-    p = _nominal_points(robot, q, data.tool, tools_m)
-    out = []
-    for t in torch.unique(data.tool.cpu()).tolist():
-        idx = (data.tool.cpu() == t).nonzero()[:, 0]
-        if idx.numel() >= 2:
-            dm = (xyz[idx[1:]] - xyz[idx[:-1]]).norm(dim=1)
-            dn = (p[idx[1:]] - p[idx[:-1]]).norm(dim=1)
-            out.append((dm - dn).abs())
-    d = torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
+    dm, dn = _consecutive_distances(data, robot, tools_m, q)
+    d = (dm - dn).abs()
     return None if d.numel() < MIN_ROWS // 2 else float(d.median())
 
 

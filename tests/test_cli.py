@@ -584,6 +584,9 @@ def test_second_fit_into_the_same_out_goes_beside_the_first(e2e, tmp_path):
     assert f"run directory: {tmp_path / 'out-2'}\n" in r2.output
     assert not [p for p in out.iterdir() if p.is_dir() and p.name != "plots"]  # nothing nested in the first run
     assert (tmp_path / "out-2" / "model.pt").is_file()
+    # the log says why the second run is not where out= pointed (and the first run's says nothing of the kind)
+    assert f"{out} holds a run already" in (tmp_path / "out-2" / "run.log").read_text()
+    assert "holds a run already" not in (out / "run.log").read_text()
 
 
 def _rows(sim, fn, name, tmp_path):

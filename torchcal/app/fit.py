@@ -53,7 +53,7 @@ from ..identify.fit import frame_check
 from .config import ConfigError, check_config, source_of
 from ..kinematics.transforms import homogeneous, rpy_to_matrix
 from ..io.csv import DataError, read_measurements, write_table
-from ..io.rundir import make_run_dir, run_log, save_model, write_json
+from ..io.rundir import make_run_dir, placed_note, run_log, save_model, write_json
 from ..kinematics import load_robot
 from ..core.measurements import Measurements
 from ..models.robot import RobotModel
@@ -363,7 +363,7 @@ def align_inputs(cfg, inp: FitInputs):
 def write_preamble(run_dir: Path, cfg, inp: FitInputs, alignment, progress: Progress, files: dict) -> None:
     """Stage 3, start the run directory: config.yaml, versions.json, what was read (and how), alignment.json."""
     write_preamble_files(run_dir, cfg, inp.device, files)
-    progress.info(f"run directory {run_dir}")
+    progress.info(f"run directory {run_dir}{placed_note(cfg.out, run_dir)}")
     ident, val = inp.ident, inp.val
     progress.info(f"robot '{inp.robot.name}' ({inp.robot.joint_map.n} joints), {inp.T} tools; identification "
                   f"{len(ident)} rows / {ident.n_poses} poses" + (f", validation {len(val)} rows" if val is not None else ""))

@@ -151,7 +151,7 @@ def _run_cells(cfg, cells: list[list]) -> list:
 def run_fleet(config, overrides: list[str] | None = None, out=None, console=None) -> FleetRunResult:
     """Fit every unit of the fleet ``config`` (see the module docstring) into one run directory."""
     from ..identify.fleet import FleetFit, feature_scores, parameter_outliers
-    from ..io.rundir import collect_versions, make_run_dir, run_log, save_model, write_json
+    from ..io.rundir import collect_versions, make_run_dir, placed_note, run_log, save_model, write_json
     from ..kinematics import load_robot
     from .fit import config_tool_count, read_sets
 
@@ -181,7 +181,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         result.warnings.append(msg)
 
     with run_log(run_dir):
-        log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}")
+        log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}{placed_note(target, run_dir)}")
         if float(cfg.solver.ftol) != SolverConfig.ftol:
             warn(f"solver.ftol ({cfg.solver.ftol:g}) is a single fit's; the fleet's units stop at fleet.ftol "
                  f"({float(cfg.fleet.ftol):g}): set that one")

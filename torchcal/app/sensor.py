@@ -31,7 +31,7 @@ from ..identify import fit
 from ..identify.hand_eye import hand_eye
 from .common import write_run_report
 from .config import ConfigError, source_of
-from ..io.rundir import make_run_dir, run_log, save_model, write_json
+from ..io.rundir import make_run_dir, placed_note, run_log, save_model, write_json
 from ..kinematics import load_robot
 from ..kinematics.transforms import homogeneous, rpy_to_matrix
 from ..measure.pose import rotation_error
@@ -294,7 +294,7 @@ def run_sensor_fit(cfg, console=None):
     try:
         with run_log(run_dir):
             write_preamble_files(run_dir, cfg, inp.device, files)
-            progress.info(f"run directory {run_dir}")
+            progress.info(f"run directory {run_dir}{placed_note(cfg.out, run_dir)}")
             progress.info(f"robot '{inp.robot.name}' ({inp.robot.joint_map.n} joints), sensor '{cfg.sensor.kind}'"
                           f"{' (position only)' if cfg.sensor.position_only else ''}; identification {len(inp.ident)} "
                           f"rows" + (f", validation {len(inp.val)} rows" if inp.val is not None else ""))

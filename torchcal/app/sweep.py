@@ -156,7 +156,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     the config's ``out``). Each cell's config is checked before anything is
     fitted. -> :class:`SweepResult`.
     """
-    from ..io.rundir import collect_versions, make_run_dir, run_log, write_json
+    from ..io.rundir import collect_versions, make_run_dir, placed_note, run_log, write_json
     from ..core.progress import task
 
     t0 = time.perf_counter()
@@ -173,7 +173,8 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     base = load_config(config, plain)
     check_engine(base.sweep.engine, f"{source_of(base, 'sweep.engine', base.config_file or 'config')}: key 'sweep.engine'")
     notes = check_data(cfgs)
-    run_dir = make_run_dir(Path(out) if out is not None else Path(base.out).with_name("sweeps"))
+    requested = Path(out) if out is not None else Path(base.out).with_name("sweeps")
+    run_dir = make_run_dir(requested)
     atomic_write_text(run_dir / "config.yaml", to_yaml(base))
     write_json(run_dir / "sweep.json", {"config": str(config), "overrides": plain, "axes": {k: v for k, v in axes},
                                         "cells": len(cells)})
@@ -193,7 +194,7 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     engine = base.sweep.engine
     with run_log(run_dir):
         log.info(f"sweep of {len(cells)} cells over {', '.join(keys)}: {len(groups)} independent group(s), engine "
-                 f"{engine}; {run_dir}")
+                 f"{engine}; {run_dir}{placed_note(requested, run_dir)}")
         for note in notes:
             log.warning(note)
         with task("sweep: cell groups", total=len(groups)) as bar:

@@ -46,6 +46,7 @@ from ..io.rundir import (
     load_model,
     require_finished,
     make_run_dir,
+    placed_note,
     read_json,
     run_log,
     save_model,
@@ -419,7 +420,7 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
                   f"follows unchanged (its data.* name the parent's files)\n")
         atomic_write_text(files["config"], header + to_yaml(cfg))
         files["versions"] = write_json(run / "versions.json", collect_versions(dev))
-        progress.info(f"run directory {run}; parent {parent}")
+        progress.info(f"run directory {run}{placed_note(out, run)}; parent {parent}")
         for note in notes:
             if history == "synthetic":
                 progress.warn(note)

@@ -103,6 +103,22 @@ def make_run_dir(out) -> Path:
         raise RunDirError(f"{out}: cannot create the run directory ({exc.strerror or exc})") from None
 
 
+def placed_note(out, run_dir) -> str:
+    """Why the run went to ``run_dir`` and not to the ``out`` asked for ('' when it is ``out``): a user who typed
+    ``out=r1`` twice must not look for the second run in r1.
+
+    Example:
+        >>> placed_note("runs/r1", "runs/r1-2")
+        ' (runs/r1 holds a run already, and a run is never overwritten)'
+    """
+    out, run_dir = Path(out), Path(run_dir)
+    if run_dir == out:
+        return ""
+    if run_dir.parent == out:
+        return f" (a new folder in {out}, which holds other things)"
+    return f" ({out} holds a run already, and a run is never overwritten)"
+
+
 def _make_run_dir(out: Path) -> Path:
     if out.exists() and not out.is_dir():
         raise RunDirError(f"{out}: exists and is not a folder; choose another 'out'")

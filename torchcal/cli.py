@@ -342,7 +342,7 @@ def fleet_cmd(
     overrides: Annotated[Optional[list[str]], typer.Argument(
         help="Dotted overrides, e.g. fleet.engine=ray fleet.cell=25 model.order=4 "
              "fleet.baseline=fleets (an earlier run: a config's first goes to 'fleets' beside it, the next to "
-             "'fleets-2').")] = None,
+             "'fleets-2'); fleet.reuse=fleets (fit only the units that run did not, or whose data changed).")] = None,
     out: Annotated[Optional[Path], typer.Option("--out", help="Run directory (default: 'fleets' beside the config's out).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ):
@@ -376,7 +376,8 @@ def fleet_cmd(
         _console().print(f"warning: {w}", markup=False)
     failed = [r["unit"] for r in result.rows if r["status"] == "failed"]
     if failed:
-        _console().print(f"warning: {len(failed)} unit(s) not fitted: {', '.join(failed)} (summary.csv: reason)", markup=False)
+        _console().print(f"warning: {len(failed)} unit(s) not fitted: {', '.join(failed)} (summary.csv: reason); once "
+                         f"their files are mended, fleet.reuse={result.run_dir} fits only them", markup=False)
     typer.echo(f"run directory: {result.run_dir}")
     if (result.run_dir / "report.html").is_file():
         typer.echo(f"fleet report: {result.run_dir / 'report.html'}")

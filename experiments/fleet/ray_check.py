@@ -23,6 +23,36 @@ from torchcal.sim.fleet import fleet_truths
 TOOLS_MM = [[33.06, 57.73, 161.22], [57.26, -33.86, 161.22], [-33.96, -57.23, 161.22]]
 
 
+def write_fleet(out: Path, count: int, broken: int | None) -> Path:
+    """``count`` simulated FANUCs' identification files under out/units (one program, 250 poses x 3 tools, order 6
+    + backlash truths, J3 gearboxes damaged on units 7, 23, 42, 61, 88), unit ``broken``'s with a non-number in its
+    40th row; -> the fleet config out/fleet.yaml. ``out`` is emptied first."""
+    shutil.rmtree(out, ignore_errors=True)
+    (out / "units").mkdir(parents=True)
+    robot = torchcal.load_robot("fanuc_lrmate200i")
+    tools = U.mm_to_m(torch.tensor(TOOLS_MM, dtype=torch.float64))
+    noise = torchcal.NoiseModel.from_robot(robot)
+    fleet = fleet_truths(robot, tools, count, 0, [u for u in (7, 23, 42, 61, 88) if u < count])
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 250, 0)
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
+    for k, t in enumerate(fleet.truths):
+        write_measurements(out / "units" / f"unit{k:03d}.csv", torchcal.simulate(t, q, [0, 1, 2], noise, k, directions=dirs),
+                           robot)
+    if broken is not None:
+        bad = out / "units" / f"unit{broken:03d}.csv"
+        lines = bad.read_text().splitlines()
+        cells = lines[40].split(",")
+        cells[-1] = "n/a"
+        lines[40] = ",".join(cells)
+        bad.write_text("\n".join(lines) + "\n")
+    tools_txt = ", ".join(f"[{x}, {y}, {z}]" for x, y, z in TOOLS_MM)
+    cfg = out / "fleet.yaml"
+    cfg.write_text(f"robot: fanuc_lrmate200i\ntools: [{tools_txt}]\ndata: {{identification: units}}\n"
+                   "model: {order: 6, backlash: true}\nfleet: {cell: 50}\n")
+    return cfg
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--units", type=int, default=100)
@@ -35,28 +65,7 @@ def main(argv=None) -> int:
     from torchcal.io.rundir import load_model
 
     out = Path(args.out)
-    shutil.rmtree(out, ignore_errors=True)
-    (out / "units").mkdir(parents=True)
-    robot = torchcal.load_robot("fanuc_lrmate200i")
-    tools = U.mm_to_m(torch.tensor(TOOLS_MM, dtype=torch.float64))
-    noise = torchcal.NoiseModel.from_robot(robot)
-    fleet = fleet_truths(robot, tools, args.units, 0, [u for u in (7, 23, 42, 61, 88) if u < args.units])
-    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 250, 0)
-    g = torch.Generator().manual_seed(0)
-    dirs = torch.where(torch.rand(q.shape, generator=g, dtype=torch.float64) > 0.5, 1.0, -1.0)
-    for k, t in enumerate(fleet.truths):
-        write_measurements(out / "units" / f"unit{k:03d}.csv", torchcal.simulate(t, q, [0, 1, 2], noise, k, directions=dirs),
-                           robot)
-    bad = out / "units" / f"unit{args.broken:03d}.csv"
-    lines = bad.read_text().splitlines()
-    cells = lines[40].split(",")
-    cells[-1] = "n/a"
-    lines[40] = ",".join(cells)
-    bad.write_text("\n".join(lines) + "\n")
-    tools_txt = ", ".join(f"[{x}, {y}, {z}]" for x, y, z in TOOLS_MM)
-    cfg = out / "fleet.yaml"
-    cfg.write_text(f"robot: fanuc_lrmate200i\ntools: [{tools_txt}]\ndata: {{identification: units}}\n"
-                   "model: {order: 6, backlash: true}\nfleet: {cell: 50}\n")
+    cfg = write_fleet(out, args.units, args.broken)
     t = time.perf_counter()
     local = run_fleet(cfg, out=out / "local")
     t_local = time.perf_counter() - t

@@ -234,6 +234,10 @@ class FleetConfig:
     """An earlier ``torchcal fleet`` run directory of the same units: each unit fitted in both is compared with
     its earlier model (the change at the tool, the joints that changed), and the units that changed far beyond
     the fleet's own changes are named (torchcal.identify.fleet_change: a crash, a gearbox swap)."""
+    reuse: Optional[str] = None
+    """An earlier ``torchcal fleet`` run of these units with the same settings: a unit it fitted whose data files
+    are unchanged is taken as fitted there; only the others (failed, interrupted, new, re-measured) are fitted
+    (torchcal.app.fleet_reuse). Every unit is scored, compared and written as in a fresh run."""
 
 
 @dataclass(frozen=True)
@@ -302,7 +306,8 @@ PROVENANCE_KEYS = ("config_file", "overrides")
 WHOLE_VALUE_KEYS = ("tools", "measurement_frame", "sensor.mount", "constraint.c")
 """Keys whose override replaces the whole value (their values change type: list, mapping or word)."""
 
-PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out", "prior.fleet", "fleet.baseline")
+PATH_KEYS = ("data.identification", "data.validation", "data.truth", "out", "prior.fleet", "fleet.baseline",
+             "fleet.reuse")
 """Config keys naming files or folders: relative values resolve against the config file's folder (overrides: the
 working directory)."""
 

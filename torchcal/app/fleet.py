@@ -42,6 +42,8 @@ from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 from .fleet_files import identical_files, ignored_files, unit_files, validation_gaps
 from .fleet_frames import align_units, in_base
+from .fleet_reuse import reuse_run, reused_units
+from .fleet_summary import write_features, write_summary
 
 log = logging.getLogger("torchcal")
 
@@ -161,6 +163,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     _check_fleet_config(cfg)
     files = unit_files(cfg)
     baseline = baseline_units(cfg, label)  # (run, its fitted units) or None; a bad folder fails before any work
+    earlier = reuse_run(cfg, label)  # fleet.reuse: likewise
     robot = load_robot(cfg.robot)
     check_config(cfg, label, robot.joint_map.n)
     T = config_tool_count(cfg)
@@ -225,7 +228,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             loaded, frames, alignments = align_units(cfg, robot, loaded, rows, label)
         if not loaded:  # every unit failed before its fit: one error, the first unit's reason, summary.csv written
             result.rows = [rows[name] for name, _, _ in files]
-            _write_summary(run_dir, result, cfg)
+            write_summary(run_dir, result, cfg)
             first = result.rows[0]
             raise ConfigError(f"{label}: no unit could be fitted; {first['unit']}: {first['reason']}\n(summary.csv in "
                               f"{run_dir} has every unit's reason)")
@@ -239,13 +242,16 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 config_orders(cfg, robot.joint_map.n)), source_of(cfg, "fleet.baseline", label))
         thin = _data_checks(cfg, robot, T, loaded, warn)  # {unit: why}: fewer equations than parameters
         size = int(cfg.fleet.cell)
+        reused = {} if earlier is None else reused_units(earlier, files, loaded, _factory(
+            cfg, robot, torch.device("cpu"), config_backlash(cfg))(config_orders(cfg, robot.joint_map.n)).spec(), warn)
+        to_fit = [u for u in loaded if u[0] not in reused]
         # with measurement_frame: estimate each unit is solved in its own robot base frame (its points moved by
         # its alignment), its model then given that alignment as the nominal measurement frame
-        cells = [[(n, in_base(i, frames.get(n))) for n, i, _ in loaded[c:c + size]]
-                 for c in range(0, len(loaded), size)]
+        cells = [[(n, in_base(i, frames.get(n))) for n, i, _ in to_fit[c:c + size]] for c in range(0, len(to_fit), size)]
         ts = time.perf_counter()
-        with task(f"fitting {len(loaded)} units in {len(cells)} batched solve(s) ({cfg.fleet.engine})", total=None):
-            outs = _run_cells(cfg, cells)
+        with task(f"fitting {len(to_fit)} units in {len(cells)} batched solve(s) ({cfg.fleet.engine})", total=None):
+            outs = (_run_cells(cfg, cells) if cells else []) + [list(reused.values())]
+        cells.append([(n, None) for n in reused])
         result.solve_time = time.perf_counter() - ts
         vals = {n: v for n, _, v in loaded}
         idents = {n: i for n, i, _ in loaded}
@@ -268,6 +274,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
                 _evaluate(u, model, idents, vals, rows, device, warn)
+                if u["name"] in reused:
+                    rows[u["name"]]["reused_from"] = str(earlier)
         implausible = _implausible(fitted, rows, robot, frames, warn)
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
@@ -283,7 +291,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             fake = FleetFit([m for _, m in scored], None)
             scores = feature_scores(fake.models)
             score, findings = parameter_outliers(fake, float(cfg.fleet.threshold), scores=scores)
-            _write_features(run_dir, [u["name"] for u, _ in scored], scores, robot, float(cfg.fleet.threshold))
+            write_features(run_dir, [u["name"] for u, _ in scored], scores, robot, float(cfg.fleet.threshold))
             for f in findings:  # the unit by its name, not its place among the scored units
                 f.unit = scored[f.unit][0]["name"]
             result.findings = findings
@@ -316,7 +324,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 write_json(d / "alignment.json", alignments[name])
         result.rows = [rows[name] for name, _, _ in files]
         result.time = time.perf_counter() - t0
-        _write_summary(run_dir, result, cfg)
+        write_summary(run_dir, result, cfg)
         if interrupted(outs):  # the units fitted by then are written; the run ends as interrupted (PARTIAL stays)
             log.warning(f"interrupted: {sum(r['status'] == 'fitted' for r in result.rows)} unit(s) fitted and written "
                         "before Ctrl-C; summary.csv names the others")
@@ -334,30 +342,6 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             log.warning("fleet report not written: %s: %s", type(exc).__name__, exc)
             result.warnings.append(f"fleet report not written: {type(exc).__name__}: {exc}")
     return result
-
-
-def _write_features(run_dir: Path, names: list[str], scores, robot, threshold: float) -> None:
-    """features.csv: per scored unit, joint and feature (transmission error, backlash) its value in deg (mm for a
-    prismatic joint), the fleet median, its ratio to it, its robust z, the level above which it is flagged, and
-    whether it is: the fleet's distribution behind every finding, for the report and the engineer."""
-    import pandas as pd
-
-    prismatic = robot.joint_map.prismatic.cpu()
-    unit_names = units.joint_unit_names(prismatic)
-    rows = []
-    for key in scores.value:
-        value = units.joints_from_si(scores.value[key], prismatic)
-        median = units.joints_from_si(scores.median[key][None], prismatic)[0]
-        level = units.joints_from_si(scores.flag_level(key, threshold)[None], prismatic)[0]
-        z, ratio, flagged = scores.z[key], scores.ratio[key], scores.flagged(key, threshold)
-        for m, name in enumerate(names):
-            for j, joint in enumerate(scores.joints):
-                rows.append({"unit": name, "joint": joint, "feature": key, "value": float(value[m, j]),
-                             "value_unit": unit_names[j], "fleet_median": float(median[j]),
-                             "ratio": float(ratio[m, j]), "robust_z": float(z[m, j]),
-                             "flag_level": float(level[j]), "flagged": bool(flagged[m, j])})
-    with atomic_path(run_dir / "features.csv") as tmp:
-        pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.9g")
 
 
 def _implausible(fitted: list, rows: dict, robot, frames: dict, warn) -> dict:
@@ -474,27 +458,6 @@ def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device, warn
         v = residual_stats(val.cpu()).scaled(units.m_to_mm(1.0))
         row.update(validation_mean_mm=v.mean, validation_max_mm=v.max, validation_gamma99_mm=v.gamma99)
     rows[name] = row
-
-
-def _write_summary(run_dir: Path, result: FleetRunResult, cfg) -> None:
-    import pandas as pd
-
-    from ..identify.fleet import OUTLIER_MIN_RATIO
-    from ..identify.fleet_change import CHANGE_MIN_RATIO
-    from ..io.rundir import write_json
-
-    df = pd.DataFrame(result.rows)
-    # one column order whatever unit comes first (a failed first unit put 'reason' third): the reason last
-    df = df[[c for c in df.columns if c != "reason"] + (["reason"] if "reason" in df.columns else [])]
-    with atomic_path(run_dir / "summary.csv") as tmp:
-        df.to_csv(tmp, index=False, float_format="%.6g")
-    write_json(run_dir / "fleet.json", {"time_s": result.time, "solve_time_s": result.solve_time,
-                                        "engine": cfg.fleet.engine, "cell": int(cfg.fleet.cell),
-                                        "model_backlash": cfg.model.backlash,  # as resolved for the whole fleet
-                                        "threshold": float(cfg.fleet.threshold), "min_ratio": OUTLIER_MIN_RATIO,
-                                        "units": result.rows, "findings": [str(f) for f in result.findings],
-                                        "baseline": cfg.fleet.baseline, "change_min_ratio": CHANGE_MIN_RATIO,
-                                        "changes": [str(c) for c in result.changes]})
 
 
 __all__ = ["FleetRunResult", "fit_cell", "run_fleet", "unit_files"]

@@ -251,3 +251,12 @@ def test_updating_with_the_validation_set_says_it_is_no_longer_held_out(runs, tm
     assert "the update's data are the config's validation set" in said and "no held-out" in said
     metrics = json.loads((tmp_path / "u" / "metrics.json").read_text())
     assert set(metrics["sets"]) == {"update"}
+
+
+def test_an_update_into_a_taken_out_says_where_it_went(runs, tmp_path):
+    """--out naming a folder that holds a run already: the update goes beside it and its log says why."""
+    r1 = invoke("update", runs["root"] / "run", runs["root"] / "b1.csv", "--out", tmp_path / "u", "-q")
+    r2 = invoke("update", runs["root"] / "run", runs["root"] / "b1.csv", "--out", tmp_path / "u", "-q")
+    assert r1.exit_code == 0 and r2.exit_code == 0, r1.output + r2.output
+    assert f"{tmp_path / 'u'} holds a run already" in (tmp_path / "u-2" / "run.log").read_text()
+    assert "holds a run already" not in (tmp_path / "u" / "run.log").read_text()

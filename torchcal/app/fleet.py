@@ -35,7 +35,7 @@ import torch
 
 from ..core import units
 from ..core.progress import task
-from ..io.atomic import atomic_path, atomic_write_text
+from ..io.atomic import atomic_write_text
 from .common import config_backlash, config_orders, failed_row, write_preamble_files
 from .config import ConfigError, SolverConfig, check_config, load_config, source_of, to_yaml, updated
 from .engines import check_engine, interrupted

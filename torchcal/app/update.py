@@ -401,14 +401,14 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
     run = make_run_dir(out)
     try:
         return _write_update(parent, cfg, new_path, run, new, instrument, online, history, notes, early, progress, dev,
-                             before)
+                             before, placed_note(out, run))
     except KeyboardInterrupt as exc:
         exc.run_dir = run  # the CLI names the partial run directory
         raise
 
 
 def _write_update(parent, cfg, new_path, run, new, instrument, online, history, notes, early, progress, dev,
-                  before=None):
+                  before=None, placed=""):
     """Everything written into the new run directory, in order (config, versions, update, model, state, metrics)."""
     model = online.model
     files: dict[str, Path] = {}
@@ -420,7 +420,7 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
                   f"follows unchanged (its data.* name the parent's files)\n")
         atomic_write_text(files["config"], header + to_yaml(cfg))
         files["versions"] = write_json(run / "versions.json", collect_versions(dev))
-        progress.info(f"run directory {run}{placed_note(out, run)}; parent {parent}")
+        progress.info(f"run directory {run}{placed}; parent {parent}")
         for note in notes:
             if history == "synthetic":
                 progress.warn(note)

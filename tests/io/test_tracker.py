@@ -242,6 +242,44 @@ def test_unequal_length_and_never_reading(tmp_path, session):
     assert str(t[2]) in str(err.value)
 
 
+def test_a_target_file_in_metres_is_named(tmp_path, irb, session):
+    """One of three reflector files exported in metres: refused naming that file (the others' distances are the
+    reference, no robot needed); a single file in metres, with the robot given, is warned about against the
+    nominal flange; the same files in mm pass both checks."""
+    j, t, _ = files(tmp_path, session["q"], session["targets"])
+    assert not [r for r in import_tracker(j, t, robot=irb).report if "look like" in r]
+    write(t[1], session["targets"][1] / 1000.0)
+    with pytest.raises(DataError) as err:
+        import_tracker(j, t)
+    msg = str(err.value)
+    assert str(t[1]) in msg and "x, y, z" in msg and "metres" in msg and str(t[0]) not in msg
+    res = import_tracker(j, [t[1]], robot=irb)
+    assert any(str(t[1]) in r and "metres" in r for r in res.report)
+    assert not [r for r in import_tracker(j, [t[0]], robot=irb).report if "look like" in r]
+
+
+def test_one_tool_in_metres_is_refused_by_the_fit_checks(irb, session):
+    """A merged measurement file whose tool 2 rows are in metres: the median over every tool's distances still
+    looks like mm, so the tool is judged on its own rows, and named."""
+    from torchcal.io.unit_checks import UnitsError, check_point_scale, tool_scales
+    from torchcal.core.measurements import Measurements
+
+    q = torch.from_numpy(session["q"]) * DEG
+    xyz = torch.from_numpy(session["targets"]) * 1e-3  # (T, P, 3) m
+    rows = [(k, t) for t in range(3) for k in range(P)]
+    pose = torch.tensor([k for k, _ in rows])
+    tool = torch.tensor([t for _, t in rows])
+    pts = torch.stack([xyz[t, k] for k, t in rows])
+    data = Measurements.from_tensors(q[pose], tool, pts, pose=pose)
+    tools = torch.tensor(TOOLS_MM) * 1e-3
+    check_point_scale(data, irb, tools)  # mm throughout: passes
+    assert all(0.9 < s < 1.1 for s in tool_scales(data, irb, tools).values())
+    slipped = Measurements.from_tensors(data.q, tool, torch.where((tool == 2)[:, None], pts * 1e-3, pts), pose=pose)
+    with pytest.raises(UnitsError, match="tool 2: the distances") as err:
+        check_point_scale(slipped, irb, tools)
+    assert "metres" in str(err.value)
+
+
 # ---------------------------------------------------------------------------- CLI
 def test_cli(tmp_path, session):
     targets = session["targets"].copy()

@@ -314,6 +314,7 @@ def import_tracker(
 
     X = np.stack([f.values for f, _ in tgt], 1)  # (P, T, 3) mm
     valid_t = ~np.stack([z for _, z in tgt], 1)
+    _check_target_scales(tgt, X, valid_t, q, robot, jf.path, report)
     drift = np.zeros(0)
     corrections = None
     if bse:
@@ -382,6 +383,38 @@ def import_tracker(
     dropped = int((~valid_t).sum())
     report.append(f"{len(table)} measurement rows written ({P} poses x {len(tgt)} targets, {dropped} failed readings dropped)")
     return TrackerImport(table, summaries + bsum, P, drift, corrections, bool(correct_drift and bse), report)
+
+
+def _check_target_scales(tgt, X: np.ndarray, valid: np.ndarray, q: np.ndarray, robot, joints_path, report) -> None:
+    """Every reflector rides on the flange, so the distances between consecutive poses' points are alike in every
+    target file: a file whose distances are ~1000x shorter than the others' is in metres (DataError naming it). With
+    a robot, each file's are also compared with the nominal flange's (a warning in the report: the fit refuses,
+    and offers its override). X: (P, T, 3) mm; valid: (P, T); q: (P, n) commands as read (deg / mm)."""
+    from .unit_checks import SCALE_BOUNDS, MIN_ROWS, path_scale, scale_guess
+
+    medians = []
+    for k in range(X.shape[1]):
+        rows = np.flatnonzero(valid[:, k])
+        d = np.linalg.norm(np.diff(X[rows, k], axis=0), axis=1)
+        medians.append(float(np.median(d)) if d.size >= MIN_ROWS // 2 else np.nan)
+    fleet = np.nanmedian(medians) if np.isfinite(medians).any() else np.nan
+    for (f, _), m in zip(tgt, medians):
+        r = m / fleet if fleet > 0 else np.nan
+        if np.isfinite(r) and not SCALE_BOUNDS[0] <= r <= SCALE_BOUNDS[1]:
+            raise DataError(f.path, [Problem(None, "1-3 (x, y, z)", (
+                f"the distances between consecutive poses' points (median {m:.4g}) are {r:.3g} times the other "
+                f"target files' (median {fleet:.4g}), though every reflector rides on the flange: this file looks like "
+                f"{scale_guess(r)}, and the contract is mm"))])
+    if robot is None:
+        return
+    q_si = units.joints_to_si(torch.from_numpy(q), robot.joint_map.prismatic.cpu())
+    for k, (f, _) in enumerate(tgt):
+        xyz = units.mm_to_m(torch.from_numpy(np.where(valid[:, k, None], X[:, k], np.nan)))
+        s = path_scale(xyz, q_si, robot)
+        if s is not None and not SCALE_BOUNDS[0] <= s <= SCALE_BOUNDS[1]:
+            report.append(f"warning: {f.path}: the distances between consecutive poses' points are {s:.3g} times the "
+                          f"nominal '{robot.name}' flange's at {joints_path}'s commands: they look like "
+                          f"{scale_guess(s)}, and the contract is mm (the fit will refuse them)")
 
 
 def _approach_directions(q: np.ndarray) -> np.ndarray:

@@ -75,19 +75,27 @@ def _nominal_points(robot, q: torch.Tensor, tool: torch.Tensor, tools_m: torch.T
     return F[:, :3, 3] + (F[:, :3, :3] @ t[:, :, None])[:, :, 0]
 
 
-def _consecutive_distances(data, robot, tools_m: torch.Tensor | None, q: torch.Tensor):
+def _consecutive_distances(data, robot, tools_m: torch.Tensor | None, q: torch.Tensor, by_tool: bool = False):
     """Measured and nominal (at commands q (R, n)) distances between consecutive rows of one tool, every tool's
-    pairs concatenated: -> dm, dn (P,) m. Frame-free: the measurement frame moves neither."""
+    pairs concatenated: -> dm, dn (P,) m; by_tool: {tool: (dm, dn)} instead. Frame-free: the measurement frame
+    moves neither."""
     xyz = data.xyz.detach().cpu()
     p = _nominal_points(robot, q, data.tool, tools_m)
-    dm, dn = [], []
+    pairs = {}
     for t in torch.unique(data.tool.cpu()).tolist():
         idx = (data.tool.cpu() == t).nonzero()[:, 0]
         if idx.numel() >= 2:
-            dm.append((xyz[idx[1:]] - xyz[idx[:-1]]).norm(dim=1))
-            dn.append((p[idx[1:]] - p[idx[:-1]]).norm(dim=1))
+            pairs[int(t)] = ((xyz[idx[1:]] - xyz[idx[:-1]]).norm(dim=1), (p[idx[1:]] - p[idx[:-1]]).norm(dim=1))
+    if by_tool:
+        return pairs
     empty = torch.zeros(0, dtype=torch.float64)
-    return (torch.cat(dm), torch.cat(dn)) if dm else (empty, empty)
+    return (torch.cat([m for m, _ in pairs.values()]), torch.cat([n for _, n in pairs.values()])) if pairs else (empty, empty)
+
+
+def _median_ratio(dm: torch.Tensor, dn: torch.Tensor) -> float | None:
+    ok = torch.isfinite(dm) & (dn > 1e-3)  # poses a millimetre apart say nothing about the scale
+    r = dm[ok] / dn[ok]
+    return None if r.numel() < MIN_ROWS // 2 else float(r.median())
 
 
 def point_scale(data, robot, tools_m: torch.Tensor | None = None) -> float | None:
@@ -96,14 +104,35 @@ def point_scale(data, robot, tools_m: torch.Tensor | None = None) -> float | Non
     data: Measurements (SI); tools_m: (T, 3) tool vectors, or None (the flange: tool
     vectors are small next to the distances between poses, so the ratio stays near 1).
     """
+    return _scales(data, robot, tools_m)[0]
+
+
+def tool_scales(data, robot, tools_m: torch.Tensor | None = None) -> dict[int, float]:
+    """:func:`point_scale` of each tool's rows alone -> {tool: scale}, tools with too few rows left out: one tool's
+    points in metres hide behind the others' in the median of all."""
+    return _scales(data, robot, tools_m)[1]
+
+
+def _scales(data, robot, tools_m) -> tuple[float | None, dict[int, float]]:
+    """(:func:`point_scale`, :func:`tool_scales`) from one evaluation of the nominal points."""
     if len(data) < MIN_ROWS:
+        return None, {}
+    pairs = _consecutive_distances(data, robot, tools_m, data.q, by_tool=True)
+    if not pairs:
+        return None, {}
+    every = _median_ratio(torch.cat([m for m, _ in pairs.values()]), torch.cat([n for _, n in pairs.values()]))
+    return every, {t: s for t, (dm, dn) in pairs.items() if (s := _median_ratio(dm, dn)) is not None}
+
+
+def path_scale(xyz: torch.Tensor, q: torch.Tensor, robot) -> float | None:
+    """Median measured / nominal-flange distance between consecutive rows of one point's path (a reflector's
+    file): xyz (R, 3) m, NaN rows skipped; q (R, n) SI commands. None: too few rows."""
+    ok = torch.isfinite(xyz).all(1)
+    xyz, q = xyz[ok], q[ok]
+    if xyz.shape[0] < MIN_ROWS:
         return None
-    dm, dn = _consecutive_distances(data, robot, tools_m, data.q)
-    ok = torch.isfinite(dm) & (dn > 1e-3)  # poses a millimetre apart say nothing about the scale
-    r = dm[ok] / dn[ok]
-    if r.numel() < MIN_ROWS // 2:
-        return None
-    return float(r.median())
+    p = robot.chain.fk(robot.joint_map.to_joint(q.detach().cpu()))[:, :3, 3]
+    return _median_ratio((xyz[1:] - xyz[:-1]).norm(dim=1), (p[1:] - p[:-1]).norm(dim=1))
 
 
 RADIAN_FIT = (0.8, 1.25)
@@ -211,16 +240,31 @@ def units_note(data, robot, rad: list[str], scales: tuple | None, override: str 
 
 def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=None) -> None:
     """Raise :class:`UnitsError` when the measured x, y, z spread ~1000x less (metres) or more than the nominal model's."""
-    s = point_scale(data, robot, tools_m)
-    if s is None or SCALE_BOUNDS[0] <= s <= SCALE_BOUNDS[1]:
+    s, scales = _scales(data, robot, tools_m)
+    if s is not None and SCALE_BOUNDS[0] <= s <= SCALE_BOUNDS[1]:
+        for t, st in scales.items():  # one tool's points in metres (a merged export) hide in the median of all
+            if not SCALE_BOUNDS[0] <= st <= SCALE_BOUNDS[1] and len(scales) > 1:
+                others = ", ".join(f"tool {u}: {v:.3g}" for u, v in scales.items() if u != t)
+                raise UnitsError(
+                    f"{path or data.source}: columns x, y, z of the rows of tool {t}: the distances between its "
+                    f"points are {st:.3g} times the nominal robot's ('{robot.name}'), the other tools' are {others}: "
+                    f"tool {t}'s look like {scale_guess(st)}, and the contract is mm; convert them, or pass "
+                    f"{OVERRIDE} (fit, fleet, sweep: data.units_checked=true) if they really are mm")
         return
-    guess = "metres" if s < 1 else "micrometres" if s > 300 else "another unit"
+    if s is None:
+        return
     raise UnitsError(
         f"{path or data.source}: columns x, y, z: the distances between the rows' points are {s:.3g} times the "
         f"nominal robot's ('{robot.name}'), i.e. off by a factor ~{(1 / s if s < 1 else s):.3g}: they look like "
-        f"{guess}, and the contract is mm; convert them, or pass {OVERRIDE} (fit, fleet, sweep: "
+        f"{scale_guess(s)}, and the contract is mm; convert them, or pass {OVERRIDE} (fit, fleet, sweep: "
         f"data.units_checked=true) if they really are mm")
 
 
+def scale_guess(s: float) -> str:
+    """The unit a measured / nominal distance ratio ``s`` suggests for points that should be mm."""
+    return "metres" if s < 1 else "micrometres" if s > 300 else "another unit"
+
+
 __all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "check_units", "degrees_confirmed",
-           "point_scale", "radian_columns", "radian_message", "radian_scales", "units_note"]
+           "path_scale", "point_scale", "radian_columns", "radian_message", "radian_scales", "scale_guess", "tool_scales",
+           "units_note"]

@@ -213,6 +213,28 @@ def test_transposed_sensor_rotations_are_named(tmp_path, fanuc):
     assert "t.csv" in str(err.value)
 
 
+def test_a_sensor_file_in_metres_is_refused_by_the_sensor_fit(tmp_path, fanuc):
+    """A 6-DOF probe's export in metres was fitted "to 0.013 mm" (the UR10's T-Mac data divided by 1000): the
+    sensor fit now checks the points' scale as the point fit does, with the same override."""
+    from torchcal.app.config import load_config
+    from torchcal.app.sensor import load_sensor_inputs
+    from torchcal.io.sensor_csv import write_pose_measurements
+    from torchcal.io.unit_checks import UnitsError
+
+    q, xyz, R = _sensor_rows(fanuc, n=30)
+    cfg = tmp_path / "sensor.yaml"
+    cfg.write_text("robot: fanuc_lrmate200i\ndata: {identification: poses.csv}\nsensor: {kind: pose}\n")
+    for name, scale in (("poses.csv", 1.0), ("poses_m.csv", 1e-3)):
+        data = Measurements.from_tensors(q, 0, xyz * scale, pose=torch.arange(len(q)))
+        data.extra["rotation"] = R
+        write_pose_measurements(tmp_path / name, data, fanuc)
+    assert len(load_sensor_inputs(load_config(cfg)).ident) == 30  # in mm: read
+    with pytest.raises(UnitsError, match="poses_m.csv: columns x, y, z.*metres"):
+        load_sensor_inputs(load_config(cfg, ["data.identification=" + str(tmp_path / "poses_m.csv")]))
+    over = load_config(cfg, ["data.identification=" + str(tmp_path / "poses_m.csv"), "data.units_checked=true"])
+    assert len(load_sensor_inputs(over).ident) == 30  # the override holds
+
+
 # ------------------------------------------------------------------------- 5. duplicate YAML keys
 def test_config_key_given_twice_is_refused(fitted, tmp_path):
     text = (fitted["sim"] / "fit.yaml").read_text()

@@ -97,6 +97,12 @@ def load_sensor_inputs(cfg) -> SensorInputs:
     with collect_warnings(notes):
         ident = read_sensor_set(cfg.data.identification, robot, device)
         val = read_sensor_set(cfg.data.validation, robot, device) if cfg.data.validation else None
+    if not cfg.data.units_checked:  # a T-Mac export in metres was fitted "to 0.013 mm" before this check
+        from ..io.unit_checks import check_units, units_note
+
+        for d in (ident, val):
+            if d is not None and (note := units_note(d, robot, *check_units(d, robot), "data.units_checked=true")):
+                notes.append(note)
     return SensorInputs(robot, ident, val, noise, joint_variance_source(cfg, robot), config_prior(cfg),
                         solver_options(cfg), device, label, notes)
 

@@ -129,7 +129,9 @@ class CompensationResult:
                            "a singular surface of the controller's kinematics)")
             elif st[i] == AT_BOUND:
                 out.append(f"needs more than the bound: stopped at the correction bound, {err_mm[i]:.3g} mm "
-                           "left (raise --max-correction-deg if no branch change is near)")
+                           "left (near a singular pose, e.g. a straight wrist, the exact solution turns joints far: "
+                           "compensate fewer degrees of freedom, --dof 5 or 3, or measure another pose; raise "
+                           "--max-correction-deg only if that move is acceptable and no branch change is near)")
             elif st[i] == SINGULAR:
                 out.append(f"singular: ended on a singular surface of the modeled robot, {err_mm[i]:.3g} mm left (the "
                            "edge of its reach on this branch, where the solver only creeps)")

@@ -79,6 +79,9 @@ def test_the_fleet_writes_its_report_self_contained(fleet_run):
     assert bad["status"] == "failed" and html.escape(bad["reason"], quote=True) in text  # escaped, not markup
     assert "<b>" not in text.split("Every unit")[1].split("</table>")[0]
     assert "for 2 unit(s): broken, unit09 (their validation columns stay empty)" in html.unescape(text)  # the warning
+    # the broken unit's warning keeps its second line, where the row and the column are (only its first was shown)
+    warned = text.split('class="warnings">')[1].split("</ul>")[0]
+    assert "broken.csv" in warned and "column &#x27;z&#x27;" in warned and "row 4" in warned
 
 
 def test_the_reports_numbers_are_the_runs(fleet_run):

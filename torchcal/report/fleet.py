@@ -18,7 +18,7 @@ import math
 import statistics
 from pathlib import Path
 
-from .html import esc, histogram_svg, kv, not_available, num, page, section, strip_svg, table
+from .html import esc, esc_lines, histogram_svg, kv, not_available, num, page, section, strip_svg, table
 from .model_sections import appendix
 from .rundata import Missing, _json, _text, _yaml, get, log_warnings
 
@@ -288,7 +288,7 @@ def _warnings(run: FleetFiles) -> str:
     found = [w for w in log_warnings(run.log) if not w.startswith("flagged: ")]  # the findings have their section
     if not found:
         return '<p class="ok">No warnings: the run raised none on the data or the config.</p>'
-    return '<ul class="warnings">' + "".join(f"<li>{esc(w)}</li>" for w in found) + "</ul>"
+    return '<ul class="warnings">' + "".join(f"<li>{esc_lines(w)}</li>" for w in found) + "</ul>"
 
 
 def _appendix(run: FleetFiles) -> str:

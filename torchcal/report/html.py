@@ -84,6 +84,11 @@ def esc(value) -> str:
     return html.escape("" if value is None else str(value), quote=True)
 
 
+def esc_lines(value) -> str:
+    """:func:`esc`, its line breaks kept (a data error names the row and the column on its second line)."""
+    return esc(value).replace("\n", "<br>")
+
+
 def num(value, digits: int = 4, unit: str = "", key: str | None = None) -> str:
     """A number as right-aligned cell content; ``key`` adds ``data-key`` / ``data-value`` (the exact value)."""
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
@@ -270,5 +275,5 @@ def page(title: str, header: str, sections: list[str], footer: str) -> str:
             f"{header}{''.join(sections)}<footer>{footer}</footer></main></body></html>\n")
 
 
-__all__ = ["CSS", "MAX_IMAGE_BYTES", "esc", "histogram_svg", "image", "kv", "not_available", "num", "page", "section",
+__all__ = ["CSS", "MAX_IMAGE_BYTES", "esc", "esc_lines", "histogram_svg", "image", "kv", "not_available", "num", "page", "section",
            "strip_svg", "table"]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -219,15 +220,26 @@ def get(obj, *keys, default=None):
     return default if isinstance(obj, Missing) else obj
 
 
+_RECORD = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d (DEBUG|INFO|WARNING|ERROR|CRITICAL) (.*)$")
+"""A record's first line in run.log (torchcal.io.rundir.run_log's format); other lines continue the record above."""
+
+
 def log_warnings(log) -> list[str]:
-    """The WARNING / ERROR lines of run.log (their message part), in order."""
+    """The WARNING / ERROR records of run.log (their message part, continuation lines included: a data error's
+    row and column are on its second line), in order."""
     if isinstance(log, Missing):
         return []
-    out = []
+    out: list[str] = []
+    inside = False  # the line above belongs to a warning record
     for line in log.splitlines():
-        parts = line.split(" ", 3)
-        if len(parts) == 4 and parts[2] in ("WARNING", "ERROR", "CRITICAL"):
-            out.append(f"{parts[2].lower()}: {parts[3]}" if parts[2] != "WARNING" else parts[3])
+        m = _RECORD.match(line)
+        if m is None:
+            if inside:
+                out[-1] += "\n" + line
+            continue
+        inside = m.group(1) in ("WARNING", "ERROR", "CRITICAL")
+        if inside:
+            out.append(m.group(2) if m.group(1) == "WARNING" else f"{m.group(1).lower()}: {m.group(2)}")
     return out
 
 

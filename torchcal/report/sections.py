@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .html import esc, histogram_svg, image, kv, not_available, num, table
+from .html import esc, esc_lines, histogram_svg, image, kv, not_available, num, table
 from .rundata import Missing, RunFiles, get, log_warnings
 
 STAT_KEYS = ("mean", "max", "gamma99")
@@ -217,7 +217,7 @@ def data_checks(run: RunFiles) -> str:
     out = []
     warnings = _all_warnings(run)
     if warnings:
-        out.append('<ul class="warnings">' + "".join(f"<li>{esc(w)}</li>" for w in warnings) + "</ul>")
+        out.append('<ul class="warnings">' + "".join(f"<li>{esc_lines(w)}</li>" for w in warnings) + "</ul>")
     elif isinstance(run.metrics, Missing):  # the run's warnings live there: their absence says nothing
         out.append(not_available("warnings", f"{run.metrics.reason}; run.log names none"))
     elif not isinstance(run.log, Missing) or not isinstance(run.metrics, Missing):

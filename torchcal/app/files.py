@@ -278,7 +278,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     input row is kept, in order, other columns too. Raises RunDirError /
     DataError naming the folder or file.
     """
-    from ..compensate import compensate
+    from ..compensate import compensate, row_tool_points
     from ..io.csv import joint_columns, joints_to_file, write_table
     from ..io.rundir import load_model
 
@@ -324,9 +324,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         # each row's identified tool point is the one compensated (on the free axis); without a tool column the
         # free axis passes through the flange origin, the position-only point is tool 0
         if "tool" in df.columns or free_tool_axis is None:
-            tools = _with_run_tools(model, input, df, data).tool
-            with torch.no_grad():
-                opts["tool_point"] = model.tools().to(model.device, model.dtype)[tools.to(model.device)]
+            opts["tool_point"] = row_tool_points(model, _with_run_tools(model, input, df, data).tool)
     with progress_task(f"compensating {len(df)} commands"):
         res = compensate(model, data.q, data.direction if data.has_direction else None, **opts)
     q_file = joints_to_file(res.q, robot)

@@ -235,13 +235,12 @@ def compensation_check(model, truth, data: Measurements, noise: NoiseModel | Non
     (R,) m residual of the measurements at the compensated commands against
     :func:`compensation_targets`, 'measured': Measurements at the compensated commands}.
     """
-    from ..compensate import compensate
+    from ..compensate import compensate, row_tool_points
     from ..sim import simulate
 
     direction = data.direction if data.has_direction else None
     if (options.get("position_only") or options.get("free_tool_axis") is not None) and "tool_point" not in options:
-        with torch.no_grad():  # 3- / 5-DOF: each row's identified tool point is the one restored
-            options = dict(options, tool_point=model.tools().detach()[data.tool.to(model.device)])
+        options = dict(options, tool_point=row_tool_points(model, data.tool))  # 3- / 5-DOF: the row's tool point
     res = compensate(model, data.q, direction, **options)
     q_comp = res.q.detach()
     xyz = torch.empty_like(data.xyz)

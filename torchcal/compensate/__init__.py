@@ -38,7 +38,7 @@ from .tables import (
     apply_tables,
     compensation_tables,
 )
-from .toolset import compensation_goal, observed_dof, tool_poses, tool_set_frame
+from .toolset import compensation_goal, observed_dof, row_tool_points, tool_poses, tool_set_frame
 
 __all__ = [
     "DEFAULT_BOUND",
@@ -62,6 +62,7 @@ __all__ = [
     "fixed_jacobian_iterations",
     "nominal_sigma_min",
     "observed_dof",
+    "row_tool_points",
     "tool_poses",
     "tool_set_frame",
     "per_joint_bound",

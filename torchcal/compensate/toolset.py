@@ -103,6 +103,13 @@ def observed_dof(model) -> tuple[int, torch.Tensor | None]:
     return 5, Vh[0].to(tools().dtype)
 
 
+def row_tool_points(model, tool: torch.Tensor) -> torch.Tensor:
+    """(R,) tool indices -> (R, 3) each row's identified tool point (flange frame, m, detached): the point 3- and
+    5-DOF compensation restore (``compensate(..., tool_point=)``)."""
+    with torch.no_grad():
+        return model.tools().detach().to(model.device, model.dtype)[tool.to(model.device)]
+
+
 def inverse(G: torch.Tensor) -> torch.Tensor:
     """The inverse (4, 4) of a rigid motion G (4, 4)."""
     out = torch.eye(4, dtype=G.dtype, device=G.device)
@@ -143,5 +150,5 @@ def tool_poses(model, q: torch.Tensor, tool: torch.Tensor, direction: torch.Tens
         return out
 
 
-__all__ = ["LINE_TOL", "compensation_goal", "in_tool_set", "tool_poses", "inverse", "model_tool_set_frame", "observed_dof",
+__all__ = ["LINE_TOL", "compensation_goal", "in_tool_set", "tool_poses", "inverse", "model_tool_set_frame", "observed_dof", "row_tool_points",
            "tool_set_frame"]

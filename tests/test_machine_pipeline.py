@@ -67,3 +67,23 @@ def test_constrained_machine_run_meets_its_bound_and_exports_tables(machine_file
 def test_export_tables_refuses_a_robot_run(machine_files, tmp_path):
     r = CliRunner().invoke(app, ["export-tables", str(tmp_path), str(tmp_path / "t.csv")])
     assert r.exit_code == 2 and "no model here" in r.output
+
+
+@pytest.mark.parametrize("call", [2, 3])
+def test_an_interrupted_constraint_sweep_keeps_the_bounds_it_fitted(machine_files, monkeypatch, call):
+    """Ctrl-C in the c: auto run's second fit (the sweep's first bound) or third (here the final fit: the sweep
+    stops past the knee at 0.4 mm): the run ends interrupted, and constraint.json holds the bounds fitted by then
+    with their residuals."""
+    import torchcal.identify.constrained as constrained
+    from conftest import ctrl_c_on_call
+
+    ctrl_c_on_call(monkeypatch, constrained, "fit_constrained", call=call)
+    out = machine_files / f"cut{call}"
+    with pytest.raises(KeyboardInterrupt):
+        run_fit(_config(machine_files, constraint={"c": "auto", "points": 64, "check_points": 64,
+                                                   "sweep": [0.4, 0.2, 0.1]}, out=str(out)))
+    summary = json.loads((out / "constraint.json").read_text())
+    assert summary["interrupted"] is True and summary["mode"] == "auto"
+    assert [r["c_mm"] for r in summary["sweep"]] == [None, pytest.approx(0.4)][:call - 1]  # inf is written as null
+    assert all(r["sub_mean_mm"] > 0 for r in summary["sweep"])
+    assert (out / "PARTIAL").exists()

@@ -92,11 +92,21 @@ def identify_constrained(cfg, inp, make, orders, run_dir: Path, progress, files:
         axes = border_axes(cfg, inp.robot, data)
         names = [inp.robot.joint_map.names[a] for a in axes]
         c_values = None if c_cfg.sweep is None else [units.mm_to_m(float(v)) for v in c_cfg.sweep]
-        with progress.step(f"choosing c: BORDER in ({', '.join(names)}) space, k = {c_cfg.border_k}, "
-                           f"{c_cfg.border_n} poses; constraint sweep"):
-            auto = auto_constraint(lambda: make(orders), data, border_axes=axes, border_k=int(c_cfg.border_k),
-                                   border_n=int(c_cfg.border_n), c_values=c_values,
-                                   tol_mm=float(c_cfg.knee_tol_mm), noise=inp.noise, prior=inp.prior, **common)
+        try:
+            with progress.step(f"choosing c: BORDER in ({', '.join(names)}) space, k = {c_cfg.border_k}, "
+                               f"{c_cfg.border_n} poses; constraint sweep"):
+                auto = auto_constraint(lambda: make(orders), data, border_axes=axes, border_k=int(c_cfg.border_k),
+                                       border_n=int(c_cfg.border_n), c_values=c_values,
+                                       tol_mm=float(c_cfg.knee_tol_mm), noise=inp.noise, prior=inp.prior, **common)
+        except KeyboardInterrupt as exc:  # the bounds fitted by then are minutes of work: written down, not lost
+            part = getattr(exc, "sweep", None)
+            if part is not None:
+                summary.update(mode="auto", interrupted=True, border_axes=names, sweep=part.table(),
+                               knee_tol_mm=float(c_cfg.knee_tol_mm))
+                files["constraint"] = write_json(run_dir / "constraint.json", summary)
+                progress.warn(f"interrupted: the constraint sweep's {len(part.c)} bound(s) fitted by then are in "
+                              f"{files['constraint']}; constraint.c=VALUE fits one bound without the sweep")
+            raise
         model, res = auto.model, auto.result
         summary.update(mode="auto", border_axes=names, boundary_rows=int(auto.boundary_index.sum()),
                        sweep=auto.sweep.table(), knee_tol_mm=float(c_cfg.knee_tol_mm))

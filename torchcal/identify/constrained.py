@@ -993,51 +993,58 @@ def constraint_sweep(make_model, data: Measurements, boundary_index, c_values=No
         states.append(({k: t.detach().clone() for k, t in model.state_dict().items()}, res.penalty_points))
 
     seed = int(options.pop("seed", 0))
-    with progress.task("constraint sweep", total=None if c_values is None else len(c_values) + 1) as task:
-        t = time.perf_counter()
-        res = fit_constrained(model, sub, math.inf, noise, prior, seed=seed, **options)
-        record(math.inf, res, time.perf_counter() - t)
-        if c_values is None:
-            top = res.max_slope_check
-            c_values = [top * span ** (-(k + 1) / n_values) for k in range(n_values)]
-            task.set_total(len(c_values) + 1)
-        task.advance(note="c = inf (unconstrained)")
-        # each c starts from the previous c's parameters and penalty points (they include the fresh points that
-        # failed a check there); each gets its own fresh check points (seed)
-        carry = dict(options)
-        give_up = None
-        if stop_tol_mm is not None:
-            # a c whose sub-identification mean already rose past the knee test's tolerance is past the knee: its
-            # fresh-point refinements (the costliest part of the sweep's slowest fit) could only raise it further
-            limit = rows["sub_mean"][0] + (stop_tol_mm / 2 if stop_mean_tol_mm is None else stop_mean_tol_mm) * 1e-3
-
-            def give_up(m):
-                return _stats(m, sub)[0] > limit
-        for k, cv in enumerate(sorted((float(c) for c in c_values), reverse=True)):
+    try:
+        with progress.task("constraint sweep", total=None if c_values is None else len(c_values) + 1) as task:
             t = time.perf_counter()
-            try:
-                res = fit_constrained(model, sub, cv, noise, prior, seed=seed + 1000 * (k + 1), give_up=give_up, **carry)
-            except ConstraintError as exc:
-                res = exc.result
-                log.warning("constraint sweep: c = %.4g mm: %s", cv * 1e3, exc)
-            if res is None:
-                raise ConstraintError(f"constraint sweep: c = {cv * 1e3:.4g} mm: no fit at all", None)
-            record(cv, res, time.perf_counter() - t)
-            task.advance(note=f"c = {cv * 1e3:.4g} mm: boundary max {rows['boundary_max'][-1] * 1e3:.4f} mm, "
-                              f"sub-identification mean {rows['sub_mean'][-1] * 1e3:.4f} mm")
-            if res.penalty_points is not None and not isinstance(options.get("points"), torch.Tensor):
-                carry["points"] = res.penalty_points
-            if stop_tol_mm is not None and res.success:
-                tt = lambda k: torch.tensor(rows[k], dtype=torch.float64)  # noqa: E731
-                part = SweepResult(tt("c"), tt("sub_mean"), tt("sub_max"), tt("boundary_mean"), tt("boundary_max"),
-                                   tt("max_slope"), rows["success"], rows["time"], states)
-                if pick_knee(part, stop_tol_mm, stop_mean_tol_mm) > cv:
-                    log.info("constraint sweep: c = %.4g mm is past the knee; smaller c values skipped", cv * 1e3)
-                    task.set_total(task.completed)  # done: the rest cannot be the knee
-                    break
+            res = fit_constrained(model, sub, math.inf, noise, prior, seed=seed, **options)
+            record(math.inf, res, time.perf_counter() - t)
+            if c_values is None:
+                top = res.max_slope_check
+                c_values = [top * span ** (-(k + 1) / n_values) for k in range(n_values)]
+                task.set_total(len(c_values) + 1)
+            task.advance(note="c = inf (unconstrained)")
+            # each c starts from the previous c's parameters and penalty points (they include the fresh points that
+            # failed a check there); each gets its own fresh check points (seed)
+            carry = dict(options)
+            give_up = None
+            if stop_tol_mm is not None:
+                # a c whose sub-identification mean already rose past the knee test's tolerance is past the knee: its
+                # fresh-point refinements (the costliest part of the sweep's slowest fit) could only raise it further
+                limit = rows["sub_mean"][0] + (stop_tol_mm / 2 if stop_mean_tol_mm is None else stop_mean_tol_mm) * 1e-3
+
+                def give_up(m):
+                    return _stats(m, sub)[0] > limit
+            for k, cv in enumerate(sorted((float(c) for c in c_values), reverse=True)):
+                t = time.perf_counter()
+                try:
+                    res = fit_constrained(model, sub, cv, noise, prior, seed=seed + 1000 * (k + 1), give_up=give_up, **carry)
+                except ConstraintError as exc:
+                    res = exc.result
+                    log.warning("constraint sweep: c = %.4g mm: %s", cv * 1e3, exc)
+                if res is None:
+                    raise ConstraintError(f"constraint sweep: c = {cv * 1e3:.4g} mm: no fit at all", None)
+                record(cv, res, time.perf_counter() - t)
+                task.advance(note=f"c = {cv * 1e3:.4g} mm: boundary max {rows['boundary_max'][-1] * 1e3:.4f} mm, "
+                                  f"sub-identification mean {rows['sub_mean'][-1] * 1e3:.4f} mm")
+                if res.penalty_points is not None and not isinstance(options.get("points"), torch.Tensor):
+                    carry["points"] = res.penalty_points
+                if stop_tol_mm is not None and res.success:
+                    if pick_knee(_sweep_result(rows, states), stop_tol_mm, stop_mean_tol_mm) > cv:
+                        log.info("constraint sweep: c = %.4g mm is past the knee; smaller c values skipped", cv * 1e3)
+                        task.set_total(task.completed)  # done: the rest cannot be the knee
+                        break
+    except KeyboardInterrupt as exc:  # Ctrl-C: the bounds fitted by then go with it (the caller writes them down)
+        if rows["c"]:
+            exc.sweep = _sweep_result(rows, states)
+        raise
+    return _sweep_result(rows, states)
+
+
+def _sweep_result(rows: dict, states: list) -> SweepResult:
+    """The sweep's rows so far as a :class:`SweepResult`."""
     tt = lambda k: torch.tensor(rows[k], dtype=torch.float64)  # noqa: E731
     return SweepResult(tt("c"), tt("sub_mean"), tt("sub_max"), tt("boundary_mean"), tt("boundary_max"), tt("max_slope"),
-                       rows["success"], rows["time"], states)
+                       rows["success"], rows["time"], list(states))
 
 
 def pick_knee(sweep: SweepResult, tol_mm: float = 0.01, mean_tol_mm: float | None = None) -> float:
@@ -1150,5 +1157,9 @@ def auto_constraint(make_model, data: Measurements, boundary_index=None, border_
         model.load_state_dict(state)
         if points is not None and not isinstance(options.get("points"), torch.Tensor):
             options = {**options, "points": points}
-    result = fit_constrained(model, data, c, noise, prior, **options)
+    try:
+        result = fit_constrained(model, data, c, noise, prior, **options)
+    except KeyboardInterrupt as exc:  # the whole sweep is done: it goes with the interrupt (constraint_sweep's)
+        exc.sweep = sweep
+        raise
     return AutoConstraintResult(c, sweep, result, mask, model)

@@ -260,3 +260,16 @@ def test_an_update_into_a_taken_out_says_where_it_went(runs, tmp_path):
     assert r1.exit_code == 0 and r2.exit_code == 0, r1.output + r2.output
     assert f"{tmp_path / 'u'} holds a run already" in (tmp_path / "u-2" / "run.log").read_text()
     assert "holds a run already" not in (tmp_path / "u" / "run.log").read_text()
+
+
+def test_sensor_run_update_refuses_positions_in_metres(sensor_runs):
+    """The sensor update checks the new rows' units as the sensor fit does (its positions at the flange)."""
+    import pandas as pd
+
+    root = sensor_runs["root"]
+    df = pd.read_csv(root / "new.csv")
+    df[["x", "y", "z"]] = df[["x", "y", "z"]] / 1000.0
+    df.to_csv(root / "new_m.csv", index=False)
+    r = invoke("update", root / "run", root / "new_m.csv", "--out", root / "run_m", "-q")
+    assert r.exit_code == 2 and "new_m.csv: columns x, y, z" in r.output and "metres" in r.output, r.output
+    assert not (root / "run_m").exists()  # refused before anything was written

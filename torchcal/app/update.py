@@ -380,11 +380,13 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
         noise = _noise_prior_options(cfg, model)[0]
         new, instrument = read_update_data(cfg, model, new_path, noise, progress)  # a bad file fails before anything is written
         new = new.to(dev)
-        if instrument is None and not units_checked:  # point rows; a sensor's poses are checked by their reader
+        if not units_checked:
             from ..io.unit_checks import check_units, units_note
 
-            # the fit's unit-slip checks, named as such rather than as the 'misses by 600 mm' of another robot
-            note = units_note(new, model.robot, *check_units(new, model.robot, model.tools().detach().cpu(), new_path))
+            # the fit's unit-slip checks, named as such rather than as the 'misses by 600 mm' of another robot; a
+            # sensor's positions are judged at the flange, as its fit judges them
+            tools = model.tools().detach().cpu() if instrument is None else None
+            note = units_note(new, model.robot, *check_units(new, model.robot, tools, new_path))
             if note:
                 progress.warn(note)
         before = _check_new_data(cfg, model, new, new_path)

@@ -149,6 +149,8 @@ class RobotStructure:
 
         if not isinstance(model, RobotModel) or model.compliance is not None or model.fine is not None:
             return False
+        if model.extended():  # a subclass's own terms: this path's closed-form columns would leave them out
+            return False
         if model.backlash_on != "joint":  # its backlash columns are the joint axis's (Paper II (13))
             return False
         if not isinstance(instrument, PointTargets) or getattr(instrument.weight, "sigma", None) is None:

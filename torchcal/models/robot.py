@@ -56,6 +56,14 @@ def joint_series(je: JointErrors, u: torch.Tensor):
     return basis, dbasis, e, de, K, Kb
 
 
+FLANGE_METHODS = ("_variables", "joint_variables", "flange", "_parts", "flange_jacobian", "point_jacobians")
+"""RobotModel methods the flange and its Jacobians come from: a subclass overriding one is evaluated live by the
+fast backends (:meth:`RobotModel.extended`)."""
+
+OWN_MODULES = frozenset({"joint_errors", "base", "tools", "compliance", "fine"})
+"""The submodules a RobotModel has; another one (an error module a subclass adds) makes it :meth:`extended`."""
+
+
 class RobotModel(ChainBuffers, nn.Module):
     """Paper II's generalized kinematic error model (19)-(27) for one robot.
 
@@ -210,7 +218,17 @@ class RobotModel(ChainBuffers, nn.Module):
                 prismatic=self.prismatic.detach().clone(), tip=self.tip.detach().clone(),
                 base=self.base.correction().detach().clone(),
                 live=self if (self.compliance is not None or self.fine is not None
-                              or self.backlash_on == "command") else None)
+                              or self.backlash_on == "command" or self.extended()) else None)
+
+    def extended(self) -> bool:
+        """Whether this is a subclass that changes how the flange is computed (a method of :data:`FLANGE_METHODS`
+        overridden, or an ``nn.Module`` of its own beside :data:`OWN_MODULES`): the frozen snapshot would leave
+        its terms out (compensation converged 0.6 mm off a researcher's cross-coupling term), so the fast
+        backends evaluate such a model live."""
+        cls = type(self)
+        return (any(getattr(cls, m) is not getattr(RobotModel, m) for m in FLANGE_METHODS)
+                or any(name not in OWN_MODULES for name, _ in self.named_children()))
+
     def tool_points(self, flange: torch.Tensor, tool: torch.Tensor) -> torch.Tensor:
         """Tool positions (B, 3) for flange poses (B, 4, 4) and tool indices (B,)."""
         p_t = self.tools()[tool]

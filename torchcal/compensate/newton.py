@@ -47,6 +47,8 @@ figure can be checked against ``RobotModel.flange`` directly.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ..core.exceptions import InputError
@@ -259,7 +261,9 @@ def fixed_jacobian_iterations(
     return {"q": q_out, "de": de_out, "step": step_out, "iterations": it_out, "ok": ok_out, "far": far_out}
 
 
-def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
+def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None, given: bool = True):
+    """compensate()'s arguments; given: q_nom is the caller's (not an IK solution of compensate_targets, which may
+    wander off the range where a target is out of reach): judged for degrees too."""
     require(model, "compensate commands", "compensate")  # the model contract (torchcal.core.contract)
     if not isinstance(q_nom, torch.Tensor) or q_nom.ndim != 2 or q_nom.shape[1] != model.n:
         shape = tuple(q_nom.shape) if isinstance(q_nom, torch.Tensor) else type(q_nom).__name__
@@ -268,6 +272,11 @@ def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
         raise InputError(f"compensate: q_nom is on {q_nom.device}, the model on {model.device}; move one of them")
     if not q_nom.is_floating_point():
         raise TypeError(f"compensate: q_nom must be floating point (rad / m), got {q_nom.dtype}")
+    if q_nom.dtype != model.dtype:  # a float32 model given float64 commands ended 'out of reach' on 98 % of rows
+        raise InputError(f"compensate: q_nom is {q_nom.dtype}, the model {model.dtype}: convert one of them "
+                         f"(q_nom.to({model.dtype}) or model.to({q_nom.dtype}))")
+    if given:
+        check_radians(model, q_nom, "compensate: q_nom")
     bad = ~torch.isfinite(q_nom)
     if bad.any():
         i, j = (int(x) for x in bad.nonzero()[0])
@@ -281,6 +290,25 @@ def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None):
         if bad is not None:
             i, j = bad
             raise InputError(f"compensate: direction must be -1, 0 or +1, got {float(direction[i, j])} at pose {i}, joint {j + 1}")
+
+
+def check_radians(model, q: torch.Tensor, what: str) -> None:
+    """Commands in degrees given to the Python API (it takes radians) reach hundreds of 'radians': every row then
+    fails. Refused, naming the joint, where a revolute joint's command lies beyond 2 pi and twice its range's
+    largest magnitude (no controller's command; a wide J6 range stays valid)."""
+    robot = getattr(model, "robot", None)
+    jm = getattr(robot, "joint_map", None)
+    if jm is None or q.numel() == 0:
+        return
+    lim = jm.limits.to(q)
+    reach = torch.maximum(lim[:, 0].abs(), lim[:, 1].abs())
+    peak = q.abs().amax(0)
+    far = (~jm.prismatic.to(q.device)) & (peak > 2 * math.pi) & (peak > 2 * reach)
+    if bool(far.any()):
+        j = int(far.nonzero()[0, 0])
+        raise InputError(f"{what} reaches {float(peak[j]):.4g} rad on joint {j + 1}, far outside its range "
+                         f"[{float(lim[j, 0]):.4g}, {float(lim[j, 1]):.4g}] rad: degrees? The Python API takes radians "
+                         "(torch.deg2rad(q)); files and the CLI take degrees")
 
 
 def nominal_sigma_min(model, q: torch.Tensor, length: float = 1.0) -> torch.Tensor:
@@ -556,7 +584,7 @@ def _solve(model, q_nom, direction, tol, max_iter, damping, chunk_size, max_damp
            free_tool_axis, tool_point, position_only=False, target=None, g_inv=None):
     """:func:`compensate`'s work, on the calling thread count; g_inv: (4, 4) the inverse of the tool-set frame
     taken on the right of every goal, or None."""
-    _check_inputs(model, q_nom, direction)
+    _check_inputs(model, q_nom, direction, given=target is None)
     if target is not None and (target.shape != (q_nom.shape[0], 4, 4) or target.device != q_nom.device):
         raise InputError(f"compensate: target must be ({q_nom.shape[0]}, 4, 4) poses on {q_nom.device}, "
                          f"got {tuple(target.shape)} on {target.device}")

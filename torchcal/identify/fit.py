@@ -159,6 +159,12 @@ def fit(
     """
     if method not in SOLVERS:
         raise ValueError(f"unknown solver '{method}', choose from {sorted(SOLVERS)}")
+    dtype = getattr(model, "dtype", torch.float64)
+    if dtype != torch.float64:  # said here: the commands' dtype message below would name a q the user never gave
+        from ..core.exceptions import InputError
+
+        raise InputError(f"fit: the model is {dtype}; identification runs in float64 (model.to(torch.float64)); a "
+                         "fitted model may be moved to float32 afterwards for prediction and compensation")
     state = _FRAME.get()
     if instrument is None and not (state is not None and state["said"]):
         if _warn_far_frame(model, data) and state is not None:

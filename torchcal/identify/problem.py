@@ -246,6 +246,10 @@ class CalibrationProblem:
             instrument = default_instrument(data, noise)
         if len(instrument) != len(data):
             raise ValueError(f"{data.source}: the instrument has {len(instrument)} rows, the data {len(data)}")
+        if own := instrument.own_parameters():  # an instrument's station or scale left unestimated, silently
+            log.warning("the instrument %s holds parameters (%s) that the fit does not estimate: it estimates the "
+                        "model's only (put them on the model, e.g. as its measurement frame, or fix them)",
+                        type(instrument).__name__, ", ".join(own))
         self.instrument = instrument.to(device)
         self.observed = self.instrument.observed
         self.blocks = list(blocks)

@@ -11,6 +11,7 @@ autograd (:func:`row_jacobians`, torch.func, vmapped over rows).
 
 from __future__ import annotations
 
+import copy
 from typing import Callable
 
 import torch
@@ -61,12 +62,40 @@ class Instrument:
         return self.weight.sqrt_info(len(self), self.dim, self.observed)
 
     def subset(self, index) -> "Instrument":
-        """The same instrument on the rows ``index`` (bool mask or indices)."""
-        raise NotImplementedError
+        """The same instrument on the rows ``index`` (bool mask or indices).
+
+        Default: a shallow copy whose tensors with one entry per row (first dimension R) are indexed, its
+        weight's too: enough for an instrument holding its observations and per-row data. Override it where the
+        instrument holds another tensor that happens to have R rows (station positions of a 4-row test)."""
+        R = len(self)
+        out = copy.copy(self)
+        for k, v in vars(self).items():
+            if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == R:
+                setattr(out, k, v[index])
+        if self.weight is not None and hasattr(self.weight, "subset"):
+            out.weight = self.weight.subset(index)
+        return out
 
     def to(self, device) -> "Instrument":
-        """On another device (observations; the weight follows the tensors it is applied to)."""
-        raise NotImplementedError
+        """On another device: a shallow copy with every tensor attribute (and the weight's) moved."""
+        out = copy.copy(self)
+        for k, v in vars(self).items():
+            if isinstance(v, torch.Tensor):
+                setattr(out, k, v.to(device))
+        if self.weight is not None:
+            out.weight = copy.copy(self.weight)
+            for k, v in vars(self.weight).items():
+                if isinstance(v, torch.Tensor):
+                    setattr(out.weight, k, v.to(device))
+        return out
+
+    def own_parameters(self) -> list[str]:
+        """Names of tensors this instrument holds that ask for gradients (an ``nn.Parameter`` among them): the fit
+        estimates the model's parameters only, so these stay where they are (the fit warns)."""
+        found = [k for k, v in vars(self).items() if isinstance(v, torch.Tensor) and v.requires_grad]
+        if isinstance(self, torch.nn.Module):
+            found += [k for k, _ in self.named_parameters()]
+        return sorted(set(found))
 
 
 def concat(instruments) -> Instrument:

@@ -67,3 +67,21 @@ def test_compensation_and_compiled_residuals_see_a_subclass_term(fanuc, tools_m,
     compiled = point_residuals(model, data, compiled=True)
     plain = point_residuals(model, data, compiled=False)
     assert float((compiled - plain).abs().max()) < 1e-12
+
+
+def test_a_saved_subclass_says_how_to_load_it(fanuc, tools_m, tmp_path):
+    """load_model cannot know a researcher's class: it says so (it raised torch's state-dict error), and the
+    documented way back gives the same model."""
+    from torchcal.io.rundir import RunDirError, load_model, save_model
+
+    model = CrossModel(fanuc, tools_m, orders=2)
+    randomize(model, 4)
+    save_model(tmp_path, model)
+    with pytest.raises(RunDirError, match=r"model.pt: the saved parameters do not fit a RobotModel \(it has no "
+                                          r"cross.coef: saved from a subclass\?"):
+        load_model(tmp_path)
+    again = CrossModel(fanuc, tools_m, orders=2)
+    again.load_state_dict(torch.load(tmp_path / "model.pt", weights_only=True)["state_dict"])
+    q = random_commands(fanuc, 10, 1)
+    with torch.no_grad():
+        assert torch.equal(again.flange(q), model.flange(q))

@@ -139,8 +139,10 @@ class ParameterLayout:
         for (name, p, m), idx in zip(self.entries, self._flat_index()):
             if name not in J:
                 # a group without a closed-form Jacobian must not be treated as one that does not move the points
-                raise KeyError(f"no Jacobian for free parameter group '{name}' (point_jacobians returned {sorted(J)}); "
-                               f"fix it or hold it fixed")
+                raise KeyError(f"no Jacobian for free parameter group '{name}' (point_jacobians returned {sorted(J)}): "
+                               "the batched solvers (fit_batch, fleets) take closed-form Jacobians only; fit each "
+                               "model with torchcal.fit (it falls back to autograd), give point_jacobians the group, "
+                               "or hold it fixed")
             g = J[name]
             B, c = g.shape[:2]
             g = g.reshape(B, c, -1)

@@ -301,7 +301,14 @@ def load_model(run_dir, device=None, robot=None):
     if blob.get("format_version", 0) > MODEL_FORMAT_VERSION:
         raise RunDirError(f"{path}: written by a newer torchcal (format {blob['format_version']}); upgrade torchcal")
     model = model_class(blob["spec"], path).from_spec(blob["spec"], robot)
-    model.load_state_dict(blob["state_dict"])
+    try:
+        model.load_state_dict(blob["state_dict"])
+    except RuntimeError as exc:  # e.g. a subclass's own error module: its parameters have no place here
+        extra = sorted(set(blob["state_dict"]) - set(model.state_dict()))
+        raise RunDirError(f"{path}: the saved parameters do not fit a {type(model).__name__} ("
+                          + (f"it has no {', '.join(extra[:4])}: saved from a subclass? Rebuild that class and load "
+                             f"torch.load(path)['state_dict'] into it" if extra else str(exc).splitlines()[0])
+                          + ")") from None
     return model.to(device) if device is not None else model
 
 

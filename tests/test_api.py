@@ -187,3 +187,14 @@ def test_wrong_inputs_to_the_python_api_are_named_torchcal_errors():
                                               xyz=torch.zeros(4, 3, dtype=torch.float64))
     with pytest.raises(torchcal.TorchcalError, match="fixed: 'tool' names no parameter group.*tools"):
         torchcal.fit(model, data, fixed=("tool",))
+
+
+def test_measurements_repr_is_a_summary():
+    """A notebook's repr of 100 000 rows is one line, not every tensor."""
+    import torch
+
+    m = torchcal.Measurements.from_tensors(torch.zeros(100000, 6), tool=torch.arange(100000) % 3,
+                                           direction=torch.ones(100000, 6), source="ident.csv")
+    text = repr(m)
+    assert text == ("Measurements(100000 rows, 100000 poses, 6 joints, tools [0, 1, 2], directions yes, torch.float64, "
+                    "cpu, source 'ident.csv')")

@@ -3,13 +3,13 @@
 The main API at the top level (imported on first use, so ``import torchcal``
 stays light: torch loads when a function needs it)::
 
-    import torchcal
+    import torchcal  # before torch: its OpenMP threads then sleep rather than spin (torchcal.core.threads)
 
     robot = torchcal.load_robot("fanuc_lrmate200i")                # bundled, a joint-map YAML or a URDF
     data = torchcal.read_measurements("ident.csv", robot, n_tools=3)  # CSV contract (mm, deg) -> SI
     model = torchcal.RobotModel(robot, tools_m, orders=6, backlash=True)
-    result = torchcal.fit(model, data, torchcal.NoiseModel.paper2())  # maximum likelihood, in place
-    q_new = torchcal.compensate(model, q, direction).q                # compensated commands
+    result = torchcal.fit(model, data)  # maximum likelihood, in place; noise: the robot's own repeatability
+    q_new = torchcal.compensate(model, q, direction).q                # compensated commands (rad)
 
 Config-driven runs: ``torchcal.run_fit(torchcal.load_config("fit.yaml"))``
 (what ``torchcal fit`` does). Every error torchcal raises on purpose (bad data,
@@ -116,7 +116,9 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return sorted(set(globals()) | set(__all__))
+    # the public names and the subpackages loaded so far, not this module's own imports (sys, types, ...)
+    return sorted(set(__all__) | {k for k, v in globals().items() if isinstance(v, types.ModuleType)
+                                  and not k.startswith("_") and k not in ("sys", "types")})
 
 
 class _CallableModule(types.ModuleType):

@@ -50,6 +50,14 @@ class Measurements:
     def __len__(self) -> int:
         return self.q.shape[0]
 
+    def __repr__(self) -> str:
+        # a summary: the dataclass's repr printed every tensor in full (thousands of rows in a notebook)
+        tools = sorted(torch.unique(self.tool).tolist()) if len(self) else []
+        return (f"Measurements({len(self)} rows, {self.n_poses if len(self) else 0} poses, {self.n_joints} joints, "
+                f"tools {tools}, directions {'yes' if self.has_direction else 'no'}, {self.q.dtype}, {self.q.device}"
+                + (f", source {self.source!r}" if self.source else "")
+                + (f", extra {sorted(self.extra)}" if self.extra else "") + ")")
+
     @property
     def n_joints(self) -> int:
         return self.q.shape[1]

@@ -102,11 +102,11 @@ def test_compile_builds_a_family_into_an_empty_cache_in_a_worker_process(tmp_pat
 
 
 def test_unknown_families_are_refused_by_name():
-    with pytest.raises(ValueError, match="bogus.*known: targets, fleet, damped, flange"):
+    with pytest.raises(ValueError, match="bogus.*known: targets, position, fleet, damped, flange"):
         compile_kernels(["fleet", "bogus"])
     res = CliRunner().invoke(app, ["compile", "--only", "fleet,bogus"])
     assert res.exit_code == 2
-    assert "unknown kernel families bogus" in res.output and "known: targets, fleet, damped, flange" in res.output
+    assert "unknown kernel families bogus" in res.output and "known: targets, position, fleet, damped, flange" in res.output
     res = CliRunner().invoke(app, ["compile", "--jobs", "0"])
     assert res.exit_code == 2 and "--jobs 0" in res.output
 

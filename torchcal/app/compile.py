@@ -20,10 +20,10 @@ from multiprocessing import get_context
 
 from ..core.compiled import FAMILIES, cold, quiet
 
-ORDER = ("targets", "fleet", "damped", "flange")
+ORDER = ("targets", "position", "fleet", "damped", "flange")
 """Families in the order they start, the longest compile first (stop 28: targets 140 s, fleet 43 s, damped 35 s,
-flange 15 s on one core): on two processes the targets pass compiles on one while the other three follow each
-other on the second, and the whole takes about as long as the targets pass alone."""
+flange 15 s on one core; the 3-DOF position pass ~95 s beside other processes): on two processes the targets pass
+compiles on one while the others follow each other on the second."""
 
 
 @dataclass
@@ -112,7 +112,20 @@ def _warm_targets():
     solve_commands(fused, q, None, **opts)
 
 
-WARM = {"fleet": _warm_fleet, "flange": _warm_flange, "damped": _warm_damped, "targets": _warm_targets}
+def _warm_position():
+    """The compiled 3-DOF pass (:func:`torchcal.compensate.fused_position.position_soa`) alone, as compensate()
+    with ``position_only`` runs it (set up as :func:`_warm_targets`)."""
+    from ..compensate.fused_position import solve_positions
+    from ..compensate.newton import compiled_pass_setup
+
+    robot, tools, model = _model()
+    q = _commands(robot, 16)
+    fused, opts = compiled_pass_setup(model, q, {})
+    solve_positions(fused, q, None, tools[0].expand(16, 3), **opts)
+
+
+WARM = {"fleet": _warm_fleet, "flange": _warm_flange, "damped": _warm_damped, "targets": _warm_targets,
+        "position": _warm_position}
 
 
 def _run(family: str) -> Compiled:

@@ -42,11 +42,14 @@ live beside it (:mod:`.result`, :mod:`.bounds`, :mod:`.branch`, :mod:`.axis`, :m
 The fast path runs on :class:`.kernel.FlangeKernel` (pose index last; on the
 CPU in float64 its evaluations are the numba-compiled kernel of
 :mod:`.fused`, elsewhere torch ops); the damped path and every reported
-figure can be checked against ``RobotModel.flange`` directly.
+figure can be checked against ``RobotModel.flange`` directly. On the CPU in float64 the common calls (6-DOF, and
+3-DOF ``position_only``) first go through one compiled pass pose by pose (:mod:`.fused_targets`,
+:mod:`.fused_position`); the rows it hands on are solved here.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
@@ -483,13 +486,17 @@ def compensate(
             position_only)
     with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.core.threads)
         eligible = (target is None and branch and broyden and refresh_model and not sigma and free_tool_axis is None
-                    and tool_point is None and not position_only
+                    and (tool_point is None or position_only)
                     and model.n == 6 and (q_nom.shape[0] >= FUSED_MIN_POSES or _fused_warm()))
         if eligible:
             _check_inputs(model, q_nom, direction)
             setup = compiled_pass_setup(model, q_nom, dict(tol=tol, max_iter=max_iter, contraction=contraction,
                                                            length=length, residual_tol=residual_tol, refresh=refresh,
                                                            max_correction=max_correction, null_damping=null_damping))
+            if setup is not None and position_only:  # 3-DOF: .fused_position (the tool points (B, 3), checked)
+                points = tool_axis(None, tool_point, torch.float64, q_nom.device, q_nom.shape[0], True).point
+                return _with_rest(model, q_nom, direction, _compiled_pass(setup, q_nom, direction, g_inv, points),
+                                  length, args, g_inv, points)
             if setup is not None:
                 return _with_rest(model, q_nom, direction, _compiled_pass(setup, q_nom, direction, g_inv), length, args,
                                   g_inv)
@@ -525,28 +532,37 @@ def _compensate_defaults() -> dict:
             if p.default is not inspect.Parameter.empty}
 
 
-def _compiled_pass(setup, q_nom, direction, g_inv=None) -> dict:
+def _compiled_pass(setup, q_nom, direction, g_inv=None, points=None) -> dict:
     """:func:`.fused_targets.solve_commands` over every row (the same iteration as :func:`_solve`'s fast path, pose
-    by pose in one compiled pass), in chunks."""
+    by pose in one compiled pass), in chunks; points: (B, 3) tool points: 3-DOF, :func:`.fused_position.solve_positions`."""
+    from .fused_position import solve_positions
     from .fused_targets import solve_commands
 
     fused, opts = setup
     B, size = q_nom.shape[0], 262144  # chunks: progress on long batches, bounded scratch
-    parts = [solve_commands(fused, q_nom[c0:c0 + size], None if direction is None else direction[c0:c0 + size],
-                            **opts, tool_set_inverse=g_inv) for c0 in _chunks(B, size, "compensation, compiled pass (chunks)")]
+
+    def part(c0):
+        d = None if direction is None else direction[c0:c0 + size]
+        if points is None:
+            return solve_commands(fused, q_nom[c0:c0 + size], d, **opts, tool_set_inverse=g_inv)
+        return solve_positions(fused, q_nom[c0:c0 + size], d, points[c0:c0 + size], **opts, tool_set_inverse=g_inv)
+
+    parts = [part(c0) for c0 in _chunks(B, size, "compensation, compiled pass (chunks)")]
     return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
 
-def compiled_rows(fast: dict, length: float):
+def compiled_rows(fast: dict, length: float, position_only: bool = False):
     """The compiled pass's output as result columns, rows it handed on still to fill: -> dict of done (B,) bool,
-    q, pose_error, step, iterations, residual (weighted, m), converged, damped, status (:mod:`.result` codes)."""
+    q, pose_error, step, iterations, residual (weighted, m; position_only: the position's alone, as
+    :func:`_solve`'s), converged, damped, status (:mod:`.result` codes)."""
     from .fused_targets import DONE
 
     done = fast["status"] == DONE
     de = fast["pose_error"].clone()
+    res = de[:, :3].norm(dim=-1) if position_only else torch.cat([de[:, :3], length * de[:, 3:]], 1).norm(dim=-1)
     return {"done": done, "q": fast["q"].clone(), "pose_error": de, "step": fast["step"].clone(),
             "iterations": fast["iterations"].clone(),
-            "residual": torch.cat([de[:, :3], length * de[:, 3:]], 1).norm(dim=-1), "converged": done.clone(),
+            "residual": res, "converged": done.clone(),
             "damped": torch.zeros_like(done), "status": torch.where(done, CONVERGED, NOT_CONVERGED).to(torch.int8)}
 
 
@@ -556,14 +572,22 @@ def fill_rows(cols: dict, rows: torch.Tensor, res: CompensationResult) -> None:
         cols[k][rows] = getattr(res, k)
 
 
-def _with_rest(model, q_nom, direction, fast, length, args, g_inv=None) -> CompensationResult:
+def _with_rest(model, q_nom, direction, fast, length, args, g_inv=None, points=None) -> CompensationResult:
     """The compiled pass's rows, with the rows it handed on (near a singularity, beyond its bounds, a possible
-    branch change) solved by :func:`_solve`, in input order."""
-    c = compiled_rows(fast, length)
+    branch change) solved by :func:`_solve`, in input order; points: (B, 3) the tool points of a 3-DOF call."""
+    c = compiled_rows(fast, length, points is not None)
     rest = (~c["done"]).nonzero()[:, 0]
     if rest.numel():
-        fill_rows(c, rest, _solve(model, q_nom[rest], None if direction is None else direction[rest], *args, None,
-                                  g_inv))
+        work = None
+        if points is not None:  # args[17]: _solve's tool_point, the rest's rows of it
+            args = args[:17] + (points[rest],) + args[18:]
+            # 3-DOF: the rest (~0.2 % of the rows) runs on torch ops alone (no compiled damped pass with a free
+            # rotation), dispatch-bound: on one thread, as threads_for sizes it (100 000 poses, 158 rows handed on,
+            # 2 cores with a neighbour: 1.6 s on two threads, 0.35 s on one)
+            work = rest.numel() * FLOPS_PER_POSE
+        with threads_for_work(work) if work is not None else contextlib.nullcontext():
+            fill_rows(c, rest, _solve(model, q_nom[rest], None if direction is None else direction[rest], *args, None,
+                                      g_inv))
     q = c["q"]
     within, outside = range_and_coverage(model, q, direction)
     return CompensationResult(q, c["converged"], c["iterations"], c["pose_error"], c["residual"], c["step"],

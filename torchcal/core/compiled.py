@@ -1,7 +1,7 @@
 """numba's compiled kernels: whether this machine's cache holds them, and one notice before a cold compile.
 
 Why this module exists. torchcal's compiled passes (the fleet's rows, the
-compensation's flange, damped and targets passes) are numba functions cached
+compensation's flange, damped, targets and 3-DOF position passes) are numba functions cached
 on disk (``cache=True``, next to the source or in numba's user-wide cache
 directory). A process that finds them there loads them in ~0.5 s; one that
 does not compiles them first, the first time a fresh install (or a new CPU,
@@ -28,9 +28,10 @@ FAMILIES = {
     "flange": ("torchcal.compensate.fused", ("flange_soa",), "about 15 s"),
     "damped": ("torchcal.compensate.fused_damped", ("damped_soa",), "about 35 s"),
     "targets": ("torchcal.compensate.fused_targets", ("targets_soa",), "about 2.5 min"),
+    "position": ("torchcal.compensate.fused_position", ("position_soa",), "about 1 min"),
 }
 """Kernel families: the module, its cached entry points, and the cold compile's time on one core of a 2-core
-AMD EPYC VM (stop 28: 43, 15, 35 and 140 s). ``torchcal compile`` builds them one family per process."""
+AMD EPYC VM (stop 28: 43, 15, 35 and 140 s; position: ~95 s beside other processes). ``torchcal compile`` builds them one family per process."""
 
 _NOTICED: set[str] = set()
 

@@ -94,7 +94,8 @@ def test_rows_the_3dof_pass_hands_on_are_finished_by_the_torch_path(fanuc, monke
     q = random_commands(fanuc, B, 62)
     g = torch.Generator().manual_seed(63)
     q[:150, 4] = (torch.rand(150, generator=g, dtype=torch.float64) - 0.5) * 4e-3
-    c = model.tools()[0].detach()
+    c = model.tools()[0]  # as the model holds it (a parameter: requires grad)
+    assert c.requires_grad
     bound = torch.full((6,), math.radians(30.0), dtype=torch.float64)
     bound[0] = 0.0125  # rad: about a third of the rows' corrections of joint 1 (~1e-2) exceed it
     seen = _spy(monkeypatch)

@@ -494,7 +494,7 @@ def compensate(
                                                            length=length, residual_tol=residual_tol, refresh=refresh,
                                                            max_correction=max_correction, null_damping=null_damping))
             if setup is not None and position_only:  # 3-DOF: .fused_position (the tool points (B, 3), checked)
-                points = tool_axis(None, tool_point, torch.float64, q_nom.device, q_nom.shape[0], True).point
+                points = tool_axis(None, tool_point, torch.float64, q_nom.device, q_nom.shape[0], True).point.detach()
                 return _with_rest(model, q_nom, direction, _compiled_pass(setup, q_nom, direction, g_inv, points),
                                   length, args, g_inv, points)
             if setup is not None:

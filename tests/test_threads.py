@@ -96,3 +96,19 @@ def test_fused_kernel_is_loaded_from_numba_cache_in_a_new_process():
     _run(code)  # compiles (and writes the cache) if no earlier process did
     misses, hits_flange, hits_pass = map(int, _run(code).split())
     assert misses == 0 and hits_flange >= 1 and hits_pass >= 1
+
+
+@pytest.mark.parametrize("code, env, warned", [
+    ("import torch, torchcal", {}, True),            # torch's OpenMP loaded first: it will spin, said once
+    ("import torchcal, torch", {}, False),           # the order the README gives: nothing to say
+    ("import torch, torchcal", {"OMP_WAIT_POLICY": "ACTIVE"}, False),  # the user's own choice
+])
+def test_importing_torch_first_is_said(code, env, warned):
+    import os
+    import subprocess
+    import sys
+
+    base = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    r = subprocess.run([sys.executable, "-c", code], env={**base, **env}, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert ("torch was imported before torchcal" in r.stderr) == warned, r.stderr

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import torchcal  # noqa: F401  before torch: its OpenMP threads then sleep while waiting (torchcal.core.threads)
 import torch
 
 import torchcal

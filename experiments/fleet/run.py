@@ -22,6 +22,7 @@ import argparse
 import sys
 import time
 
+import torchcal  # noqa: F401  before torch: its OpenMP threads then sleep while waiting (torchcal.core.threads)
 import torch
 
 import torchcal

@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import torchcal  # noqa: F401  before torch: its OpenMP threads then sleep while waiting (torchcal.core.threads)
 import torch
 
 from torchcal.analysis.stats import point_residuals, residual_stats

@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torchcal  # noqa: F401  before torch: its OpenMP threads then sleep while waiting (torchcal.core.threads)
 import torch
 from rich.console import Console
 from rich.table import Table

@@ -28,6 +28,7 @@ import platform
 import sys
 import time
 
+import torchcal  # noqa: F401  before torch: its OpenMP threads then sleep while waiting (torchcal.core.threads)
 import torch
 from rich.console import Console
 from rich.table import Table

@@ -28,8 +28,8 @@ import torch
 
 from .fused import (FAST, HAVE_NUMBA, borrowed, flange_pose, flange_pose_inlined, flange_scratch, flange_work,
                     kernel_threads, njit, rows)
-from .fused_targets import (BEYOND, BRANCH_SIGN, DONE, NOT_CONTRACTING, PASS_ITER, PATH_SAMPLES, SINGULAR,
-                            det_sign_column, pose_scratch, pose_work)
+from .fused_targets import (BEYOND, BRANCH_SIGN, DONE, NOT_CONTRACTING, PASS_ITER, SINGULAR, det_sign_column,
+                            path_crosses, pose_scratch, pose_work)
 
 if HAVE_NUMBA:
     import numba
@@ -214,19 +214,10 @@ def position_soa(q_nom, sT, use_s, coupling, offset, ecoupling, eoffset, lo, wid
             if det_sign_column(FJ, 0, A) != sign0:
                 status_out[b] = BRANCH_SIGN
                 continue
-            if far > path_above:
-                crossed = False
-                for k in range(1, PATH_SAMPLES):
-                    t = k / PATH_SAMPLES
-                    for j in range(n):
-                        qpath[j, 0] = q_nom[b, j] + t * (q_out[j, b] - q_nom[b, j])
-                    flange_pose(qpath, 0, qpath, False, False, mdl, chn, eyeR, zero_p, PR, Pp, FJ, True, scr, 0, False)
-                    if det_sign_column(FJ, 0, A) != sign0:
-                        crossed = True
-                        break
-                if crossed:
-                    status_out[b] = BRANCH_SIGN
-                    continue
+            if far > path_above and path_crosses(q_nom[b], q_out[:, b], qpath, mdl, chn, eyeR, zero_p, PR, Pp, FJ,
+                                                 scr, A, sign0):
+                status_out[b] = BRANCH_SIGN
+                continue
             status_out[b] = DONE
 
 

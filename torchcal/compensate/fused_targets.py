@@ -135,6 +135,22 @@ def det_sign_column(J, b, A):
     return sign
 
 
+@njit(**inline)
+def path_crosses(q0, q1, qpath, mdl, chn, eyeR, zero_p, PR, Pp, FJ, scr, A, sign0):
+    """Whether det J's sign leaves ``sign0`` at an interior point t = k / PATH_SAMPLES of the straight path from
+    q0 to q1 ((n,) each): the branch test of a correction larger than the pass's path threshold
+    (branch.branch_changed). qpath (n, 1), PR, Pp, FJ, scr, A: scratch."""
+    n = q0.shape[0]
+    for k in range(1, PATH_SAMPLES):
+        t = k / PATH_SAMPLES
+        for j in range(n):
+            qpath[j, 0] = q0[j] + t * (q1[j] - q0[j])
+        flange_pose(qpath, 0, qpath, False, False, mdl, chn, eyeR, zero_p, PR, Pp, FJ, True, scr, 0, False)
+        if det_sign_column(FJ, 0, A) != sign0:
+            return True
+    return False
+
+
 @njit(**inlined)
 def pose_error(R, p, b, GR, Gp, gb, de):
     """de (6,) of (47)-(48) between the flange (R, p column b) and the goal (rotation GR[gb, :3, :3] of a (B, 3+, 3+)
@@ -410,19 +426,10 @@ def targets_soa(seed, sT, use_s, coupling, offset, ecoupling, eoffset, lo, width
             if not sure and det_sign_column(FJ, 0, A) != sign0:
                 status_out[b] = BRANCH_SIGN
                 continue
-            if not sure and far > path_above:
-                crossed = False
-                for k in range(1, PATH_SAMPLES):
-                    t = k / PATH_SAMPLES
-                    for j in range(n):
-                        qpath[j, 0] = qn_out[j, b] + t * (q_out[j, b] - qn_out[j, b])
-                    flange_pose(qpath, 0, qpath, False, False, mdl, chn, eyeR, zero_p, PR, Pp, FJ, True, scr, 0, False)
-                    if det_sign_column(FJ, 0, A) != sign0:
-                        crossed = True
-                        break
-                if crossed:
-                    status_out[b] = BRANCH_SIGN
-                    continue
+            if not sure and far > path_above and path_crosses(qn_out[:, b], q_out[:, b], qpath, mdl, chn, eyeR,
+                                                              zero_p, PR, Pp, FJ, scr, A, sign0):
+                status_out[b] = BRANCH_SIGN
+                continue
             if want_command:  # the nominal tool pose there: the corrected target
                 for k in range(3):
                     for j in range(3):

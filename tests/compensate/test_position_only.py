@@ -65,6 +65,27 @@ def test_observed_dof_counts_what_the_tools_see(fanuc):
     assert dof([[0.0, 0.0, 0.1], [0.05, 0.0, 0.1], [0.0, 0.05, 0.1]]) == (6, None)
 
 
+def test_observed_dof_counts_only_the_tools_the_fit_measured(fanuc, tmp_path):
+    """A config of three tools whose data measured tool 0 only: one point per pose, so 3-DOF (the three tools'
+    vectors said 6, and 'auto' restored an orientation nobody measured: 4 deg of joint motion); the fit records
+    the measured tools and a saved run keeps them."""
+    import torchcal
+    from torchcal.io.rundir import load_model, save_model
+
+    tools = torch.tensor([[0.0, 0.0, 0.1], [0.05, 0.0, 0.1], [0.0, 0.05, 0.1]], dtype=torch.float64)
+    truth = torchcal.TruthRobot.fanuc_paper2(fanuc, tools, 0)
+    q = torchcal.sim.quasi_random_commands(fanuc.joint_map.limits, 40, 0)
+    noise = torchcal.NoiseModel.from_robot(fanuc)
+    model = RobotModel(fanuc, tools, orders=1)
+    assert observed_dof(model) == (6, None) and model.measured_tools is None  # nothing known yet: every tool
+    torchcal.fit(model, torchcal.simulate(truth, q, [0], noise, 0), noise, fixed=("tools",))
+    assert model.measured_tools == [0] and observed_dof(model) == (3, None)
+    save_model(tmp_path, model)
+    assert observed_dof(load_model(tmp_path)) == (3, None)
+    torchcal.fit(model, torchcal.simulate(truth, q, [0, 1, 2], noise, 0), noise)
+    assert model.measured_tools == [0, 1, 2] and observed_dof(model) == (6, None)
+
+
 def test_two_one_tool_models_that_predict_the_same_points_give_the_same_3dof_commands(fanuc):
     model, twin = _turned_twin(fanuc, math.radians(3.0))
     q = random_commands(fanuc, 300, 5)

@@ -252,9 +252,16 @@ def compensation_dof(model, dof: str = "auto", free_tool_axis=None) -> tuple[dic
     if seen == 6:
         return {}, None
     T = model.tools.count
+    measured = getattr(model, "measured_tools", None)
+    if measured is not None and len(measured) < T:  # the others' vectors are their nominal ones: no evidence
+        which = (f"the run's data measured only tool{'s' if len(measured) > 1 else ''} "
+                 f"{', '.join(str(t) for t in measured)} of its {T}")
+        T = len(measured)
+    else:
+        which = "the run's model has one tool" if T == 1 else f"the run's {T} tools sit at one point"
     if seen == 3:
         return {"position_only": True}, (
-            ("the run's model has one tool" if T == 1 else f"the run's {T} tools sit at one point") +
+            which +
             ": its data measured one point per pose and do not fix the flange's orientation, so each command puts "
             "the row's tool point on its programmed position only (3-DOF, the smallest joint motion); --dof 6 "
             "compensates the whole flange pose")

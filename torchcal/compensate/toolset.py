@@ -85,13 +85,17 @@ def observed_dof(model) -> tuple[int, torch.Tensor | None]:
     (6, None) for three or more tools off one line; (5, axis) for two tools or tools on one line, ``axis`` (3,)
     their line's direction in the modeled flange frame (the turn about it is seen by no tool); (3, None) for one
     tool (a single reflector: no orientation at all). Judged on the identified tool vectors (a set whose tools are
-    only counted has zero nominal vectors). A model without tool vectors (a sensor rig) -> (6, None).
+    only counted has zero nominal vectors) of the tools its data measured (``model.measured_tools``, set by the fit;
+    all where unknown). A model without tool vectors (a sensor rig) -> (6, None).
     """
     tools = getattr(model, "tools", None)
     if tools is None or not callable(tools):
         return 6, None
     with torch.no_grad():
         t = tools().detach().to(torch.float64)
+    seen = getattr(model, "measured_tools", None)
+    if seen is not None:  # a tool the data never measured fixes nothing (its vector is its nominal one)
+        t = t[[i for i in seen if i < t.shape[0]]]
     if t.shape[0] < 2:
         return 3, None
     c = t - t.mean(0)

@@ -183,4 +183,6 @@ def fit(
     if hasattr(model, "record_data_span"):
         model.data_span = None  # this fit's data alone (a refit of a loaded model starts over)
         model.record_data_span(data.q)
+    if hasattr(model, "measured_tools"):  # what compensation may restore (compensate.observed_dof)
+        model.measured_tools = sorted({int(t) for t in data.tool.tolist()})
     return result

@@ -121,6 +121,7 @@ class RobotModel(ChainBuffers, nn.Module):
         self._spec = {"orders": self.joint_errors.orders.tolist(), "backlash": self.joint_errors.backlash_orders.tolist()}
         self.coverage = None  # DirectionCoverage of the identification data, set by fit()
         self.data_span = None  # (n, 2) least / greatest error variable per joint in the identification data (fit())
+        self.measured_tools = None  # the tool indices the identification data measured (fit()); None: not known
 
     # -------------------------------------------------------------- kinematics
     def joint_variables(self, q: torch.Tensor) -> torch.Tensor:
@@ -393,6 +394,8 @@ class RobotModel(ChainBuffers, nn.Module):
             out["coverage"] = self.coverage.to_dict()
         if self.data_span is not None:  # absent in runs fitted before it (nothing is then said about extrapolation)
             out["data_span"] = torch.as_tensor(self.data_span).cpu().tolist()
+        if self.measured_tools is not None:  # absent in older runs: every tool counts as measured
+            out["measured_tools"] = [int(t) for t in self.measured_tools]
         if self.compliance is not None:  # absent when off: specs of models without it stay as they were
             out["compliance"] = self.compliance.spec()
         if self.fine is not None:  # likewise absent when off
@@ -418,6 +421,8 @@ class RobotModel(ChainBuffers, nn.Module):
             from ..core.coverage import DirectionCoverage
 
             model.coverage = DirectionCoverage.from_dict(spec["coverage"])
+        if spec.get("measured_tools") is not None:
+            model.measured_tools = [int(t) for t in spec["measured_tools"]]
         if spec.get("data_span") is not None:
             model.data_span = torch.tensor(spec["data_span"], dtype=torch.float64)
         return model

@@ -127,10 +127,10 @@ def test_fleet_prior_beats_few_poses_alone(robot):
     assert e_help < 0.5 * e_alone
 
 
-def _write_fleet(tmp_path, robot, count=4, broken=None):
+def _write_fleet(tmp_path, robot, count=4, broken=None, poses=40):
     from torchcal.io.csv import write_measurements
 
-    fleet, units, _ = _units(robot, count, poses=40)
+    fleet, units, _ = _units(robot, count, poses=poses)
     (tmp_path / "ident").mkdir()
     for k, d in enumerate(units):
         write_measurements(tmp_path / "ident" / f"unit{k:02d}.csv", d, robot)
@@ -667,3 +667,22 @@ def test_far_rows_leave_gaussian_noise_alone():
     assert far_rows(noise).numel() == 0
     noise[123] = 16.0  # ~10x the median norm (1.54)
     assert far_rows(noise).tolist() == [123]
+
+
+def test_a_unit_measured_with_fewer_tools_is_not_judged(tmp_path, robot):
+    """A unit whose file holds one reflector's rows while the others hold three: its wrist is seen through one point,
+    its features differ for that alone (it was flagged 'joint6 transmission error 14.5x the fleet median'), so it
+    is fitted, said, and not scored."""
+    import pandas as pd
+
+    from torchcal.app.fleet import run_fleet
+
+    cfg = _write_fleet(tmp_path, robot, count=6, poses=60)  # one tool's 60 rows: equations enough for the model
+    p = tmp_path / "ident" / "unit05.csv"
+    df = pd.read_csv(p)
+    df[df["tool"] == 0].to_csv(p, index=False)
+    res = run_fleet(cfg, out=tmp_path / "run")
+    row = next(r for r in res.rows if r["unit"] == "unit05")
+    assert row["status"] == "fitted" and not row["flagged"] and row["determined"] is False
+    assert row["findings"] == "not scored: tools [1, 2] never measured, unlike the fleet's other units"
+    assert any("unit unit05: tools [1, 2] never measured" in w for w in res.warnings)

@@ -412,13 +412,15 @@ def _fleet_backlash(cfg, robot, loaded: list, warn):
 
 def _data_checks(cfg, robot, T: int, loaded: list, warn) -> dict:
     """What each unit's identification data cannot determine, told to ``warn`` as ``torchcal fit`` warns it. -> {unit
-    name: why} for the units with fewer equations (3 per row) than the model's parameters: they are fitted (the
-    prior holds what the data leave open) but neither judged for outliers nor part of the fleet prior."""
+    name: why} for the units with fewer equations (3 per row) than the model's parameters, or without a tool the
+    fleet's other units measured: they are fitted (the prior holds what the data leave open) but neither judged for
+    outliers nor part of the fleet prior."""
     from ..identify.layout import ParameterLayout
 
     orders = config_orders(cfg, robot.joint_map.n)
     P = ParameterLayout(_factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(orders)).size
     out = {}
+    fleet_tools = set(torch.unique(torch.cat([i.tool for _, i, _ in loaded])).tolist())
     for name, ident, _ in loaded:
         E = 3 * len(ident)
         seen = set(torch.unique(ident.tool).tolist())
@@ -427,11 +429,15 @@ def _data_checks(cfg, robot, T: int, loaded: list, warn) -> dict:
             many = len(missing) > 1
             warn(f"unit {name}: tool{'s' if many else ''} {missing} never measured: {'their' if many else 'its'} "
                  "vector is the prior's")
+        if gap := [t for t in missing if t in fleet_tools]:  # its wrist is seen through fewer points than the
+            # others': its features differ for that alone (a J6 'outlier' 14x the median), so it is not judged
+            out[name] = f"tool{'s' if len(gap) > 1 else ''} {gap} never measured, unlike the fleet's other units"
         if E < P:
             per_pose = 3 * max(len(seen), 1)
-            out[name] = (f"too few poses: {len(ident)} row{'s give' if len(ident) != 1 else ' gives'} {E} equations "
-                         f"for {P} parameters")
-            warn(f"unit {name}: {out[name]}; its parameters are mostly the prior's (measure at least "
+            few = (f"too few poses: {len(ident)} row{'s give' if len(ident) != 1 else ' gives'} {E} equations "
+                   f"for {P} parameters")
+            out[name] = f"{few}; {out[name]}" if name in out else few
+            warn(f"unit {name}: {few}; its parameters are mostly the prior's (measure at least "
                  f"{-(-P // per_pose)} poses with {len(seen)} tool{'s' if len(seen) != 1 else ''}): fitted, not "
                  "judged for outliers, left out of the fleet prior")
     return out

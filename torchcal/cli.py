@@ -374,11 +374,15 @@ def fleet_cmd(
     _console().print(t)
     for w in result.warnings:
         _console().print(f"warning: {w}", markup=False)
+    if result.reused:
+        _console().print(f"fleet.reuse: {result.reused} unit(s) taken as the earlier run fitted them, "
+                         f"{sum(r['status'] == 'fitted' for r in result.rows) - result.reused} fitted now "
+                         "(summary.csv: reused_from)", markup=False)
     failed = [r["unit"] for r in result.rows if r["status"] == "failed"]
     if failed:
         _console().print(f"warning: {len(failed)} unit(s) not fitted: {', '.join(failed)} (summary.csv: reason); once "
                          f"their files are mended, fleet.reuse={result.run_dir} fits only them", markup=False)
-    typer.echo(f"run directory: {result.run_dir}")
+    typer.echo(f"run directory: {result.run_dir}{result.placed}")
     if (result.run_dir / "report.html").is_file():
         typer.echo(f"fleet report: {result.run_dir / 'report.html'}")
 

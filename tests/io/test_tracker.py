@@ -253,6 +253,9 @@ def test_a_target_file_in_metres_is_named(tmp_path, irb, session):
         import_tracker(j, t)
     msg = str(err.value)
     assert str(t[1]) in msg and "x, y, z" in msg and "metres" in msg and str(t[0]) not in msg
+    with pytest.raises(DataError) as err:  # two files: the one in metres is named, against the other's median
+        import_tracker(j, t[:2])
+    assert str(t[1]) in str(err.value) and "other target file'" in str(err.value)
     res = import_tracker(j, [t[1]], robot=irb)
     assert any(str(t[1]) in r and "metres" in r for r in res.report)
     assert not [r for r in import_tracker(j, [t[0]], robot=irb).report if "look like" in r]

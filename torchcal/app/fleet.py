@@ -60,6 +60,8 @@ class FleetRunResult:
     solve_time: float = 0.0
     warnings: list[str] = field(default_factory=list)  # what the data leave open, also in run.log
     changes: list = field(default_factory=list)  # fleet.baseline: the units that changed since it
+    reused: int = 0  # fleet.reuse: units taken as the earlier run fitted them
+    placed: str = ""  # why the run directory is not the 'out' asked for ('' when it is)
 
 
 def _check_fleet_config(cfg) -> None:
@@ -177,14 +179,14 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     run_dir = make_run_dir(target)
     atomic_write_text(run_dir / "config.yaml", to_yaml(cfg))
     write_json(run_dir / "versions.json", collect_versions(device))
-    result = FleetRunResult(run_dir)
+    result = FleetRunResult(run_dir, placed=placed_note(target, run_dir))
 
     def warn(msg: str) -> None:
         log.warning(msg)
         result.warnings.append(msg)
 
     with run_log(run_dir):
-        log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}{placed_note(target, run_dir)}")
+        log.info(f"fleet of {len(files)} units from {cfg.data.identification}; engine {cfg.fleet.engine}; {run_dir}{result.placed}")
         if float(cfg.solver.ftol) != SolverConfig.ftol:
             warn(f"solver.ftol ({cfg.solver.ftol:g}) is a single fit's; the fleet's units stop at fleet.ftol "
                  f"({float(cfg.fleet.ftol):g}): set that one")
@@ -244,7 +246,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         size = int(cfg.fleet.cell)
         reused = {} if earlier is None else reused_units(earlier, files, loaded, _factory(
             cfg, robot, torch.device("cpu"), config_backlash(cfg))(config_orders(cfg, robot.joint_map.n)).spec(), warn)
-        to_fit = [u for u in loaded if u[0] not in reused]
+        to_fit, result.reused = [u for u in loaded if u[0] not in reused], len(reused)
         # with measurement_frame: estimate each unit is solved in its own robot base frame (its points moved by
         # its alignment), its model then given that alignment as the nominal measurement frame
         cells = [[(n, in_base(i, frames.get(n))) for n, i, _ in to_fit[c:c + size]] for c in range(0, len(to_fit), size)]

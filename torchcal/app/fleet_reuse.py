@@ -35,7 +35,7 @@ log = logging.getLogger("torchcal")
 KEY = "fleet.reuse"
 
 IGNORED_KEYS = ("out", "report", "plots", "threads", "device", "data.identification", "data.validation",
-                "fleet.engine", "fleet.address", "fleet.cell", "fleet.threshold", "fleet.baseline", KEY,
+                "data.units_checked", "fleet.engine", "fleet.address", "fleet.cell", "fleet.threshold", "fleet.baseline", KEY,
                 "config_file", "overrides")
 """Settings that do not change a unit's fit (or name where its data lie: the data themselves are compared by hash)."""
 
@@ -65,6 +65,11 @@ def reuse_run(cfg, label: str) -> Path | None:
 
     run = Path(cfg.fleet.reuse)
     where = f"{source_of(cfg, KEY, label)}: key '{KEY}'"
+    if not run.exists():
+        raise ConfigError(f"{where}: {run} does not exist")
+    if (run / "units").is_dir() is False and (run / "PARTIAL").exists() and (run / "config.yaml").is_file():
+        raise ConfigError(f"{where}: {run} fitted no unit (interrupted before its first batched solve): there is "
+                          "nothing to take; drop the key")
     if not is_fleet_run(run):
         raise ConfigError(f"{where}: {run} is not a `torchcal fleet` run directory (it needs its summary.csv and units/)")
     try:
@@ -120,6 +125,10 @@ def reused_units(run: Path, files: list, loaded: list, spec: dict, warn) -> dict
         out[name] = unit_dict
     if changed:
         warn(f"{KEY}: {len(changed)} unit(s) whose data changed since {run} are fitted again: {', '.join(changed)}")
+    gone = sorted(fitted - {name for name, _, _ in files})
+    if gone:  # a unit the earlier run fitted whose file is no longer among the data: not silently forgotten
+        warn(f"{KEY}: {len(gone)} unit(s) fitted in {run} have no identification file in this run's data: "
+             f"{', '.join(gone)} (not in this run)")
     log.info(f"{KEY}: {len(out)} unit(s) taken as {run} fitted them; {len(loaded) - len(out)} to fit")
     return out
 

@@ -397,14 +397,19 @@ def _check_target_scales(tgt, X: np.ndarray, valid: np.ndarray, q: np.ndarray, r
         rows = np.flatnonzero(valid[:, k])
         d = np.linalg.norm(np.diff(X[rows, k], axis=0), axis=1)
         medians.append(float(np.median(d)) if d.size >= MIN_ROWS // 2 else np.nan)
-    fleet = np.nanmedian(medians) if np.isfinite(medians).any() else np.nan
-    for (f, _), m in zip(tgt, medians):
-        r = m / fleet if fleet > 0 else np.nan
+    odd = []
+    for k, ((f, _), m) in enumerate(zip(tgt, medians)):
+        others = [x for i, x in enumerate(medians) if i != k and np.isfinite(x)]
+        ref = float(np.median(others)) if others else np.nan
+        r = m / ref if ref > 0 else np.nan
         if np.isfinite(r) and not SCALE_BOUNDS[0] <= r <= SCALE_BOUNDS[1]:
-            raise DataError(f.path, [Problem(None, "1-3 (x, y, z)", (
-                f"the distances between consecutive poses' points (median {m:.4g}) are {r:.3g} times the other "
-                f"target files' (median {fleet:.4g}), though every reflector rides on the flange: this file looks like "
-                f"{scale_guess(r)}, and the contract is mm"))])
+            odd.append((r, f, m, ref))
+    if odd:  # of two files 1000x apart both look odd to the other: metres (the shorter) are the likelier slip
+        r, f, m, ref = min(odd, key=lambda o: o[0])
+        raise DataError(f.path, [Problem(None, "1-3 (x, y, z)", (
+            f"the distances between consecutive poses' points (median {m:.4g}) are {r:.3g} times the other "
+            f"target file{'s' if len(tgt) > 2 else ''}' (median {ref:.4g}), though every reflector rides on the "
+            f"flange: this file looks like {scale_guess(r)}, and the contract is mm"))])
     if robot is None:
         return
     q_si = units.joints_to_si(torch.from_numpy(q), robot.joint_map.prismatic.cpu())

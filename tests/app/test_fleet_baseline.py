@@ -188,3 +188,26 @@ def test_an_unreadable_earlier_model_is_said_and_the_rest_compared(campaigns):
     assert all("change_rms_mm" in rows[names[k]] for k in keep[:-1] if k != 0)
     assert {c.unit for c in res.changes} == {names[CRASHED], names[SWAPPED]}
     assert all((res.run_dir / "units" / names[k] / "model.pt").is_file() for k in keep)
+
+
+def test_units_not_re_measured_are_left_out_of_the_fleets_changes(campaigns):
+    """Only some units re-measured, the others' files kept: their change is zero by construction, and those zeros
+    made the fleet's scatter vanish (a healthy re-measured unit scored z 1e10). Now they are named 'not
+    re-measured' and left out; the crashed unit is still the one changed, no healthy one is."""
+    import shutil
+
+    from torchcal.app.fleet import run_fleet
+
+    tmp, run1, _, (_, _, names, keep), _ = campaigns
+    mixed = tmp / "mixed"
+    shutil.copytree(tmp / "year1", mixed)
+    again = [CRASHED, 0, 1, 3, 5]  # re-measured this year; 7 keeps last year's file
+    for k in again:
+        shutil.copy(tmp / "year2" / f"{names[k]}.csv", mixed / f"{names[k]}.csv")
+    res = run_fleet(_config(tmp, "mixed.yaml", "mixed"), [f"fleet.baseline={run1.run_dir}"], out=tmp / "run_mixed")
+    rows = {r["unit"]: r for r in res.rows}
+    kept = [names[k] for k in range(COUNT) if k not in again]
+    assert all(rows[n]["change"].startswith("not re-measured") for n in kept)
+    assert any("not re-measured" in w and all(n in w for n in kept) for w in res.warnings)
+    assert {c.unit for c in res.changes} == {names[CRASHED]}
+    assert all(not rows[names[k]]["changed"] for k in again if k != CRASHED)

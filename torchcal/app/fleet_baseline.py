@@ -99,11 +99,17 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
     gone = [n for n in names if n not in now]
     if gone:
         warn(f"{KEY}: {len(gone)} unit(s) of {run} not fitted in this run: {', '.join(gone)}")
-    pairs, old = [], []
+    pairs, old, same = [], [], []
     for u, m in fitted:
         name = u["name"]
         if name not in earlier:
             rows[name]["change"] = f"not in {KEY} (new since {run.name}, or not fitted there)"
+            continue
+        if _same_file(run / "units" / name, idents[name].source):
+            # no new measurement: its change is zero by construction, and zeros in the fleet's changes made the
+            # scatter vanish (a re-measured healthy unit scored z 1e10)
+            rows[name]["change"] = f"not re-measured: its identification file is the one {run.name} fitted"
+            same.append(name)
             continue
         try:  # a unit whose earlier model cannot be read (or is of another structure) is said, the rest compared
             o = load_model(run / "units" / name, device)
@@ -115,6 +121,9 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
             continue
         pairs.append((name, m))
         old.append(o)
+    if same:
+        warn(f"{KEY}: {len(same)} unit(s) hold the identification file {run.name} fitted, byte for byte: not "
+             f"re-measured, so neither compared nor part of the fleet's changes: {', '.join(same)}")
     if not pairs:
         warn(f"{KEY}: no unit of this run could be compared with {run}")
         return []
@@ -141,6 +150,19 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
         rows[c.unit].update(changed=True, change=str(c).split(": ", 1)[1])
         log.warning("changed: %s", c)
     return found
+
+
+def _same_file(unit_dir: Path, path) -> bool:
+    """Whether the identification file at ``path`` hashes as the one the baseline's unit ``unit_dir`` was fitted on
+    (its data_hashes.json); False where either is unknown."""
+    from ..io.rundir import read_json
+    from .common import DATA_HASH_FILE, file_sha256
+
+    try:
+        then = read_json(unit_dir / DATA_HASH_FILE).get("data.identification", {}).get("sha256")
+        return bool(then) and Path(path).is_file() and then == file_sha256(path)
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, prismatic, tool_sc, joint_sc,

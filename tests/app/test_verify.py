@@ -51,7 +51,7 @@ def test_the_runs_own_robot_verifies_to_zero_and_the_nominal_does_not(point_run)
     with torch.no_grad():
         nominal = (model.nominal_points(q, tool) - xyz).norm(dim=-1) * 1000.0
     assert np.allclose(rows.nominal_mm.to_numpy(), nominal.numpy(), atol=1e-6)
-    assert "Verification" in r.output and "moved" not in r.output
+    assert "Verification" in r.output and "moved" not in r.output and "tracker stand elsewhere" not in r.output
 
 
 def test_a_moved_tracker_is_found_and_taken_out(point_run):
@@ -64,6 +64,8 @@ def test_a_moved_tracker_is_found_and_taken_out(point_run):
     r = runner.invoke(app, ["verify", str(root / "run"), str(path), "--out", str(root / "rows.csv")])
     assert r.exit_code == 0, r.output
     assert pd.read_csv(root / "rows.csv").modeled_mm.min() > 100.0
+    said = " ".join(r.output.split())
+    assert "once the predictions are moved by one rigid motion: did the tracker stand elsewhere? --new-frame" in said
     r = runner.invoke(app, ["verify", str(root / "run"), str(path), "--new-frame", "--out", str(root / "rows2.csv"),
                             "--units-checked"])
     assert r.exit_code == 0, r.output

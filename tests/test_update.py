@@ -273,3 +273,26 @@ def test_sensor_run_update_refuses_positions_in_metres(sensor_runs):
     r = invoke("update", root / "run", root / "new_m.csv", "--out", root / "run_m", "-q")
     assert r.exit_code == 2 and "new_m.csv: columns x, y, z" in r.output and "metres" in r.output, r.output
     assert not (root / "run_m").exists()  # refused before anything was written
+
+
+def test_an_update_from_a_moved_tracker_is_said(runs, tmp_path):
+    """New rows measured from another tracker placement (3 mm, 0.3 deg): the update would absorb the move into the
+    robot, so it says that one rigid motion explains the parent's miss; rows from the parent's placement say
+    nothing of the kind."""
+    import math
+
+    import pandas as pd
+
+    df = pd.read_csv(runs["root"] / "b1.csv")
+    a = math.radians(0.3)
+    R = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                     dtype=torch.float64)
+    xyz = torch.tensor(df[["x", "y", "z"]].to_numpy()) @ R.T + torch.tensor([3.0, -1.0, 0.5], dtype=torch.float64)
+    df[["x", "y", "z"]] = xyz.numpy()
+    df.to_csv(tmp_path / "moved.csv", index=False)
+    r = invoke("update", runs["root"] / "run", tmp_path / "moved.csv", "--out", tmp_path / "u", "-q")
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "moved.csv: the model's residual falls from" in said and "did the tracker stand elsewhere?" in said
+    r = invoke("update", runs["root"] / "run", runs["root"] / "b1.csv", "--out", tmp_path / "same", "-q")
+    assert r.exit_code == 0 and "tracker stand elsewhere" not in r.output

@@ -65,7 +65,7 @@ def test_a_moved_tracker_is_found_and_taken_out(point_run):
     assert r.exit_code == 0, r.output
     assert pd.read_csv(root / "rows.csv").modeled_mm.min() > 100.0
     said = " ".join(r.output.split())
-    assert "once the predictions are moved by one rigid motion: did the tracker stand elsewhere? --new-frame" in said
+    assert "once its predictions are moved by one rigid motion: did the tracker stand elsewhere? --new-frame" in said
     r = runner.invoke(app, ["verify", str(root / "run"), str(path), "--new-frame", "--out", str(root / "rows2.csv"),
                             "--units-checked"])
     assert r.exit_code == 0, r.output

@@ -16,6 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping
 
+import torch
+
 
 from ..core import units
 from ..analysis.stats import ResidualStats, percent_decrease
@@ -289,6 +291,23 @@ def tools_text(tools_mm) -> str:
     return "; ".join("[" + ", ".join(f"{v:.3f}" for v in t) + "]" for t in tools_mm)
 
 
+def moved_frame_note(pred: torch.Tensor, measured: torch.Tensor, advice: str) -> str | None:
+    """Where one rigid motion of the predictions (N, 3) m explains most of their miss of ``measured`` (N, 3) m (the
+    mean falls more than 3x and by more than 0.1 mm): a note saying so, ending in ``advice`` (a moved tracker reads
+    as a worse robot); else None."""
+    from ..kinematics.transforms import kabsch
+
+    if pred.shape[0] < 3:
+        return None
+    before = float((measured - pred).norm(dim=-1).mean())
+    Y, t = kabsch(pred, measured)
+    after = float((measured - (pred @ Y.T + t)).norm(dim=-1).mean())
+    if before <= max(3.0 * after, units.mm_to_m(0.1)):
+        return None
+    return (f"the model's residual falls from {units.m_to_mm(before):.3f} to {units.m_to_mm(after):.3f} mm (mean) "
+            f"once its predictions are moved by one rigid motion: did the tracker stand elsewhere? {advice}")
+
+
 def failed_row(exc: BaseException | str, **keys) -> dict:
     """A results row of a unit or cell that could not be fitted: ``keys`` (its name) with status 'failed' and the
     reason, an exception as 'Type: message' (what fleet and sweep tables and their summaries read)."""
@@ -298,6 +317,7 @@ def failed_row(exc: BaseException | str, **keys) -> dict:
 
 __all__ = [
     "failed_row",
+    "moved_frame_note",
     "write_run_report",
     "STAT_KEYS",
     "RunResult",

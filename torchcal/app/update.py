@@ -390,6 +390,15 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
             if note:
                 progress.warn(note)
         before = _check_new_data(cfg, model, new, new_path)
+        if before is not None:  # an update would absorb a moved tracker into the robot's parameters
+            from .common import moved_frame_note
+
+            with torch.no_grad():
+                pred = model.points(new.q, new.tool, new.direction if new.has_direction else None)
+            note = moved_frame_note(pred, new.xyz.to(pred), "an update takes the parent's measurement frame: "
+                                    "measure from the parent's placement, or fit afresh (measurement_frame: estimate)")
+            if note:
+                progress.warn(f"{new_path}: {note}")
         repeated = _rows_in_parent(cfg, model, new)
         if repeated:
             shown = ", ".join(str(r) for r in repeated[:10]) + (" ..." if len(repeated) > 10 else "")

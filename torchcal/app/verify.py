@@ -23,7 +23,7 @@ from ..core import units
 from ..core.progress import task as progress_task
 from ..kinematics.transforms import kabsch
 from ..measure.pose import rotation_error
-from .common import stats_row
+from .common import moved_frame_note, stats_row
 
 
 @dataclass
@@ -103,14 +103,8 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
         if sensor:
             Rm, Rn = Ym @ Rm, Yn @ Rn
     res_m, res_n = (xyz - pm).norm(dim=-1), (xyz - pn).norm(dim=-1)
-    if not new_frame and len(data) >= 3:  # a moved tracker reads as a worse robot: said where one motion explains it
-        Y, t = kabsch(pm, xyz)
-        moved = (xyz - (pm @ Y.T + t)).norm(dim=-1).mean()
-        if float(res_m.mean()) > max(3.0 * float(moved), units.mm_to_m(0.1)):
-            said.append(f"the modeled residual falls from {units.m_to_mm(float(res_m.mean())):.3f} to "
-                        f"{units.m_to_mm(float(moved)):.3f} mm (mean) once the predictions are moved by one rigid "
-                        "motion: did the tracker stand elsewhere? --new-frame takes the measurement frame from these "
-                        "rows")
+    if not new_frame and (note := moved_frame_note(pm, xyz, "--new-frame takes the measurement frame from these rows")):
+        said.append(note)
     ps = [residual_stats(units.m_to_mm(x.cpu())) for x in (res_n, res_m)]
     table = [stats_row("Verification", "Nominal", ps[0], None), stats_row("Verification", "Modeled", ps[1], ps[0])]
     stats = {"position_mm": {"nominal": vars(ps[0]), "modeled": vars(ps[1]),

@@ -91,3 +91,13 @@ def test_run_log_records_failures(tmp_path):
     text = (tmp_path / "run.log").read_text()
     assert "step one" in text and "run failed" in text and "ZeroDivisionError" in text
     assert not any(isinstance(h, logging.FileHandler) for h in logging.getLogger("torchcal").handlers)
+
+
+def test_a_fleet_run_given_for_a_model_names_a_unit_folder(tmp_path):
+    """predict / compensate / verify given a fleet run: the model is per unit; the message names one's folder."""
+    from torchcal.io.rundir import RunDirError, load_model
+
+    (tmp_path / "fleet" / "units" / "unit07").mkdir(parents=True)
+    (tmp_path / "fleet" / "summary.csv").write_text("unit,status\nunit07,fitted\n")
+    with pytest.raises(RunDirError, match=r"is a fleet run; give one unit's folder, e.g. .*units/unit07"):
+        load_model(tmp_path / "fleet")

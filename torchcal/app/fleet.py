@@ -251,7 +251,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         # its alignment), its model then given that alignment as the nominal measurement frame
         cells = [[(n, in_base(i, frames.get(n))) for n, i, _ in to_fit[c:c + size]] for c in range(0, len(to_fit), size)]
         ts = time.perf_counter()
-        with task(f"fitting {len(to_fit)} units in {len(cells)} batched solve(s) ({cfg.fleet.engine})", total=None):
+        with task(f"fitting {len(to_fit)} unit{'' if len(to_fit) == 1 else 's'} in {len(cells)} batched solve(s) "
+                  f"({cfg.fleet.engine})", total=None):
             outs = (_run_cells(cfg, cells) if cells else []) + [list(reused.values())]
         cells.append([(n, None) for n in reused])
         result.solve_time = time.perf_counter() - ts

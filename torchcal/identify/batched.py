@@ -482,7 +482,7 @@ def solve_batched(bp, max_iter: int = 100, ftol: float = 1e-8, xtol: float = 1e-
                                   "converged: relative cost reduction below ftol" if rel_c[j] else
                                   "converged: parameter step below xtol")
             active[wc] = ~done_c
-            bar.advance(int(done_c.sum()), note=f"iteration {it}, {int(active.sum())} models active")
+            bar.advance(int(done_c.sum()), note=f"iteration {it}, {int(active.sum())} model{'' if int(active.sum()) == 1 else 's'} active")
     elapsed = time.perf_counter() - t0
     names = bp.layout.names()
     results = []

@@ -291,6 +291,10 @@ def load_model(run_dir, device=None, robot=None):
     if path.is_dir():
         path = path / MODEL_FILE
     if not path.is_file():
+        if is_fleet_run(run_dir):  # each unit's model is in its own folder
+            units = sorted(p.name for p in (Path(run_dir) / "units").iterdir() if p.is_dir())[:3]
+            raise RunDirError(f"{path}: no model here: {run_dir} is a fleet run; give one unit's folder, e.g. "
+                              f"{Path(run_dir) / 'units' / (units[0] if units else '<name>')}")
         raise RunDirError(f"{path}: no model here; give a run directory written by 'torchcal fit'")
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)

@@ -84,7 +84,8 @@ class DataError(TorchcalError, ValueError):
         n = len(self.problems)
         head = f"{self.path}: {n} problem{'s' if n != 1 else ''} in the data"
         if any(p.row is not None for p in self.problems):
-            head += " (row = 1-based data row, line = line in the file with the header on line 1)"
+            # 'line' counts every line of the file; only a file with a header has row and line one apart
+            head += " (row = 1-based data row, line = line in the file)"
         lines = [head + ":"]
         ordered = sorted(self.problems, key=lambda p: (-1 if p.row is None else p.row))
         lines += [f"  - {p}" for p in ordered[:MAX_LISTED]]

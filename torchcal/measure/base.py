@@ -98,6 +98,14 @@ class Instrument:
         return sorted(set(found))
 
 
+def closed_form_declined(model) -> bool:
+    """Whether a model says its closed-form Jacobians would leave out terms of its own (``RobotModel.closed_form``:
+    a research subclass): its instruments then take autograd (exact, slower), and the batched solvers, which need
+    the closed form, say so instead of fitting without the term."""
+    ok = getattr(model, "closed_form", None)
+    return ok is not None and not ok()
+
+
 def concat(instruments) -> Instrument:
     """One instrument holding the rows of ``instruments`` in order: ``type(first).cat(instruments)``.
 

@@ -6,7 +6,7 @@ import torch
 
 from ..core.exceptions import InputError
 from ..core.measurements import Measurements
-from .base import Instrument
+from .base import Instrument, closed_form_declined
 from .weights import CovarianceWeight, IsotropicWeight
 
 
@@ -58,7 +58,9 @@ class PointTargets(Instrument):
 
     def predict_jacobians(self, model, q, tool, direction=None, v=None):
         pj = getattr(model, "point_jacobians", None)
-        return None if pj is None else pj(q, tool, direction, v)
+        if pj is None or closed_form_declined(model):
+            return None
+        return pj(q, tool, direction, v)
 
     def subset(self, index) -> "PointTargets":
         out = PointTargets.__new__(PointTargets)

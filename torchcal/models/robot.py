@@ -221,6 +221,12 @@ class RobotModel(ChainBuffers, nn.Module):
                 live=self if (self.compliance is not None or self.fine is not None
                               or self.backlash_on == "command" or self.extended()) else None)
 
+    def closed_form(self) -> bool:
+        """Whether :meth:`point_jacobians` / :meth:`flange_jacobian` hold every term of this model: not for an
+        :meth:`extended` subclass that kept the base class's (they know only the paper's terms; a flange override
+        was fitted 1 mm off, silently), unless it wrote its own."""
+        return not self.extended() or type(self).point_jacobians is not RobotModel.point_jacobians
+
     def extended(self) -> bool:
         """Whether this is a subclass that changes how the flange is computed (a method of :data:`FLANGE_METHODS`
         overridden, or an ``nn.Module`` of its own beside :data:`OWN_MODULES`): the frozen snapshot would leave

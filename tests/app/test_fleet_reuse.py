@@ -67,7 +67,9 @@ def _fitted_names(monkeypatch):
 
 
 def _table(run):
-    return pd.read_csv(run / "summary.csv").set_index("unit")
+    from torchcal.app.fleet_summary import read_summary
+
+    return read_summary(run).set_index("unit")
 
 
 def test_only_the_failed_unit_is_fitted_and_the_fleet_is_as_if_fitted_whole(tmp_path, robot, units, monkeypatch):
@@ -89,6 +91,9 @@ def test_only_the_failed_unit_is_fitted_and_the_fleet_is_as_if_fitted_whole(tmp_
     cols = ["identification_mean_mm", "outlier_score"]
     assert (got[cols] - ref[cols]).abs().max().max() < 1e-6 * ref[cols].abs().max().max()
     assert got["flagged"].tolist() == ref["flagged"].tolist() and got.loc["unit03", "flagged"]  # the damaged J3
+    feats = [pd.read_csv(r / "features.csv") for r in (again, whole)]  # the same file, row for row
+    assert list(feats[0]["unit"]) == list(feats[1]["unit"])
+    assert (feats[0]["robust_z"] - feats[1]["robust_z"]).abs().max() < 1e-6 * feats[1]["robust_z"].abs().max()
     a = torchcal.io.load_model(again / "units" / "unit01")
     b = torchcal.io.load_model(first / "units" / "unit01")
     assert all(torch.equal(a.state_dict()[k], b.state_dict()[k]) for k in b.state_dict())
@@ -137,3 +142,17 @@ def test_other_settings_are_refused_by_name(tmp_path, robot, units):
     (tmp_path / "ident" / "unit02.csv").unlink()
     res = fleet_app.run_fleet(cfg, [f"fleet.reuse={first}"], out=tmp_path / "gone")
     assert any("have no identification file in this run's data: unit02" in w for w in res.warnings)
+
+
+def test_units_named_by_serial_numbers_are_reused(tmp_path, robot, units, monkeypatch):
+    """Unit files named 0001.csv ...: summary.csv read the names back as numbers, so nothing matched and every unit
+    was refitted, silently."""
+    (tmp_path / "ident").mkdir()
+    for k, d in enumerate(units[:3]):
+        write_measurements(tmp_path / "ident" / f"{k + 1:04d}.csv", d, robot)
+    cfg = _fleet(tmp_path, robot, [])  # the config only: the files are above
+    first = fleet_app.run_fleet(cfg, out=tmp_path / "first").run_dir
+    seen = _fitted_names(monkeypatch)
+    res = fleet_app.run_fleet(cfg, [f"fleet.reuse={first}"], out=tmp_path / "again")
+    assert seen == [] and res.reused == 3
+    assert list(_table(res.run_dir).index) == ["0001", "0002", "0003"]

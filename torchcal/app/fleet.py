@@ -272,6 +272,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     with torch.no_grad():
                         model.base.nominal.copy_(frames[u["name"]].to(model.base.nominal))
                 fitted.append((u, model))
+        place = {name: k for k, (name, _, _) in enumerate(files)}  # the files' order, reused units among the rest
+        fitted.sort(key=lambda um: place[um[0]["name"]])
         from ..core import threads
 
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process

@@ -19,6 +19,7 @@ from ..core import units
 from ..core.exceptions import ConfigError
 from .config import source_of
 from ..io.atomic import atomic_path
+from .fleet_summary import read_summary
 
 log = logging.getLogger("torchcal")
 
@@ -28,8 +29,6 @@ KEY = "fleet.baseline"
 def baseline_units(cfg, label: str) -> tuple[Path, list[str]] | None:
     """(the baseline run directory, its fitted units' names) of ``cfg.fleet.baseline``, or None where none is
     set; ConfigError naming the key where it is not a ``torchcal fleet`` run directory with fitted units."""
-    import pandas as pd
-
     if not cfg.fleet.baseline:
         return None
     run = Path(cfg.fleet.baseline)
@@ -40,7 +39,7 @@ def baseline_units(cfg, label: str) -> tuple[Path, list[str]] | None:
     from ..io.rundir import require_finished
 
     require_finished(run, f"the comparison with a baseline ({source_of(cfg, KEY, label)}: key '{KEY}')")
-    table = pd.read_csv(summary)
+    table = read_summary(run)
     if "unit" not in table or "status" not in table:
         raise ConfigError(f"{source_of(cfg, KEY, label)}: key '{KEY}': {summary} lacks the columns 'unit' and 'status'")
     names = [str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]]

@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from ..core.exceptions import ConfigError
+from .fleet_summary import read_summary
 
 
 @dataclass
@@ -49,8 +50,6 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=Non
     :func:`torchcal.identify.fleet_prior.fleet_covariance`; robot: the unit's robot, refused (ConfigError) when
     the fleet's units are another type (name or joint limits). -> :class:`FleetRunPrior`.
     """
-    import pandas as pd
-
     from ..identify.blocks import GaussianPrior
     from ..identify.fleet_prior import prior_from_parameters
     from ..identify.layout import ParameterLayout
@@ -59,7 +58,7 @@ def prior_from_fleet_run(run_dir, method: str = "shrunk", device=None, robot=Non
 
     run_dir = Path(run_dir)
     require_finished(run_dir, "a fleet prior")  # an interrupted fleet's units are not the type's spread
-    table = pd.read_csv(run_dir / "summary.csv")
+    table = read_summary(run_dir)
     flagged = table["flagged"].fillna(False).astype(bool) if "flagged" in table else False
     # a unit with fewer equations than parameters holds the prior's values, not the type's spread
     thin = ~table["determined"].fillna(True).astype(bool) if "determined" in table else False
@@ -95,12 +94,10 @@ def fleet_backlash_orders(run_dir) -> list[int]:
     """The backlash orders of a ``torchcal fleet`` run's units (its first fitted unit's model: every unit has the
     fleet's structure). A unit fitted with the fleet's prior and ``model.backlash: true`` takes these, not the
     orders its own few poses would suggest, so that its model has the structure the prior describes."""
-    import pandas as pd
-
     from ..io.rundir import RunDirError, first_readable_model
 
     run_dir = Path(run_dir)
-    table = pd.read_csv(run_dir / "summary.csv")
+    table = read_summary(run_dir)
     fitted = [str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]]
     if not fitted:
         raise ConfigError(f"prior.fleet: {run_dir} has no fitted unit")

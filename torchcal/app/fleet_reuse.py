@@ -29,6 +29,7 @@ from pathlib import Path
 
 from ..core.exceptions import ConfigError
 from .config import source_of, to_dict
+from .fleet_summary import read_summary
 
 log = logging.getLogger("torchcal")
 
@@ -92,12 +93,10 @@ def reused_units(run: Path, files: list, loaded: list, spec: dict, warn) -> dict
     them -> {name: the unit dict :func:`torchcal.app.fleet.fit_cell` returns}. files: (name, identification path,
     validation path or None) per unit; spec: the spec of this run's model (its orders and backlash orders
     resolved). A unit that cannot be taken is fitted, and why is logged (or warned, where its data changed)."""
-    import pandas as pd
-
     from ..io.rundir import MODEL_FILE, RunDirError, read_json
     from .common import DATA_HASH_FILE, file_sha256
 
-    table = pd.read_csv(run / "summary.csv")
+    table = read_summary(run)
     fitted = set(str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]) if "status" in table else set()
     paths = {name: (fi, fv) for name, fi, fv in files}
     out, changed = {}, []
@@ -117,10 +116,11 @@ def reused_units(run: Path, files: list, loaded: list, spec: dict, warn) -> dict
         try:
             unit_dict, theirs = _unit_dict(unit / MODEL_FILE, name)
         except Exception as exc:  # a damaged earlier file costs only the reuse
-            log.info("unit %s: not reused from %s (%s: %s); fitted", name, run, type(exc).__name__, exc)
+            warn(f"{KEY}: unit {name}: its model in {run} cannot be read ({type(exc).__name__}: "
+                 f"{str(exc).splitlines()[0][:200]}); fitted again")
             continue
         if differ := [k for k in STRUCTURE_KEYS if theirs.get(k) != spec.get(k)]:
-            log.info("unit %s: not reused: its model in %s differs in %s; fitted", name, run, ", ".join(differ))
+            warn(f"{KEY}: unit {name}: its model in {run} differs in {', '.join(differ)}; fitted again")
             continue
         out[name] = unit_dict
     if changed:

@@ -56,4 +56,12 @@ def write_summary(run_dir: Path, result, cfg) -> None:
                                         "changes": [str(c) for c in result.changes]})
 
 
-__all__ = ["write_features", "write_summary"]
+def read_summary(run_dir):
+    """A fleet run's summary.csv as a DataFrame, unit names as written (a plant's serial '0001' read as the number 1
+    matched no unit folder: fleet.reuse then took nothing, silently)."""
+    import pandas as pd
+
+    return pd.read_csv(Path(run_dir) / "summary.csv", dtype={"unit": str}, keep_default_na=False, na_values=[""])
+
+
+__all__ = ["read_summary", "write_features", "write_summary"]

@@ -1,6 +1,7 @@
 """`torchcal fit` on a machine-tool config (Paper I) and `torchcal export-tables` from its run directory."""
 
 import json
+import math
 
 import pytest
 import torch
@@ -78,6 +79,10 @@ def test_an_interrupted_constraint_sweep_keeps_the_bounds_it_fitted(machine_file
     from conftest import ctrl_c_on_call
 
     ctrl_c_on_call(monkeypatch, constrained, "fit_constrained", call=call)
+    bounds = []  # the c of every fit_constrained call, the interrupted one last
+    stopping = constrained.fit_constrained
+    monkeypatch.setattr(constrained, "fit_constrained",
+                        lambda m, d, c, *a, **k: (bounds.append(c), stopping(m, d, c, *a, **k))[1])
     out = machine_files / f"cut{call}"
     with pytest.raises(KeyboardInterrupt):
         run_fit(_config(machine_files, constraint={"c": "auto", "points": 64, "check_points": 64,
@@ -87,3 +92,7 @@ def test_an_interrupted_constraint_sweep_keeps_the_bounds_it_fitted(machine_file
     assert [r["c_mm"] for r in summary["sweep"]] == [None, pytest.approx(0.4)][:call - 1]  # inf is written as null
     assert all(r["sub_mean_mm"] > 0 for r in summary["sweep"])
     assert (out / "PARTIAL").exists()
+    # the interrupted call: the sweep's 0.4 mm bound (call 2), or the final fit at the knee, inf (call 3: 0.4 mm was
+    # past it), not the sweep's next bound, which would leave the same two rows
+    assert len(bounds) == call and bounds[0] == math.inf
+    assert bounds[-1] == (pytest.approx(0.4e-3) if call == 2 else math.inf)

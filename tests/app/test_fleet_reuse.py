@@ -136,7 +136,8 @@ def test_other_settings_are_refused_by_name(tmp_path, robot, units):
         fleet_app.run_fleet(cfg, [f"fleet.reuse={tmp_path / 'nope'}"], out=tmp_path / "y")
     # what does not shape a fit may differ: another cell size, or checks skipped, fits nothing again
     res = fleet_app.run_fleet(cfg, [f"fleet.reuse={first}", "fleet.cell=1", "fleet.threshold=4",
-                                    "data.units_checked=true"], out=tmp_path / "cell1")
+                                    "data.units_checked=true", "solver.ftol=1e-6", "compensation.max_iter=20"],
+                              out=tmp_path / "cell1")
     assert _table(res.run_dir)["reused_from"].notna().all() and res.reused == 3
     # a unit the earlier run fitted whose file is gone is named, not forgotten
     (tmp_path / "ident" / "unit02.csv").unlink()

@@ -108,3 +108,8 @@ def test_a_sensor_run_verifies_position_and_angle(fanuc, tmp_path):
     rows = pd.read_csv(tmp_path / "rows.csv")
     assert rows.modeled_mm.max() < 1e-6 and rows.modeled_deg.max() < 1e-6
     assert rows.nominal_deg.mean() > 1e-3  # the nominal chain's orientation error is seen
+    # the same poses exported in metres: refused as the sensor fit and update refuse them
+    data.xyz = data.xyz / 1000.0
+    write_pose_measurements(tmp_path / "poses_m.csv", data, fanuc)
+    r = CliRunner().invoke(app, ["verify", str(tmp_path / "run"), str(tmp_path / "poses_m.csv"), "--new-frame"])
+    assert r.exit_code == 2 and "poses_m.csv: columns x, y, z" in r.output and "metres" in r.output, r.output

@@ -63,3 +63,21 @@ def test_parameters_an_instrument_holds_are_said_not_to_be_estimated(caplog):
         torchcal.fit(torchcal.RobotModel(robot, tools, orders=1), data, torchcal.NoiseModel.from_robot(robot),
                      instrument=inst)
     assert "Multilateration holds parameters (stations) that the fit does not estimate" in caplog.text
+
+
+def test_an_nn_module_instrument_must_write_its_own_subset_and_to():
+    """The defaults walk plain attributes: a Module's buffers would be missed (a subset kept all its rows)."""
+    import pytest
+
+    class ModInst(Multilateration, torch.nn.Module):
+        def __init__(self, distances):
+            torch.nn.Module.__init__(self)
+            self.register_buffer("observed", distances)
+            self.stations = STATIONS
+            self.weight = IsotropicWeight(2e-5)
+
+    inst = ModInst(torch.ones(10, 4, dtype=torch.float64))
+    with pytest.raises(NotImplementedError, match="ModInst is an nn.Module.*write its own subset"):
+        inst.subset(torch.arange(4))
+    with pytest.raises(NotImplementedError, match="write its own to"):
+        inst.to("cpu")

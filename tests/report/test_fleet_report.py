@@ -201,3 +201,18 @@ def test_fleet_command_lists_the_units_that_need_a_look(fleet_run, tmp_path, mon
     assert f"fleet report: {root / 'run' / 'report.html'}" in res.output
     with (root / "run" / "summary.csv").open(newline="") as f:
         assert len(list(csv.DictReader(f))) == 11
+
+
+def test_a_failed_runs_traceback_stays_out_of_the_warnings():
+    """Continuation lines belong to their warning; a failed run's traceback (logged as an error) is for run.log."""
+    from torchcal.report.rundata import log_warnings
+
+    log = ("2026-11-28 08:00:00 INFO start\n"
+           "2026-11-28 08:00:01 WARNING unit u1: not fitted: u1.csv: 1 problem in the data:\n"
+           "  - row 4 (line 5), column 'z': 'n/a' is not a finite number\n"
+           "2026-11-28 08:00:02 ERROR run failed\n"
+           "Traceback (most recent call last):\n"
+           '  File "x.py", line 1, in <module>\n'
+           "ValueError: boom\n")
+    assert log_warnings(log) == ["unit u1: not fitted: u1.csv: 1 problem in the data:\n"
+                                 "  - row 4 (line 5), column 'z': 'n/a' is not a finite number", "error: run failed"]

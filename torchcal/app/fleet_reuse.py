@@ -36,8 +36,8 @@ log = logging.getLogger("torchcal")
 KEY = "fleet.reuse"
 
 IGNORED_KEYS = ("out", "report", "plots", "threads", "device", "data.identification", "data.validation",
-                "data.units_checked", "fleet.engine", "fleet.address", "fleet.cell", "fleet.threshold", "fleet.baseline", KEY,
-                "config_file", "overrides")
+                "data.units_checked", "data.truth", "solver.ftol", "fleet.engine", "fleet.address", "fleet.cell",
+                "fleet.threshold", "fleet.baseline", KEY, "config_file", "overrides")
 """Settings that do not change a unit's fit (or name where its data lie: the data themselves are compared by hash)."""
 
 
@@ -52,9 +52,14 @@ def _flat(d: dict, prefix: str = "") -> dict:
     return out
 
 
+IGNORED_SECTIONS = ("compensation.", "sweep.")
+"""Config sections that act after a fit (the compensation check) or outside a fleet (a sweep's engine)."""
+
+
 def _differing_keys(earlier: dict, now: dict) -> list[str]:
     a, b = _flat(earlier), _flat(now)
-    return sorted(k for k in set(a) | set(b) if k not in IGNORED_KEYS and a.get(k) != b.get(k))
+    return sorted(k for k in set(a) | set(b) if k not in IGNORED_KEYS and not k.startswith(IGNORED_SECTIONS)
+                  and a.get(k) != b.get(k))
 
 
 def reuse_run(cfg, label: str) -> Path | None:
@@ -146,4 +151,4 @@ def _unit_dict(path: Path, name: str) -> tuple[dict, dict]:
             "backlash": None if b is None or max(b) < 0 else list(b)}, spec
 
 
-__all__ = ["IGNORED_KEYS", "KEY", "STRUCTURE_KEYS", "reuse_run", "reused_units"]
+__all__ = ["IGNORED_KEYS", "IGNORED_SECTIONS", "KEY", "STRUCTURE_KEYS", "reuse_run", "reused_units"]

@@ -79,10 +79,11 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
             from ..io.csv import read_measurements
 
             data = read_measurements(data_path, model.robot, int(model.tools.count)).to(model.device)
-    if not sensor and not units_checked:
+    if not units_checked:  # a sensor's positions at the flange, as its fit and update judge them
         from ..io.unit_checks import check_units, units_note
 
-        note = units_note(data, model.robot, *check_units(data, model.robot, model.tools().detach().cpu(), data_path))
+        tools = None if sensor else model.tools().detach().cpu()
+        note = units_note(data, model.robot, *check_units(data, model.robot, tools, data_path))
         if note:
             said.append(note)
     inner = getattr(model, "model", model)  # a sensor rig's robot model

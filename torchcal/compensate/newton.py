@@ -279,7 +279,7 @@ def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None, gi
         raise InputError(f"compensate: q_nom is {q_nom.dtype}, the model {model.dtype}: convert one of them "
                          f"(q_nom.to({model.dtype}) or model.to({q_nom.dtype}))")
     if given:
-        check_radians(model, q_nom, "compensate: q_nom")
+        refuse_degrees(model, q_nom, "compensate: q_nom")
     bad = ~torch.isfinite(q_nom)
     if bad.any():
         i, j = (int(x) for x in bad.nonzero()[0])
@@ -295,7 +295,7 @@ def _check_inputs(model, q_nom: torch.Tensor, direction: torch.Tensor | None, gi
             raise InputError(f"compensate: direction must be -1, 0 or +1, got {float(direction[i, j])} at pose {i}, joint {j + 1}")
 
 
-def check_radians(model, q: torch.Tensor, what: str) -> None:
+def refuse_degrees(model, q: torch.Tensor, what: str) -> None:
     """Commands in degrees given to the Python API (it takes radians) reach hundreds of 'radians': every row then
     fails. Refused, naming the joint, where a revolute joint's command lies beyond 2 pi and twice its range's
     largest magnitude (no controller's command; a wide J6 range stays valid)."""

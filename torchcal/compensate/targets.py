@@ -131,9 +131,9 @@ def compensate_targets(model, target: torch.Tensor, seed: torch.Tensor, tool=0, 
     B = target.shape[0]
     if seed.shape != (B, model.n):
         raise InputError(f"compensate_targets: seed must be ({B}, {model.n}) commands, got {tuple(seed.shape)}")
-    from .newton import check_radians
+    from .newton import refuse_degrees
 
-    check_radians(model, seed, "compensate_targets: seed")
+    refuse_degrees(model, seed, "compensate_targets: seed")
     dev, dt = model.device, seed.dtype
     tool = torch.as_tensor(tool, device=dev, dtype=torch.long).expand(B)
     if bool(((tool < 0) | (tool >= model.tools.count)).any()):

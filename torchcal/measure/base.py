@@ -67,17 +67,22 @@ class Instrument:
         Default: a shallow copy whose tensors with one entry per row (first dimension R) are indexed, its
         weight's too: enough for an instrument holding its observations and per-row data. Override it where the
         instrument holds another tensor that happens to have R rows (station positions of a 4-row test)."""
+        _plain(self, "subset")
         R = len(self)
         out = copy.copy(self)
         for k, v in vars(self).items():
             if isinstance(v, torch.Tensor) and v.ndim >= 1 and v.shape[0] == R:
                 setattr(out, k, v[index])
-        if self.weight is not None and hasattr(self.weight, "subset"):
+        if self.weight is not None:
+            if not hasattr(self.weight, "subset"):
+                raise NotImplementedError(f"{type(self).__name__}.subset: its weight {type(self.weight).__name__} has no "
+                                          "subset(index); give it one, or write the instrument's own subset")
             out.weight = self.weight.subset(index)
         return out
 
     def to(self, device) -> "Instrument":
         """On another device: a shallow copy with every tensor attribute (and the weight's) moved."""
+        _plain(self, "to")
         out = copy.copy(self)
         for k, v in vars(self).items():
             if isinstance(v, torch.Tensor):
@@ -96,6 +101,13 @@ class Instrument:
         if isinstance(self, torch.nn.Module):
             found += [k for k, _ in self.named_parameters()]
         return sorted(set(found))
+
+
+def _plain(instrument, what: str) -> None:
+    """The default subset / to walk plain attributes; an nn.Module keeps its tensors as parameters and buffers."""
+    if isinstance(instrument, torch.nn.Module):
+        raise NotImplementedError(f"{type(instrument).__name__} is an nn.Module: its parameters and buffers are not "
+                                  f"plain attributes, so the default {what}() would miss them; write its own {what}()")
 
 
 def closed_form_declined(model) -> bool:

@@ -234,6 +234,8 @@ def log_warnings(log) -> list[str]:
     for line in log.splitlines():
         m = _RECORD.match(line)
         if m is None:
+            if line.startswith("Traceback (most recent call last)"):
+                inside = False  # a failed run's traceback is for run.log, not for the report's list
             if inside:
                 out[-1] += "\n" + line
             continue

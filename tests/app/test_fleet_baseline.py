@@ -157,7 +157,7 @@ def test_baseline_of_another_structure_is_refused_before_the_solve(campaigns):
     cfg = _config(tmp, "year2_order2.yaml", "year2", order=2)
     with pytest.raises(ConfigError, match="fleet.baseline.*another model structure"):
         run_fleet(cfg, [f"fleet.baseline={run1.run_dir}"], out=tmp / "refused")
-    assert not (tmp / "refused" / "units").exists()  # nothing was fitted
+    assert not (tmp / "refused").exists()  # refused before the run directory: no empty PARTIAL run left behind
 
 
 def test_baseline_that_is_not_a_fleet_run_is_refused(campaigns):

@@ -123,6 +123,11 @@ def test_an_interrupted_run_is_finished(tmp_path, robot, units, monkeypatch):
     res = fleet_app.run_fleet(cfg, ["fleet.cell=2", f"fleet.reuse={tmp_path / 'cut'}"], out=tmp_path / "rest")
     assert seen == ["unit02", "unit03"]
     assert (_table(res.run_dir)["status"] == "fitted").all() and not (res.run_dir / "PARTIAL").exists()
+    from torchcal.report.fleet import render_fleet_report
+
+    # the reports say what happened: the cut run that it did not finish, the rerun what it took from it
+    assert "the run did not finish (PARTIAL)" in render_fleet_report(tmp_path / "cut")
+    assert f"2 of them taken from {tmp_path / 'cut'} (fleet.reuse)" in render_fleet_report(res.run_dir)
 
 
 def test_other_settings_are_refused_by_name(tmp_path, robot, units):

@@ -216,3 +216,18 @@ def test_targets_file_of_a_one_tool_run(fanuc, tmp_path):
     reach = _tool_point(model, qc, model.tools()[0].detach())
     assert float((reach - T[:, :3, 3]).norm(dim=-1).max()) < 1e-8
     assert out.max_dq.max() < 1.0  # deg: no turn of the unobserved orientation
+
+
+def test_the_dof_notes_say_which_tool_point_and_why(fanuc):
+    """--dof 3 on a run of several tools names the point restored; auto on a run measured with one of three tools
+    says so (its note used to speak of the run's one tool)."""
+    from torchcal.app.files import compensation_dof
+
+    tools = torch.tensor([[0.0, 0.0, 0.1], [0.05, 0.0, 0.1], [0.0, 0.05, 0.1]], dtype=torch.float64)
+    three = RobotModel(fanuc, tools, orders=0)
+    opts, note = compensation_dof(three, "3")
+    assert opts == {"position_only": True} and "the row's tool column; tool 0 where the file has none" in note
+    assert compensation_dof(RobotModel(fanuc, tools[:1], orders=0), "3")[1] is None
+    three.measured_tools = [0]
+    opts, note = compensation_dof(three, "auto")
+    assert opts == {"position_only": True} and note.startswith("the run's data measured only tool 0 of its 3")

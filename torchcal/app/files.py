@@ -247,7 +247,9 @@ def compensation_dof(model, dof: str = "auto", free_tool_axis=None) -> tuple[dic
     if dof == "6":
         return {}, None
     if dof == "3":
-        return {"position_only": True}, None
+        return {"position_only": True}, (None if model.tools.count == 1 else (
+            f"--dof 3: each row's identified tool point is the one put on its programmed position (the row's tool "
+            f"column; tool 0 where the file has none) of the run's {model.tools.count} tools"))
     seen, axis = observed_dof(model)
     if seen == 6:
         return {}, None

@@ -176,8 +176,15 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if folder and Path(folder).resolve() in (target.resolve(), *target.resolve().parents):
             raise ConfigError(f"{label}: the run directory {target} lies inside data.{key} ({folder}): choose an "
                               "'out' beside the data")
+    written = cfg  # as given (model.backlash: true stays true: a later fleet.reuse compares with it)
+    theirs = baseline_model(*baseline, source_of(cfg, "fleet.baseline", label)) if baseline is not None else None
+    if theirs is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
+        cfg = updated(cfg, {"model.backlash": [int(b) for b in theirs.joint_errors.backlash_orders.tolist()]})
+    if theirs is not None:  # before the run directory: a refused baseline leaves no empty run behind
+        check_structure(baseline[0], theirs, _factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(
+            config_orders(cfg, robot.joint_map.n)), source_of(cfg, "fleet.baseline", label))
     run_dir = make_run_dir(target)
-    atomic_write_text(run_dir / "config.yaml", to_yaml(cfg))
+    atomic_write_text(run_dir / "config.yaml", to_yaml(written))
     write_json(run_dir / "versions.json", collect_versions(device))
     result = FleetRunResult(run_dir, placed=placed_note(target, run_dir))
 
@@ -234,14 +241,9 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             first = result.rows[0]
             raise ConfigError(f"{label}: no unit could be fitted; {first['unit']}: {first['reason']}\n(summary.csv in "
                               f"{run_dir} has every unit's reason)")
-        theirs = baseline_model(*baseline, source_of(cfg, "fleet.baseline", label)) if baseline is not None else None
-        if theirs is not None and config_backlash(cfg) is True:  # like with like: the baseline's backlash orders
-            cfg = updated(cfg, {"model.backlash": [int(b) for b in theirs.joint_errors.backlash_orders.tolist()]})
+        if cfg is not written and written.model.backlash is True:
             log.info("backlash orders %s (model.backlash: true), the baseline's (%s)", cfg.model.backlash, KEY)
         cfg = _fleet_backlash(cfg, robot, loaded, warn)
-        if theirs is not None:
-            check_structure(baseline[0], theirs, _factory(cfg, robot, torch.device("cpu"), config_backlash(cfg))(
-                config_orders(cfg, robot.joint_map.n)), source_of(cfg, "fleet.baseline", label))
         thin = _data_checks(cfg, robot, T, loaded, warn)  # {unit: why}: fewer equations than parameters
         size = int(cfg.fleet.cell)
         reused = {} if earlier is None else reused_units(earlier, files, loaded, _factory(

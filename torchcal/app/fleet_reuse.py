@@ -73,7 +73,7 @@ def reuse_run(cfg, label: str) -> Path | None:
     where = f"{source_of(cfg, KEY, label)}: key '{KEY}'"
     if not run.exists():
         raise ConfigError(f"{where}: {run} does not exist")
-    if (run / "units").is_dir() is False and (run / "PARTIAL").exists() and (run / "config.yaml").is_file():
+    if not (run / "units").is_dir() and (run / "PARTIAL").exists() and (run / "config.yaml").is_file():
         raise ConfigError(f"{where}: {run} fitted no unit (interrupted before its first batched solve): there is "
                           "nothing to take; drop the key")
     if not is_fleet_run(run):

@@ -115,6 +115,7 @@ class FleetFiles:
         self.config = _yaml(self.config_text)
         self.versions = _json(folder / "versions.json")
         self.log = _text(folder / "run.log")
+        self.partial = (folder / "PARTIAL").exists()  # interrupted or failed: the units are those done by then
         self.features = _features(folder / "features.csv")
         units = get(self.fleet, "units", default=[])
         self.units = [u for u in units if isinstance(u, dict)] if isinstance(units, list) else []
@@ -135,7 +136,10 @@ def _summary(run: FleetFiles) -> str:
     fitted = [u for u in run.units if u.get("status") == "fitted"]
     failed = [u for u in run.units if u.get("status") == "failed"]
     flagged = [u for u in fitted if u.get("flagged")]
-    cards = [("Units", f"{len(run.units)}", f"{len(fitted)} fitted, {len(failed)} failed"),
+    reused = [u for u in fitted if u.get("reused_from")]
+    cards = [("Units", f"{len(run.units)}", f"{len(fitted)} fitted, {len(failed)} failed"
+              + (f", {len(reused)} of them taken from {reused[0]['reused_from']} (fleet.reuse)" if reused else "")
+              + ("; the run did not finish (PARTIAL): interrupted or failed" if run.partial else "")),
              ("Flagged", f"{len(flagged)}", ", ".join(str(u.get("unit")) for u in flagged) or "no unit lies far from "
               "the fleet")]
     if get(run.fleet, "baseline", default=None):

@@ -108,3 +108,21 @@ def test_rows_the_3dof_pass_hands_on_are_finished_by_the_torch_path(fanuc, monke
     assert bool(res.converged[handed].any()) and not bool(res.converged[handed].all())
     assert not bool(res.damped[~handed].any())  # the pass's own rows
     assert float((res.q - q)[res.converged, 0].abs().max()) <= 0.0125 + 1e-12  # the bound held
+
+
+def test_a_small_3dof_batch_does_not_start_a_cold_compile(fanuc, monkeypatch):
+    """Where the cache predates the 3-DOF kernel, a handful of poses would wait minutes for its compile: they take
+    the torch path (same numbers); a large batch still takes the pass."""
+    model = _model(fanuc)
+    c = model.tools()[0].detach()
+    q = random_commands(fanuc, 40, 3)
+    big = random_commands(fanuc, newton.FUSED_MIN_POSES, 4)
+    newton.compensate(model, big, position_only=True, tool_point=c)  # a large batch: the process is warm now
+    seen = _spy(monkeypatch)
+    monkeypatch.setattr(newton, "_position_cold", lambda: True)
+    small = newton.compensate(model, q, position_only=True, tool_point=c)
+    assert seen == []  # the torch path
+    _same(small, _torch_path(model, q, None, c))
+    monkeypatch.setattr(newton, "_position_cold", lambda: False)
+    newton.compensate(model, q, position_only=True, tool_point=c)
+    assert len(seen) == 1  # warm and cached: the pass

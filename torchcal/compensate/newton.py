@@ -487,7 +487,8 @@ def compensate(
     with threads_for_work(q_nom.shape[0] * FLOPS_PER_POSE):  # small batches on one thread (torchcal.core.threads)
         eligible = (target is None and branch and broyden and refresh_model and not sigma and free_tool_axis is None
                     and (tool_point is None or position_only)
-                    and model.n == 6 and (q_nom.shape[0] >= FUSED_MIN_POSES or _fused_warm()))
+                    and model.n == 6 and (q_nom.shape[0] >= FUSED_MIN_POSES
+                                          or (_fused_warm() and not (position_only and _position_cold()))))
         if eligible:
             _check_inputs(model, q_nom, direction)
             setup = compiled_pass_setup(model, q_nom, dict(tol=tol, max_iter=max_iter, contraction=contraction,
@@ -501,6 +502,14 @@ def compensate(
                 return _with_rest(model, q_nom, direction, _compiled_pass(setup, q_nom, direction, g_inv), length, args,
                                   g_inv)
         return _solve(model, q_nom, direction, *args, target, g_inv)
+
+
+def _position_cold() -> bool:
+    """The 3-DOF pass's kernel is not compiled in this machine's cache (a cache older than it): a small batch then
+    runs on the torch ops rather than wait minutes for the compile (a large one pays it, announced)."""
+    from ..core.compiled import cold
+
+    return bool(cold("position"))
 
 
 def compiled_pass_setup(model, q: torch.Tensor, options: dict):

@@ -111,6 +111,22 @@ def test_a_unit_whose_data_changed_is_fitted_again(tmp_path, robot, units, monke
     assert _table(res.run_dir).loc["unit01", "rows"] == len(d)
 
 
+def test_validation_added_later_refits_nothing_and_a_unit_without_its_hashes_is_said(tmp_path, robot, units,
+                                                                                       monkeypatch):
+    cfg = _fleet(tmp_path, robot, units)
+    first = fleet_app.run_fleet(cfg, out=tmp_path / "first").run_dir
+    (tmp_path / "val").mkdir()
+    for k, d in enumerate(units):  # validation files added a year later: evaluated, no unit refitted for them
+        write_measurements(tmp_path / "val" / f"unit{k:02d}.csv", d.subset(torch.arange(10)), robot)
+    (first / "units" / "unit01" / "data_hashes.json").unlink()  # a damaged earlier folder
+    seen = _fitted_names(monkeypatch)
+    res = fleet_app.run_fleet(cfg, [f"fleet.reuse={first}", f"data.validation={tmp_path / 'val'}"],
+                              out=tmp_path / "again")
+    assert seen == ["unit01"] and res.reused == COUNT - 1
+    assert any("unit01 (no data_hashes.json: its data cannot be compared)" in w for w in res.warnings)
+    assert _table(res.run_dir)["validation_mean_mm"].notna().all()
+
+
 def test_an_interrupted_run_is_finished(tmp_path, robot, units, monkeypatch):
     from conftest import ctrl_c_on_call
 

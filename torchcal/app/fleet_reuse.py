@@ -7,9 +7,9 @@ work for the same numbers. With ``fleet.reuse`` naming the earlier run, a unit
 is taken as that run fitted it (its model, its solver summary) when
 
 - the earlier run's ``summary.csv`` says ``fitted``;
-- its identification and validation files hash as they did then
+- its identification file hashes as it did then
   (``units/<name>/data_hashes.json``): a mended or re-measured unit is fitted
-  again;
+  again (the validation file shapes no fit: each run evaluates the one it has);
 - every setting that shapes a fit is the same (the config with its data folders,
   run directory, engine, cell size, outlier threshold, baseline, threads and
   device set aside), and its model has the orders and backlash orders this run
@@ -104,18 +104,23 @@ def reused_units(run: Path, files: list, loaded: list, spec: dict, warn) -> dict
     table = read_summary(run)
     fitted = set(str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]) if "status" in table else set()
     paths = {name: (fi, fv) for name, fi, fv in files}
-    out, changed = {}, []
+    out, changed, unknown = {}, [], []
     for name, _, _ in loaded:
         unit = run / "units" / name
-        if name not in fitted or not (unit / MODEL_FILE).is_file():
+        if name not in fitted:
             continue  # failed, interrupted before it, or new: this run fits it
-        fi, fv = paths[name]
+        if not (unit / MODEL_FILE).is_file():
+            unknown.append(f"{name} (no {MODEL_FILE})")
+            continue
         try:
-            then = read_json(unit / DATA_HASH_FILE)
-        except (OSError, RunDirError, ValueError):
-            then = {}
-        now = {"data.identification": file_sha256(fi), "data.validation": None if fv is None else file_sha256(fv)}
-        if any((then.get(k) or {}).get("sha256") != v for k, v in now.items()):
+            then = (read_json(unit / DATA_HASH_FILE).get("data.identification") or {}).get("sha256")
+        except (OSError, RunDirError, ValueError, AttributeError):
+            then = None
+        if then is None:
+            unknown.append(f"{name} (no {DATA_HASH_FILE}: its data cannot be compared)")
+            continue
+        # the identification file alone: the validation file shapes no fit (this run evaluates the one it has)
+        if then != file_sha256(paths[name][0]):
             changed.append(name)
             continue
         try:
@@ -130,6 +135,8 @@ def reused_units(run: Path, files: list, loaded: list, spec: dict, warn) -> dict
         out[name] = unit_dict
     if changed:
         warn(f"{KEY}: {len(changed)} unit(s) whose data changed since {run} are fitted again: {', '.join(changed)}")
+    if unknown:
+        warn(f"{KEY}: {len(unknown)} unit(s) fitted in {run} cannot be taken from it, fitted again: {', '.join(unknown)}")
     gone = sorted(fitted - {name for name, _, _ in files})
     if gone:  # a unit the earlier run fitted whose file is no longer among the data: not silently forgotten
         warn(f"{KEY}: {len(gone)} unit(s) fitted in {run} have no identification file in this run's data: "

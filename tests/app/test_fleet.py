@@ -686,3 +686,8 @@ def test_a_unit_measured_with_fewer_tools_is_not_judged(tmp_path, robot):
     assert row["status"] == "fitted" and not row["flagged"] and row["determined"] is False
     assert row["findings"] == "not scored: tools [1, 2] never measured, unlike the fleet's other units"
     assert any("unit unit05: tools [1, 2] never measured" in w for w in res.warnings)
+    from torchcal.io.rundir import load_model
+
+    # each unit's model knows the tools its data measured: compensation restores only what they observed
+    assert load_model(res.run_dir / "units" / "unit05").measured_tools == [0]
+    assert load_model(res.run_dir / "units" / "unit00").measured_tools == [0, 1, 2]

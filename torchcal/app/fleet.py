@@ -270,6 +270,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 model = _factory(cfg, robot, device, u["backlash"])(u["orders"])
                 model.load_state_dict(u["state"])
                 model.data_span = u.get("span")  # its data's range: not a parameter, so not in the state
+                model.measured_tools = sorted({int(t) for t in idents[u["name"]].tool.tolist()})  # compensation's dof
                 if u["name"] in frames:
                     with torch.no_grad():
                         model.base.nominal.copy_(frames[u["name"]].to(model.base.nominal))

@@ -24,7 +24,7 @@ from ..analysis.stats import ResidualStats, percent_decrease
 from ..identify import FitResult, NoiseModel, Prior
 from ..io.atomic import atomic_write_text
 from .config import ConfigError, to_yaml
-from ..io.rundir import collect_versions, write_json
+from ..io.rundir import collect_versions, read_json, write_json
 from ..models.robot import RobotModel
 from ..core.progress import task as progress_task
 
@@ -252,6 +252,15 @@ def file_sha256(path) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def fitted_hash(run_dir) -> str | None:
+    """The sha256 of the identification file a run (or a fleet unit's folder) was fitted on, from its
+    :data:`DATA_HASH_FILE`; None where it is not recorded or cannot be read."""
+    try:
+        return (read_json(Path(run_dir) / DATA_HASH_FILE).get("data.identification") or {}).get("sha256")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:

@@ -154,14 +154,10 @@ def compare_with_baseline(run: Path, names: list[str], fitted: list, idents: dic
 def _same_file(unit_dir: Path, path) -> bool:
     """Whether the identification file at ``path`` hashes as the one the baseline's unit ``unit_dir`` was fitted on
     (its data_hashes.json); False where either is unknown."""
-    from ..io.rundir import read_json
-    from .common import DATA_HASH_FILE, file_sha256
+    from .common import file_sha256, fitted_hash
 
-    try:
-        then = read_json(unit_dir / DATA_HASH_FILE).get("data.identification", {}).get("sha256")
-        return bool(then) and Path(path).is_file() and then == file_sha256(path)
-    except (OSError, ValueError, AttributeError):
-        return False
+    then = fitted_hash(unit_dir)
+    return then is not None and Path(path).is_file() and then == file_sha256(path)
 
 
 def _write_changes(run_dir: Path, names, rms, joints: dict, joint_names, prismatic, tool_sc, joint_sc,

@@ -98,8 +98,8 @@ def reused_units(run: Path, files: list, loaded: list, spec: dict, warn) -> dict
     them -> {name: the unit dict :func:`torchcal.app.fleet.fit_cell` returns}. files: (name, identification path,
     validation path or None) per unit; spec: the spec of this run's model (its orders and backlash orders
     resolved). A unit that cannot be taken is fitted, and why is logged (or warned, where its data changed)."""
-    from ..io.rundir import MODEL_FILE, RunDirError, read_json
-    from .common import DATA_HASH_FILE, file_sha256
+    from ..io.rundir import MODEL_FILE
+    from .common import DATA_HASH_FILE, file_sha256, fitted_hash
 
     table = read_summary(run)
     fitted = set(str(u) for u in table.loc[table["status"].eq("fitted"), "unit"]) if "status" in table else set()
@@ -112,10 +112,7 @@ def reused_units(run: Path, files: list, loaded: list, spec: dict, warn) -> dict
         if not (unit / MODEL_FILE).is_file():
             unknown.append(f"{name} (no {MODEL_FILE})")
             continue
-        try:
-            then = (read_json(unit / DATA_HASH_FILE).get("data.identification") or {}).get("sha256")
-        except (OSError, RunDirError, ValueError, AttributeError):
-            then = None
+        then = fitted_hash(unit)
         if then is None:
             unknown.append(f"{name} (no {DATA_HASH_FILE}: its data cannot be compared)")
             continue

@@ -66,7 +66,7 @@ class ParameterLayout:
     def __init__(self, model: nn.Module, fixed: Iterable[str] = (), masks: dict[str, torch.Tensor] | None = None,
                  groups: list[ParamGroup] | None = None):
         self.model = model
-        self.fixed = (fixed,) if isinstance(fixed, str) else tuple(fixed)
+        self.fixed = self.fixed_names(fixed)
         self._all_groups = parameter_groups(model) if groups is None else groups
         names = [g.name for g in self._all_groups]
         unknown = [f for f in self.fixed if not any(n == f or n.startswith(f + ".") for n in names)]
@@ -89,6 +89,11 @@ class ParameterLayout:
                 self.entries.append((name, p, mask))
                 self.groups.append(g)
         self.size = sum(int(m.sum()) for _, _, m in self.entries)
+
+    @staticmethod
+    def fixed_names(fixed: Iterable[str] | str) -> tuple[str, ...]:
+        """``fixed`` as the tuple a layout keeps (one name or several)."""
+        return (fixed,) if isinstance(fixed, str) else tuple(fixed)
 
     def without(self, drop: torch.Tensor) -> "ParameterLayout":
         """A layout with the free entries flagged in ``drop`` (P,) bool pinned at their value."""

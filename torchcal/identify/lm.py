@@ -27,12 +27,14 @@ from .problem import CalibrationProblem
 from .result import FitResult
 
 
-def _schur_step(f, A, C, w_v, v, lam_b, dx, mu, H_blk=None, g_blk=None, v_free=None):
+def _schur_step(f, A, C, w_v, v, lam_b, dx, mu, H_blk=None, g_blk=None, v_free=None, rows_information=False):
     """One damped Gauss-Newton step with v eliminated. Shapes: f (R,d), A (R,d,P), C (R,d,n), any d.
 
     H_blk (P, P), g_blk (P,): parameter-only blocks' J^T J and J^T r; v_free:
     (R,) bool, rows whose joint errors move (others get dv = 0).
-    -> db (P,), dv (R, n), gradient of V w.r.t. (b, v) (P + R n,).
+    -> db (P,), dv (R, n), gradient of V w.r.t. (b, v) (P + R n,); with rows_information also the rows'
+    own quadratic in db with v eliminated, (H (P, P), g (P,)): with mu = 0 and every v free, exactly
+    :func:`torchcal.identify.online.marginal_information` of (f, A, C, w_v, v), from the same factorization.
     """
     R, d, P = A.shape
     n = C.shape[-1]
@@ -56,11 +58,11 @@ def _schur_step(f, A, C, w_v, v, lam_b, dx, mu, H_blk=None, g_blk=None, v_free=N
     z = Li @ g_v[..., None]  # L^-1 g_v (R, n, 1)
     # S = sum_r A_r^T (I - W_r^T W_r) A_r + damped diagonal: one (P x Rd) @ (Rd x P) product
     M = torch.eye(d, dtype=A.dtype, device=A.device) - W.transpose(1, 2) @ W  # (R, d, d)
-    S = Af.T @ (M @ A).reshape(R * d, P)
-    if H_blk is not None:
-        S = S + H_blk
+    S_rows = Af.T @ (M @ A).reshape(R * d, P)
+    S = S_rows if H_blk is None else S_rows + H_blk
     S = 0.5 * (S + S.T) + torch.diag(lam_b + mu * diag_bb)
-    rhs = -(g_b - Af.T @ (W.transpose(1, 2) @ z).reshape(-1))
+    elim = Af.T @ (W.transpose(1, 2) @ z).reshape(-1)
+    rhs = -(g_b - elim)
     Ls, info = torch.linalg.cholesky_ex(S)
     if int(info) != 0:
         db = torch.linalg.lstsq(S, rhs[:, None]).solution[:, 0]
@@ -68,6 +70,8 @@ def _schur_step(f, A, C, w_v, v, lam_b, dx, mu, H_blk=None, g_blk=None, v_free=N
         db = torch.cholesky_solve(rhs[:, None], Ls)[:, 0]
     dv = -(Li.transpose(1, 2) @ (z + W @ (A @ db[:, None])))[..., 0]
     grad = torch.cat([g_b, g_v.reshape(-1)]) * 2.0
+    if rows_information:
+        return db, dv, grad, (0.5 * (S_rows + S_rows.T), Af.T @ f.reshape(-1) - elim)
     return db, dv, grad
 
 

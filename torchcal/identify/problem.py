@@ -230,12 +230,14 @@ class CalibrationProblem:
     blocks: parameter-only residual blocks (:mod:`.blocks`); fixed_rows: (R,)
     bool, rows whose joint errors are held at v0 (R, n) rather than solved for.
     jacobian: 'auto' (closed form where the instrument/model give it, else
-    autograd), 'closed' or 'autodiff'.
+    autograd), 'closed' or 'autodiff'; layout: this model's ParameterLayout with
+    ``fixed`` held when the caller has built it (an online calibration builds a
+    problem per batch), else built here.
     """
 
     def __init__(self, model, data: Measurements, noise: NoiseModel, prior: Prior | None = Prior(), fixed=(),
                  instrument: Instrument | None = None, blocks=(), fixed_rows: torch.Tensor | None = None,
-                 v0: torch.Tensor | None = None, jacobian: str = "auto"):
+                 v0: torch.Tensor | None = None, jacobian: str = "auto", layout: ParameterLayout | None = None):
         if jacobian not in ("auto", "closed", "autodiff"):
             raise ValueError(f"jacobian must be 'auto', 'closed' or 'autodiff', got {jacobian!r}")
         device = model.device
@@ -254,7 +256,9 @@ class CalibrationProblem:
         self.observed = self.instrument.observed
         self.blocks = list(blocks)
         self.jacobian = jacobian
-        self.layout = ParameterLayout(model, fixed)
+        if layout is not None and (layout.model is not model or layout.fixed != ParameterLayout.fixed_names(fixed)):
+            raise ValueError("CalibrationProblem: the layout given is not this model's with these groups fixed")
+        self.layout = ParameterLayout(model, fixed) if layout is None else layout
         self.direction = self.data.direction if data.has_direction else None
         R, n = self.data.q.shape
         var = noise.joint_variance(self.data.direction)
@@ -330,7 +334,10 @@ class CalibrationProblem:
     def residual(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Whitened residual (R, d) at parameters x (also written into the model)."""
         self.layout.set(x)
-        return self.whitened_residual(x, v)
+        # x is the model's now: predict from it directly (functional_call's parameter swap, which
+        # whitened_residual needs for gradients, is most of a small batch's residual)
+        return self.instrument.whiten(raw_residual(self.model, self.instrument, self.data.q, self.data.tool,
+                                                   self.direction, v, self.observed))
 
     def cost_from(self, f: torch.Tensor, x: torch.Tensor, v: torch.Tensor, block_cost_value=None) -> torch.Tensor:
         """V from a whitened residual and the current x, v (blocks evaluated at x unless their cost is given)."""

@@ -49,27 +49,31 @@ def chain_frames(
     mR, mp = joint_motion(axes, prismatic, theta)
     if base is None:
         R = torch.eye(3, dtype=dtype, device=device).expand(B, 3, 3)
-        p = torch.zeros(B, 3, dtype=dtype, device=device)
+        p = torch.zeros(B, 3, 1, dtype=dtype, device=device)
     else:
         base = base.expand(B, 4, 4)
-        R, p = base[:, :3, :3], base[:, :3, 3]
+        R, p = base[:, :3, :3], base[:, :3, 3:]
+    # every per-joint operand split off once (one unbind each): a small batch's chain is mostly per-op cost, and
+    # indexing inside the loop was a third of its ops. Translations are carried as (B, 3, 1) columns.
+    oR, op = origins[:, :3, :3].unbind(0), origins[:, :3, 3:].unbind(0)
+    mRs, mps = mR.unbind(1), mp[..., None].unbind(1)
+    if joint_errors is not None:
+        ERs, Eps = joint_errors[..., :3, :3].unbind(-3), joint_errors[..., :3, 3:].unbind(-3)
     frames_R, frames_p = [], []
     for i in range(n):
-        oR, op = origins[i, :3, :3], origins[i, :3, 3]
-        p = p + R @ op
-        R = R @ oR
+        p = p + R @ op[i]
+        R = R @ oR[i]
         if joint_errors is not None:
-            E = joint_errors[..., i, :, :]
-            p = p + small_matmul(R, E[..., :3, 3:4])[..., 0]
-            R = small_matmul(R, E[..., :3, :3])
+            p = p + small_matmul(R, Eps[i])
+            R = small_matmul(R, ERs[i])
         frames_R.append(R)
         frames_p.append(p)
-        p = p + small_matmul(R, mp[:, i, :, None])[..., 0]
-        R = small_matmul(R, mR[:, i])
+        p = p + small_matmul(R, mps[i])
+        R = small_matmul(R, mRs[i])
     if tip is not None:
-        p = p + R @ tip[:3, 3]
+        p = p + R @ tip[:3, 3:]
         R = R @ tip[:3, :3]
-    return torch.stack(frames_R, 1), torch.stack(frames_p, 1), homogeneous(R, p)
+    return torch.stack(frames_R, 1), torch.stack(frames_p, 1)[..., 0], homogeneous(R, p[..., 0])
 
 
 def chain_fk(origins, axes, prismatic, theta, joint_errors=None, tip=None, base=None) -> torch.Tensor:

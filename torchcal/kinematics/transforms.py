@@ -46,8 +46,30 @@ def rowwise_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return out
 
 
+_CPU_CONSTANTS: dict = {}
+"""Small constants of the CPU paths, one per (name, dtype), made on first use. Only the CPU's: elsewhere a constant
+made from host values is a copy the device may wait on, and the stacked forms below need none."""
+
+
+def _cpu_constant(name: str, dtype: torch.dtype, make) -> torch.Tensor:
+    key = (name, dtype)
+    out = _CPU_CONSTANTS.get(key)
+    if out is None:
+        out = _CPU_CONSTANTS[key] = make().to(dtype)
+    return out
+
+
+def _skew_map() -> torch.Tensor:
+    """(3, 9): row k holds the coefficients of v_k in S(v) flattened row-major."""
+    return torch.tensor([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]])
+
+
 def skew(v: torch.Tensor) -> torch.Tensor:
     """Skew-symmetric matrix S(v) with S(v) w = v x w.  v: (..., 3) -> (..., 3, 3)."""
+    if v.device.type == "cpu" and v.dtype.is_floating_point:
+        # one product with a constant (3, 9) map instead of nine stacked pieces: a small batch's kinematics is
+        # mostly per-call cost, and this is in every exponential and Jacobian (exact: each entry is 1 * v_k)
+        return (v @ _cpu_constant("skew", v.dtype, _skew_map)).unflatten(-1, (3, 3))
     x, y, z = v.unbind(-1)
     o = torch.zeros_like(x)
     return torch.stack(
@@ -70,15 +92,19 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
     Uses a Taylor series for tiny angles so that values and autograd
     derivatives stay exact at and near zero (error terms live there).
     """
-    theta2 = (w * w).sum(-1)
+    theta2 = (w * w).sum(-1)[..., None, None]  # (..., 1, 1): the coefficients broadcast over the matrices
     small = theta2 < 1e-8
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
-    t = torch.sqrt(t2)
-    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, torch.sin(t) / t)
-    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, (1.0 - torch.cos(t)) / t2)
+    t2 = torch.where(small, 1.0, theta2)
+    t = t2.sqrt()
+    h = theta2 * theta2
+    a = torch.where(small, 1.0 - theta2 / 6.0 + h / 120.0, t.sin() / t)
+    b = torch.where(small, 0.5 - theta2 / 24.0 + h / 720.0, (1.0 - t.cos()) / t2)
     k = skew(w)
-    eye = torch.eye(3, dtype=w.dtype, device=w.device)
-    return eye + a[..., None, None] * k + b[..., None, None] * small_matmul(k, k)
+    if w.device.type == "cpu":
+        eye = _cpu_constant("eye3", w.dtype, lambda: torch.eye(3))
+    else:
+        eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + a * k + b * small_matmul(k, k)
 
 
 def so3_log(R: torch.Tensor) -> torch.Tensor:

@@ -31,17 +31,21 @@ def so3_right_jacobian(w: torch.Tensor) -> torch.Tensor:
     return eye - a[..., None, None] * K + b[..., None, None] * small_matmul(K, K)
 
 
-def twist_jacobian(frame_R: torch.Tensor, frame_p: torch.Tensor, twist: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+def twist_jacobian(frame_R: torch.Tensor, frame_p: torch.Tensor, twist: torch.Tensor, point: torch.Tensor,
+                   rotation: torch.Tensor | None = None) -> torch.Tensor:
     """Pose Jacobian w.r.t. the twist of an error transform E sitting just before a frame.
 
     frame_R: (..., 3, 3), frame_p: (..., 3): the frame *after* E (world);
     twist: (..., 6) current value of E's twist; point: (..., 3) world point
-    carried by the chain after E.
+    carried by the chain after E; rotation: (..., 3, 3) E's rotation exp(S(eps)) where the caller has it
+    (None: computed here; a small batch's linearization is mostly such fixed costs).
     -> (..., 6, 6): d(point velocity; angular velocity) / d(eps, delta).
     """
     Jr = so3_right_jacobian(twist[..., :3])
     RJ = small_matmul(frame_R, Jr)
-    R_before = small_matmul(frame_R, so3_exp(twist[..., :3]).transpose(-1, -2))
+    if rotation is None:
+        rotation = so3_exp(twist[..., :3])
+    R_before = small_matmul(frame_R, rotation.transpose(-1, -2))
     lin_eps = -small_matmul(skew(point - frame_p), RJ)
     top = torch.cat([lin_eps, R_before], -1)
     bottom = torch.cat([RJ, torch.zeros_like(RJ)], -1)

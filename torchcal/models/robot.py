@@ -35,7 +35,7 @@ from ..error_models.joint import JointErrors
 from .jacobian import chebyshev_design, joint_axis_jacobian, twist_jacobian
 from ..kinematics.fk import chain_frames
 from ..kinematics.robot import ChainBuffers, Robot
-from ..kinematics.transforms import twist_to_transform
+from ..kinematics.transforms import homogeneous, so3_exp
 
 
 BACKLASH_ON = ("joint", "command")
@@ -278,8 +278,11 @@ class RobotModel(ChainBuffers, nn.Module):
                 de = de + torch.nn.functional.pad(((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
         # base=None: no base frame at all (Paper I's modeled error is taken in the robot's own base frame)
         T0 = None if base is None else (self.base() if base else self.base.correction())
-        jR, jp, F = chain_frames(self.origins, self.axes, self.prismatic, theta, twist_to_transform(e), self.tip, T0)
-        return dict(theta=theta, basis=basis, e=e, de=de, s=s, db=db, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp)
+        ER = so3_exp(e[..., :3])  # kept: the error twists' Jacobians need it again
+        jR, jp, F = chain_frames(self.origins, self.axes, self.prismatic, theta, homogeneous(ER, e[..., 3:]), self.tip,
+                                 T0)
+        return dict(theta=theta, basis=basis, e=e, ER=ER, de=de, s=s, db=db, jR=jR, jp=jp, F=F, K=K, Kb=Kb, comp=comp,
+                    T0=T0 if base is True else None)
 
     def point_jacobians(self, q, tool, direction=None, v=None):
         """Tool points and their Jacobians w.r.t. every parameter group and the joint errors v.
@@ -294,7 +297,6 @@ class RobotModel(ChainBuffers, nn.Module):
         d = self._parts(q, direction, v)
         F = d["F"]
         p = self.tool_points(F, tool)
-        B = q.shape[0]
         J = self.chain_jacobians(d, q, p, rows=3)
         # out of place (one-hot), so that torch.func.vmap can batch it over models
         onehot = torch.nn.functional.one_hot(tool, self.tools.count).to(F)  # (B, T)
@@ -310,7 +312,7 @@ class RobotModel(ChainBuffers, nn.Module):
         'v' (B, rows, n)}: everything but the tool vectors, shared by point targets and sensor rigs.
         """
         B, n = q.shape
-        Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :])[:, :, :rows, :]  # (B, n, rows, 6)
+        Je = twist_jacobian(d["jR"], d["jp"], d["e"], p[:, None, :], d.get("ER"))[:, :, :rows, :]  # (B, n, rows, 6)
         Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :rows, :]  # per θ_i
         slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, rows, n): through E_i's series
         J = {"joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
@@ -323,9 +325,13 @@ class RobotModel(ChainBuffers, nn.Module):
             J["joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None], d["basis"][..., : d["Kb"]])
         else:
             J["joint_errors.backlash"] = torch.zeros(B, rows, n, d["Kb"], dtype=q.dtype, device=q.device)
-        nominal = self.base.nominal.expand(B, 4, 4)
-        T0 = nominal @ twist_to_transform(self.base.twist)
-        J["base.twist"] = twist_jacobian(T0[:, :3, :3], T0[:, :3, 3], self.base.twist.expand(B, 6), p)[:, :rows, :]
+        T0 = d.get("T0")  # the corrected base, where _parts made it
+        if T0 is None:
+            T0 = self.base()
+        # E's rotation from the frame itself (nominal^T T0), not a second exponential
+        ER = self.base.nominal[:3, :3].T @ T0[:3, :3]
+        J["base.twist"] = twist_jacobian(T0[:3, :3].expand(B, 3, 3), T0[:3, 3].expand(B, 3), self.base.twist.expand(B, 6),
+                                         p, ER)[:, :rows, :]
         # Δθ_j (compliance, fine tables) moves θ_j and u_j where the errors follow θ_j: d / d Δθ_j
         moves = Jax + slope * self.error_follows_joint
         if self.compliance is not None:
@@ -348,7 +354,7 @@ class RobotModel(ChainBuffers, nn.Module):
         d = self._parts(q, direction, None, base)
         F = d["F"]
         o = F[:, :3, 3]
-        Je = twist_jacobian(d["jR"], d["jp"], d["e"], o[:, None, :])  # (B, n, 6, 6)
+        Je = twist_jacobian(d["jR"], d["jp"], d["e"], o[:, None, :], d.get("ER"))  # (B, n, 6, 6)
         Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, o)  # (B, 6, n) per θ_i
         slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 6, n) per u_i
         if d["db"] is not None:  # backlash on the commands: its slope moves θ through the coupling

@@ -163,13 +163,15 @@ class SensorRig(nn.Module):
 
         m = self.model
         d = m._parts(q, direction, v)
-        T = d["F"] @ self.mount()
+        M = self.mount()
+        T = d["F"] @ M
         p = T[:, :3, 3]
         B = q.shape[0]
         chain = m.chain_jacobians(d, q, p, rows=6)
         J = {"v": chain.pop("v")} | {f"model.{k}": t for k, t in chain.items()}
         J["model.tools.delta"] = q.new_zeros(B, 6, m.tools.count, 3)  # not used by the rig (empty mask)
-        J["mount.twist"] = twist_jacobian(T[:, :3, :3], p, self.mount.twist.expand(B, 6), p)
+        ER = self.mount.nominal[:3, :3].T @ M[:3, :3]  # the mount error's rotation, from the frame (no exponential)
+        J["mount.twist"] = twist_jacobian(T[:, :3, :3], p, self.mount.twist.expand(B, 6), p, ER)
         return T, J
 
     # ------------------------------------------------------------- parameters

@@ -296,3 +296,79 @@ def test_an_update_from_a_moved_tracker_is_said(runs, tmp_path):
     assert "moved.csv: the model's residual falls from" in said and "did the tracker stand elsewhere?" in said
     r = invoke("update", runs["root"] / "run", runs["root"] / "b1.csv", "--out", tmp_path / "same", "-q")
     assert r.exit_code == 0 and "tracker stand elsewhere" not in r.output
+
+
+def test_a_sensor_update_from_a_moved_tracker_is_said_and_its_miss_recorded(sensor_runs, tmp_path):
+    """A sensor run's update judges the new rows as a point run's does: the parent's miss of the sensor positions
+    is recorded, one rigid motion explaining it is said (positions and rotations turned 0.3 deg, moved 3 mm), and
+    the rows of the parent's placement say nothing of the kind."""
+    import json
+    import math
+
+    import pandas as pd
+
+    root = sensor_runs["root"]
+    df = pd.read_csv(root / "new.csv")
+    a = math.radians(0.3)
+    Y = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                     dtype=torch.float64)
+    xyz = torch.tensor(df[["x", "y", "z"]].to_numpy()) @ Y.T + torch.tensor([3.0, -1.0, 0.5], dtype=torch.float64)
+    df[["x", "y", "z"]] = xyz.numpy()
+    rot = [f"r{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)]
+    R = torch.tensor(df[rot].to_numpy()).reshape(-1, 3, 3)
+    df[rot] = (Y @ R).reshape(-1, 9).numpy()
+    df.to_csv(tmp_path / "moved.csv", index=False)
+    r = invoke("update", root / "run", tmp_path / "moved.csv", "--out", tmp_path / "u", "-q")
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "moved.csv: the model's residual falls from" in said and "did the tracker stand elsewhere?" in said
+    miss = json.loads((tmp_path / "u" / "metrics.json").read_text())["parent_model_on_new_rows_mm"]
+    assert miss is not None and miss["mean"] > 2.0  # the 3 mm move, seen in the sensor positions
+    r = invoke("update", root / "run", root / "new.csv", "--out", tmp_path / "same", "-q")
+    assert r.exit_code == 0 and "tracker stand elsewhere" not in r.output
+    same = json.loads((tmp_path / "same" / "metrics.json").read_text())["parent_model_on_new_rows_mm"]
+    assert same is not None and same["mean"] < 0.5 * miss["mean"]
+
+
+def test_a_sensor_update_without_directions_for_a_backlash_model_is_refused(sensor_runs, tmp_path):
+    """The rig's backlash terms live on its robot model: rows without dir1..dirN are refused as for a point run."""
+    import pandas as pd
+    import yaml
+
+    root = sensor_runs["root"]
+    cfg = yaml.safe_load((root / "run.yaml").read_text())
+    cfg["model"]["backlash"] = True
+    cfg["data"] = {"identification": str(root / "first.csv")}
+    cfg["out"] = str(tmp_path / "bl")
+    (tmp_path / "bl.yaml").write_text(yaml.safe_dump(cfg))
+    r = invoke("fit", tmp_path / "bl.yaml", "-q")
+    assert r.exit_code == 0, r.output
+    df = pd.read_csv(root / "new.csv")
+    df.drop(columns=[c for c in df.columns if c.startswith("dir")]).to_csv(tmp_path / "nodir.csv", index=False)
+    r = invoke("update", tmp_path / "bl", tmp_path / "nodir.csv", "--out", tmp_path / "u", "-q")
+    assert r.exit_code == 2 and "dir1..dir6" in r.output and "backlash terms" in r.output, r.output
+    assert not (tmp_path / "u").exists()
+
+
+def test_backlash_the_parent_could_not_see_is_said_to_be_held(runs, tmp_path):
+    """A parent fitted on rows that approached every joint from +1 pinned its backlash (collinear with the joint
+    offsets); rows from -1 cannot free it in an update, which keeps the parent's gauge: the update says so and
+    names the joints. Rows from +1 again say nothing."""
+    root = runs["root"]
+    dirs = [f"dir{j}" for j in range(1, 7)]
+    for name, sign in (("plus", 1), ("minus", -1)):
+        df = pd.read_csv(root / ("first.csv" if name == "plus" else "b1.csv"))
+        df[dirs] = sign
+        df.to_csv(tmp_path / f"{name}.csv", index=False)
+    r = invoke("fit", runs["sim"] / "fit.yaml", "model.order=1", "model.backlash=true", "plots=false",
+               "data.truth=null", "data.validation=null", f"data.identification={tmp_path / 'plus.csv'}",
+               f"out={tmp_path / 'p'}", "-q")
+    assert r.exit_code == 0, r.output
+    pinned = json.loads((tmp_path / "p" / "fit.json").read_text())["pinned_names"]
+    assert any(".backlash." in n for n in pinned)
+    r = invoke("update", tmp_path / "p", tmp_path / "minus.csv", "--out", tmp_path / "u", "-q")
+    assert r.exit_code == 0, r.output
+    said = " ".join(r.output.split())
+    assert "is held at the parent's value" in said and "J2" in said, said
+    r = invoke("update", tmp_path / "p", tmp_path / "plus.csv", "--out", tmp_path / "u2", "-q")
+    assert r.exit_code == 0 and "held at the parent's value" not in r.output

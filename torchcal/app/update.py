@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from ..core import threads, units
+from ..core import threads
 from ..identify.online import STRATEGIES, OnlineCalibration, OnlineStep
 from ..io.atomic import atomic_path, atomic_write_text
 from .config import ConfigError, run_config, to_yaml
@@ -54,6 +54,7 @@ from ..io.rundir import (
 )
 from ..core.measurements import Measurements
 from ..identify.fit import frame_check
+from .update_checks import check_new_data, held_backlash, rows_in_parent
 
 log = logging.getLogger("torchcal")
 
@@ -313,62 +314,6 @@ def run_update(run_dir, new_data, out, device=None, strategy: str | None = None,
         threads.set_threads(old_override)
 
 
-def _check_new_data(cfg, model, new: Measurements, new_path: Path):
-    """Refuse rows the update cannot use as the parent's robot: no approach directions for a backlash model,
-    or points the calibrated model misses by more than any calibration error (another robot, frame or unit).
-    -> the parent model's residual statistics (mm) on the new rows (point runs; None for sensors)."""
-    from ..io.csv import DataError, Problem
-
-    je = getattr(model, "joint_errors", None)
-    if je is not None and not new.has_direction:
-        on = [j for j, b in enumerate(je.backlash_orders.cpu().tolist()) if b >= 0]
-        if on:
-            names = list(model.robot.joint_map.names)
-            n = model.robot.joint_map.n
-            raise DataError(new_path, [Problem(None, f"dir1..dir{n}", (
-                f"missing on rows 1..{len(new)}: the run's model has backlash terms on {', '.join(names[j] for j in on)}, "
-                f"which need each row's approach directions (+1 / -1 per joint)"))])
-    if is_sensor_run(cfg):
-        return None
-    from .fit import NOMINAL_IMPLAUSIBLE_MM, evaluate
-
-    with torch.no_grad():
-        ev = evaluate(model, new)
-    modeled, nominal = ev["modeled_stats"].mean, ev["nominal_stats"].mean
-    if modeled > NOMINAL_IMPLAUSIBLE_MM:
-        raise DataError(new_path, [Problem(None, "x, y, z", (
-            f"the run's model misses these points by {modeled:.1f} mm on average (nominal {nominal:.1f} mm), far beyond "
-            f"any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): data of another robot, tool set, measurement "
-            f"frame or unit? An update only refines the parent's robot; fit such data with torchcal fit"))])
-    miss = units.m_to_mm(ev["modeled"].detach().cpu())
-    gross = (miss > NOMINAL_IMPLAUSIBLE_MM).nonzero()[:, 0].tolist()
-    if gross:  # one bad row would be absorbed into the model (a 50 mm row took a 0.2 mm model to 1.1 mm)
-        rows = new.rows.cpu().tolist()
-        raise DataError(new_path, [Problem(int(rows[i]), "x, y, z", (
-            f"the run's model misses this point by {float(miss[i]):.1f} mm (the file's median {float(miss.median()):.3f} "
-            f"mm), beyond any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): a gross measurement (another "
-            "reflector, a beam break)? Remove the row; an update would absorb it")) for i in gross])
-    return ev["modeled_stats"]
-
-
-def _rows_in_parent(cfg, model, new: Measurements) -> list[int]:
-    """Rows (1-based, as in the new file) whose commands and measured point equal a row of the parent's identification
-    file bit for bit: the same measurement given twice. [] where that file is not readable (nothing to compare)."""
-    ident = cfg.data.identification
-    if is_sensor_run(cfg) or not ident or not Path(ident).is_file():
-        return []
-    from ..io.csv import read_measurements
-
-    try:
-        old = read_measurements(ident, model.robot, int(model.tools.count))
-    except Exception:  # the parent's file is checked (and named) elsewhere; here it only might show repeats
-        return []
-    seen = {r.tobytes() for r in torch.cat([old.q, old.xyz], 1).cpu().numpy()}
-    key = torch.cat([new.q, new.xyz], 1).cpu().numpy()
-    rows = new.rows.cpu().tolist()
-    return [int(rows[i]) for i, r in enumerate(key) if r.tobytes() in seen]
-
-
 def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, console,
                 units_checked: bool = False) -> UpdateResult:
     from .fit import Progress
@@ -389,7 +334,7 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
             note = units_note(new, model.robot, *check_units(new, model.robot, tools, new_path))
             if note:
                 progress.warn(note)
-        before = _check_new_data(cfg, model, new, new_path)
+        before = check_new_data(model, new, new_path, is_sensor_run(cfg))
         if before is not None:  # an update would absorb a moved tracker into the robot's parameters
             from .common import moved_frame_note
 
@@ -399,7 +344,7 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
                                     "measure from the parent's placement, or fit afresh (measurement_frame: estimate)")
             if note:
                 progress.warn(f"{new_path}: {note}")
-        repeated = _rows_in_parent(cfg, model, new)
+        repeated = rows_in_parent(cfg.data.identification, model, new, is_sensor_run(cfg))
         if repeated:
             shown = ", ".join(str(r) for r in repeated[:10]) + (" ..." if len(repeated) > 10 else "")
             progress.warn(f"{new_path}: {len(repeated)} row{'s' if len(repeated) > 1 else ''} ({shown}) repeat rows of "
@@ -446,6 +391,12 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
             step = online.update(new, instrument)
         progress.info(f"update: {step.result.message} after {step.result.nit} iterations, {step.seconds:.2f} s; "
                       f"{step.rows} rows so far")
+        held = held_backlash(model, step.pinned)
+        if held:
+            progress.warn(f"the backlash of {', '.join(held)} is held at the parent's value: the parent's data approached "
+                          f"{'this joint' if len(held) == 1 else 'these joints'} from one direction only, so its fit "
+                          "pinned it, and an update keeps the parent's pinned entries; with these rows both directions "
+                          "are measured: fit all rows afresh (torchcal fit) to identify it")
         if not step.result.success:
             progress.warn("the solver did not converge; see fit.json")
         meta = {"parent": str(parent), "new_data": str(new_path.resolve()), "strategy": online.strategy}

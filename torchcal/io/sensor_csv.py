@@ -206,7 +206,8 @@ def parse_pose_table(df: pd.DataFrame, path, robot, require_pose: bool = True, e
     if idx.size:
         for b, msg in rotation_defects(torch.from_numpy(rot[idx])):
             problems.append(Problem(int(idx[b]) + 1, r_col, msg))
-    if require_pose:
+    if require_pose and (r_ok or (has_eu and euler_convention is not None)):
+        # rows without one, where the file has rotation columns (their absence is said once, above)
         for r in np.flatnonzero(~present & ~(df == "").all(axis=1).to_numpy()):
             if not any(p.row == r + 1 and p.column in R_COLUMNS + tuple(eu) for p in problems):
                 problems.append(Problem(int(r) + 1, r_col, "no rotation on this row"))

@@ -18,6 +18,10 @@ def test_weights_round_trip_and_sqrt_info():
     iso = IsotropicWeight(2.0)
     assert torch.allclose(iso.sqrt_info(5, 3, r) @ r[..., None], iso.whiten(r)[..., None])
     assert torch.allclose(w.subset(torch.tensor([1, 3])).whiten(r[[1, 3]]), w.whiten(r)[[1, 3]])
+    # a subset's factors are the rows' own (taken, not factored again): equal to a fresh factorization
+    sub, fresh = w.subset(torch.tensor([4, 0])), CovarianceWeight(cov[[4, 0]])
+    assert torch.equal(sub.cov, fresh.cov) and torch.equal(sub.L, fresh.L) and torch.equal(sub.S, fresh.S)
+    assert w.to("cpu") is w and w.to(torch.device("cpu")) is w
 
 
 def test_bad_inputs_name_the_row():

@@ -148,6 +148,15 @@ class Prior:
             if not bool((std > 0).all()):
                 raise ValueError("Prior.std: every standard deviation must be positive")
             return std.cpu()
+        # per layout (its entries never change) and setting: an online calibration asks once per batch
+        key = (self.rotation, self.translation, self.frame_rotation, self.frame_translation, self.compliance,
+               self.backlash)
+        cache = layout.__dict__.setdefault("_prior_sigma", {})
+        if key not in cache:
+            cache[key] = self._sigma(layout)
+        return cache[key].clone()
+
+    def _sigma(self, layout: ParameterLayout) -> torch.Tensor:
         sigma = layout.prior_sigma().tolist()
         for i, (role, kind) in enumerate(zip(layout.roles(), layout.kinds())):
             if role == "joint":

@@ -101,6 +101,6 @@ class PointTargets(Instrument):
         out.observed = self.observed.to(device)
         w = self.weight
         if isinstance(w, CovarianceWeight):
-            w = CovarianceWeight(w.cov.to(device))
+            w = w.to(device)
         out.weight = w
         return out

@@ -333,7 +333,7 @@ class PoseInstrument(Instrument):
     def to(self, device) -> PoseInstrument:
         w = self.weight
         if isinstance(w, CovarianceWeight):
-            w = CovarianceWeight(w.cov.to(device))
+            w = w.to(device)
         return self._new(self.observed.to(device), w)
 
     @classmethod

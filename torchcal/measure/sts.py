@@ -134,7 +134,6 @@ def angle_jacobians(R: torch.Tensor, p: torch.Tensor, g_xy: torch.Tensor):
     cps, sps = a2 / c, -a1 / c  # cos psi, sin psi
     x_s0 = torch.cat([cps, sps, torch.zeros_like(c)], -1)
     x = (R @ x_s0[..., None])[..., 0]
-    s = (x * g).sum(-1, keepdim=True)
     h = torch.linalg.cross(x, g.expand_as(x), dim=-1).norm(dim=-1, keepdim=True)
     perp = (R @ torch.cat([-sps, cps, torch.zeros_like(c)], -1)[..., None])[..., 0]  # R dx_s0 / dpsi
 
@@ -382,7 +381,7 @@ class STSInstrument(Instrument):
         return self._new(self.observed[index], self.weight.subset(index))
 
     def to(self, device) -> STSInstrument:
-        return self._new(self.observed.to(device), CovarianceWeight(self.weight.cov.to(device)))
+        return self._new(self.observed.to(device), self.weight.to(device))
 
     @classmethod
     def cat(cls, instruments: list) -> STSInstrument:

@@ -64,5 +64,18 @@ class CovarianceWeight:
             raise ValueError(f"CovarianceWeight: {tuple(self.S.shape)} whitening for {rows} rows of dimension {dim}")
         return self.S.to(like)
 
+    @classmethod
+    def _of(cls, cov: torch.Tensor, L: torch.Tensor, S: torch.Tensor) -> "CovarianceWeight":
+        out = cls.__new__(cls)
+        out.cov, out.L, out.S = cov, L, S
+        return out
+
     def subset(self, index) -> "CovarianceWeight":
-        return CovarianceWeight(self.cov[index])
+        # the factors are per row: taken with the rows, not factored again (a batch's set-up cost)
+        return CovarianceWeight._of(self.cov[index], self.L[index], self.S[index])
+
+    def to(self, device) -> "CovarianceWeight":
+        """On ``device`` (itself where it is there already), factors moved with it."""
+        if self.cov.device == torch.device(device):
+            return self
+        return CovarianceWeight._of(self.cov.to(device), self.L.to(device), self.S.to(device))

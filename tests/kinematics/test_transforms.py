@@ -69,3 +69,22 @@ def test_rpy_round_trip_at_gimbal_lock(pitch):
     back = matrix_to_rpy(R)
     assert torch.isfinite(back).all() and (back[:, 2] == 0).all()
     assert torch.allclose(rpy_to_matrix(back), R, atol=1e-12)
+
+
+def test_cpu_constants_are_plain_whatever_the_context_of_first_use():
+    """skew's constant map made first under inference_mode or a meta default device is still a plain CPU tensor:
+    later autograd through so3_exp works and values are right (a cached inference tensor could never be saved
+    for backward; a meta one would hold no values)."""
+    from torchcal.kinematics import transforms as T
+
+    T._CPU_CONSTANTS.clear()
+    with torch.inference_mode():
+        T.skew(torch.ones(3, dtype=torch.float64))
+    with torch.device("meta"):
+        T.so3_exp(torch.ones(3, dtype=torch.float32, device="cpu"))
+    w = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64, requires_grad=True)
+    T.so3_exp(w).sum().backward()
+    assert w.grad is not None and torch.isfinite(w.grad).all()
+    x, y, z = 1.0, 2.0, 3.0
+    assert torch.equal(T.skew(torch.tensor([x, y, z])), torch.tensor([[0, -z, y], [z, 0, -x], [-y, x, 0]]))
+    assert all(c.device.type == "cpu" and not c.is_inference() for c in T._CPU_CONSTANTS.values())

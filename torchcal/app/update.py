@@ -387,11 +387,12 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
         if before is not None:  # the parent's model on the new rows: how far the robot moved from its calibration
             progress.info(f"the parent's model on the new rows: mean {before.mean:.4f} mm, max {before.max:.4f} mm "
                           "(before the update)")
+        parent_coverage = getattr(model, "coverage", None)  # the update replaces it with a widened one
         with progress.step(f"updating with {len(new)} rows of {new_path}"):
             step = online.update(new, instrument)
         progress.info(f"update: {step.result.message} after {step.result.nit} iterations, {step.seconds:.2f} s; "
                       f"{step.rows} rows so far")
-        held = held_backlash(model, step.pinned)
+        held = held_backlash(model, step.pinned, parent_coverage)
         if held:
             progress.warn(f"the backlash of {', '.join(held)} is held at the parent's value: the parent's data approached "
                           f"{'this joint' if len(held) == 1 else 'these joints'} from one direction only, so its fit "

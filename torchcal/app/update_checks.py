@@ -60,19 +60,24 @@ def check_new_data(model, new: Measurements, new_path: Path, sensor: bool):
     return stats
 
 
-def held_backlash(model, pinned) -> list[str]:
-    """Joints (their command names) with backlash entries ``pinned`` (the gauge holds them) although the rows seen
-    so far (``model.coverage``, which an update widens) approached them from both directions: what an update
-    cannot learn, since it keeps the gauge of the fit it started from."""
-    coverage = getattr(model, "coverage", None)
+def held_backlash(model, pinned, parent_coverage) -> list[str]:
+    """Joints (their command names) whose constant backlash c0 is ``pinned`` (the gauge holds it), whose parent
+    data (``parent_coverage``, the model's DirectionCoverage before the update) approached them from one
+    direction only, and whose rows now (``model.coverage``, which the update widened) come from both: what an
+    update cannot learn, since it keeps the gauge of the fit it started from."""
+    after = getattr(model, "coverage", None)
     je = getattr(getattr(model, "model", model), "joint_errors", None)  # a sensor rig's: its robot model's
-    if coverage is None or je is None or not pinned:
+    if after is None or parent_coverage is None or je is None or not pinned:
         return []
-    held = {n.split(".backlash.")[0].rsplit(".", 1)[-1] for n in pinned if ".backlash." in n}
-    counts = coverage.counts.sum(1)  # (n, 3): rows per direction -1, 0, +1
+    held = {n.split(".backlash.")[0].rsplit(".", 1)[-1] for n in pinned if n.endswith(".backlash.c0")}
+    before, now = parent_coverage.counts.sum(1), after.counts.sum(1)  # (n, 3): rows per direction -1, 0, +1
     names = list(model.robot.joint_map.names)
+
+    def both(c, i):
+        return int(c[i, 0]) > 0 and int(c[i, 2]) > 0
+
     return [names[i] for i, j in enumerate(je.joint_names)
-            if j in held and i < len(names) and int(counts[i, 0]) > 0 and int(counts[i, 2]) > 0]
+            if j in held and i < len(names) and not both(before, i) and both(now, i)]
 
 
 def rows_in_parent(ident, model, new: Measurements, sensor: bool) -> list[int]:

@@ -36,35 +36,51 @@ def _schur_step(f, A, C, w_v, v, lam_b, dx, mu, H_blk=None, g_blk=None, v_free=N
     own quadratic in db with v eliminated, (H (P, P), g (P,)): with mu = 0 and every v free, exactly
     :func:`torchcal.identify.online.marginal_information` of (f, A, C, w_v, v), from the same factorization.
     """
+    factor = _schur_factor(A, C, w_v, lam_b, mu, H_blk)
+    return _schur_solve(factor, f, v, lam_b, dx, g_blk, v_free, rows_information)
+
+
+def _schur_factor(A, C, w_v, lam_b, mu, H_blk=None):
+    """What a step's normal equations need of the Jacobians alone (A (R,d,P), C (R,d,n)): the rows' joint errors
+    eliminated and the reduced system factored. A chord iteration (the same Jacobians, new residuals) reuses it
+    with :func:`_schur_solve`. -> an opaque tuple."""
     R, d, P = A.shape
     n = C.shape[-1]
     Af = A.reshape(R * d, P)
     diag_bb = (A * A).sum((0, 1)) + lam_b  # diagonal of H_bb (for Marquardt's scaling)
-    g_b = Af.T @ f.reshape(-1) + lam_b * dx
     if H_blk is not None:
         diag_bb = diag_bb + torch.diagonal(H_blk)
-        g_b = g_b + g_blk
     Ct = C.transpose(1, 2)  # (R, n, d)
     H_vv = Ct @ C + torch.diag_embed(w_v)
-    g_v = (Ct @ f[..., None])[..., 0] + w_v * v
-    if v_free is not None:
-        g_v = g_v * v_free[:, None].to(g_v)
     H_vv_d = H_vv + mu * torch.diag_embed(torch.diagonal(H_vv, dim1=1, dim2=2))
     L = torch.linalg.cholesky(H_vv_d)
     # L^-1 explicitly (n x n per row): batched triangular solves with P right-hand sides are slow on the CPU
     eye = torch.eye(n, dtype=A.dtype, device=A.device).expand(R, n, n)
     Li = torch.linalg.solve_triangular(L, eye, upper=False)
     W = Li @ Ct  # (R, n, d): Y = L^-1 H_vb = W A
-    z = Li @ g_v[..., None]  # L^-1 g_v (R, n, 1)
     # S = sum_r A_r^T (I - W_r^T W_r) A_r + damped diagonal: one (P x Rd) @ (Rd x P) product
     M = torch.eye(d, dtype=A.dtype, device=A.device) - W.transpose(1, 2) @ W  # (R, d, d)
     S_rows = Af.T @ (M @ A).reshape(R * d, P)
     S = S_rows if H_blk is None else S_rows + H_blk
     S = 0.5 * (S + S.T) + torch.diag(lam_b + mu * diag_bb)
+    Ls, info = torch.linalg.cholesky_ex(S)
+    return A, Af, Ct, w_v, Li, W, S_rows, S, (Ls if int(info) == 0 else None)
+
+
+def _schur_solve(factor, f, v, lam_b, dx, g_blk=None, v_free=None, rows_information=False):
+    """The step of a factored system (:func:`_schur_factor`) for residuals f (R, d) at joint errors v (R, n),
+    dx = x - prior mean (P,) and the blocks' J^T r g_blk; returns as :func:`_schur_step`."""
+    A, Af, Ct, w_v, Li, W, S_rows, S, Ls = factor
+    g_b = Af.T @ f.reshape(-1) + lam_b * dx
+    if g_blk is not None:
+        g_b = g_b + g_blk
+    g_v = (Ct @ f[..., None])[..., 0] + w_v * v
+    if v_free is not None:
+        g_v = g_v * v_free[:, None].to(g_v)
+    z = Li @ g_v[..., None]  # L^-1 g_v (R, n, 1)
     elim = Af.T @ (W.transpose(1, 2) @ z).reshape(-1)
     rhs = -(g_b - elim)
-    Ls, info = torch.linalg.cholesky_ex(S)
-    if int(info) != 0:
+    if Ls is None:
         db = torch.linalg.lstsq(S, rhs[:, None]).solution[:, 0]
     else:
         db = torch.cholesky_solve(rhs[:, None], Ls)[:, 0]

@@ -34,22 +34,23 @@ The carried information is indexed by parameter entry names
 (:meth:`ParameterLayout.names`), so the gauge fixing of a later update (which
 may pin other entries) cannot misalign it.
 
-A warm update is one Gauss-Newton step (:func:`one_step`): one linearization
-of the new rows, the step, and one residual at its end, kept when the step's
-actual decrease is within ``warm_tol`` s^2 of what the quadratic model
-predicted (the model held, so a further step would gain less than that). The
-rows' information is then carried from the step's own factorization, taken at
-its start. Where the model did not hold, LM runs from there and stops once
-its Gauss-Newton model predicts less than ``warm_tol`` s^2 of further decrease
-(see :meth:`OnlineCalibration._solve`).
+A warm update is solved on ONE linearization of its new rows (:func:`one_step`):
+Gauss-Newton with the Jacobians frozen there (a chord iteration, each further
+step a residual, not a linearization), until the decrease the next step
+predicts is under ``warm_tol`` s^2. The rows' information is then carried at
+that point (its residual, the frozen Jacobians). Where a step does not lower
+the cost or no stop comes within a few steps, LM runs and stops once its
+Gauss-Newton model predicts less than ``warm_tol`` s^2 of further decrease (see
+:meth:`OnlineCalibration._solve`).
 
 Measured (Paper III 5.5's protocol, order 3, N = 50 -> 250 by 25, 300
 validation poses, default settings; experiments/paper3_sts, 2026-11-28):
-simulated FANUC + STS on six seeds, every warm update one step, the
-information strategy within 0.3-1.2 % (position) and 0.3-1.2 % (angle) of the
-non-adaptive models at every N (with LM's two-linearization updates before:
-0.4-1.9 % and 0.4-1.7 %), and the whole adaptive sequence 22.5-24.9 % of the
-non-adaptive sequence's CPU time (39.5-43.5 % before). Point targets (3 tools,
+simulated FANUC + STS on six seeds, every warm update one linearization and
+one or two steps, the information strategy within 0.5-1.1 % (position) and 0.2-1.1 %
+(angle) of the non-adaptive models at every N (with LM's updates, two or
+three linearizations each: 0.4-1.9 % and 0.4-1.7 %), and the whole adaptive
+sequence 23.5-28.7 % of the non-adaptive sequence's CPU time (one quiet run a
+seed; the target is 25 %; 39.5-43.5 % with LM's updates). Point targets (3 tools,
 measured when written, with LM updates): within 3.3 % on five seeds and 6.0 %
 at N = 75 on the sixth (1.8 % from N = 100 on), the literal one 1.24-1.40x
 above. Where the information strategy falls short it is at small N: the first
@@ -75,7 +76,7 @@ from ..core.progress import task as progress_task
 from .fit import SOLVERS, fit, resolve_noise
 from .gauge import fix_gauge
 from .layout import ParameterLayout
-from .lm import _blocks, _schur_step
+from .lm import _blocks, _schur_factor, _schur_solve
 from .problem import CalibrationProblem, NoiseModel, Prior, default_instrument
 from .result import FitResult
 
@@ -475,6 +476,8 @@ class OnlineCalibration:
             step = one_step(problem, options["ftol"])
             if step is not None:
                 result, self._step_information = step
+                if options.get("callback") is not None:  # as LM calls it after its iteration
+                    options["callback"](1, result.fun)
         if result is None:
             result = SOLVERS[self.method](problem, **options)
         result.pinned = list(self.pinned or [])
@@ -485,7 +488,9 @@ class OnlineCalibration:
         parameters, the fixed groups and the pinned names stay what they were: a batch of a few rows costs
         little more to solve than to set up, and these were a tenth of an update."""
         key = (self.fixed, tuple(self.pinned or ()),
-               tuple((n, id(p), p.device, p.dtype) for n, p in self.model.named_parameters()))
+               tuple((n, id(p), p.device, p.dtype) for n, p in self.model.named_parameters()),
+               # the masks that declare which entries exist are buffers: an edit (or a load_state_dict) bumps them
+               tuple((n, b.data_ptr(), b._version) for n, b in self.model.named_buffers()))
         cache = getattr(self, "_layout_cache", None)
         if cache is None or cache[0] != key:
             cache = self._layout_cache = (key, ParameterLayout(self.model, self.fixed), None)
@@ -522,10 +527,10 @@ class OnlineCalibration:
         result = self._solve(data, instrument, self.blocks + ([carried] if carried is not None else []))
         problem = self._last_problem
         if self._step_information is not None:
-            # one step (one_step): the rows' quadratic it minimized, re-centred exactly by _merge, is carried as
-            # is (the rows' Jacobians at the step's end differ by the nonlinearity one_step found negligible)
-            x0, H_new, g_new = self._step_information
-            self._merge(problem.layout.names(), H_new, g_new, x0)
+            # one_step: the rows' quadratic at its end (x_k, the residual there, the Jacobians of its one
+            # linearization), where the next update starts
+            xk, H_new, g_new = self._step_information
+            self._merge(problem.layout.names(), H_new, g_new, xk)
             return result
         last = problem.last_linearization(result.x, result.v)
         if last is None:  # the solver did not end on a linearization at its solution (e.g. L-BFGS)
@@ -669,60 +674,66 @@ class _RememberingProblem(CalibrationProblem):
         return out if same else None
 
 
-ONE_STEP = "converged: one Gauss-Newton step, its quadratic model held"
+ONE_STEP = "converged: Gauss-Newton on one linearization (chord), the remaining decrease below warm_tol s^2"
+CHORD_ITERATIONS = 6
+"""At most this many steps on a warm update's one linearization before LM takes over (measured: 1-3)."""
 
 
 @torch.no_grad()
 def one_step(problem: CalibrationProblem, ftol: float):
-    """A warm update's single Gauss-Newton step, kept when the quadratic model held over it.
+    """A warm update solved on ONE linearization: Gauss-Newton with the Jacobians frozen at the start (a chord
+    iteration), each step costing a residual instead of a linearization.
 
-    From the model's values: one linearization, one undamped step (LM's damping is for steps from afar;
-    this one starts next to the solution, and a damped step would stop short of the quadratic model's
-    minimum and inflate the joint errors' information it carries), one residual at its end. The step is
-    kept when it lowered V and its actual decrease is within ftol * V of the decrease the quadratic model
-    predicted: the model is then as good as exact over the step, so a further Gauss-Newton step would gain
-    no more than that tolerance (the one LM stops at: a remaining decrease under warm_tol s^2), and an LM
-    run would pay a second linearization to learn it.
-    -> (FitResult (message :data:`ONE_STEP`, the model set to the step's end), (x0 (P,), H (P, P), g (P,)):
-    the rows' quadratic with their joint errors eliminated, taken at the start x0: what
-    :func:`marginal_information` gives there, from the step's own factorization), or None with the model
-    unchanged when the quadratic model did not hold (or a joint error is held: the factorization then is
-    not the rows' information); the caller then runs the solver.
+    From the model's values x0: one linearization (f0, A, C) and its factorization; then steps from the
+    residual f_k at x_k with those Jacobians, until the decrease the next such step predicts is at most
+    ftol * |f_k|^2 (ftol = warm_tol / entries: warm_tol s^2, s^2 the rows' misfit per entry, LM's stopping
+    tolerance). The model's nonlinearity over the steps shows in f_k, so the predicted remaining decrease is
+    the chord's estimate of what a fresh linearization would still find (measured on the STS stream of
+    experiments/paper3_sts: the first update after the cold fit 78 s^2 before its second step, later ones
+    0.1-2.5 s^2 after the first). Most updates stop after one step: one linearization and one residual, where
+    LM pays a second linearization to learn that it may stop.
+
+    -> (FitResult (message :data:`ONE_STEP`; the model set to the last x_k; grad_norm NaN: the exact gradient
+    there needs a linearization), (x_k (P,), H (P, P), g (P,)): the rows' quadratic at x_k with their joint
+    errors eliminated, H from the frozen Jacobians and g from the residual at x_k (what
+    :func:`marginal_information` gives with those), from the same factorization), or None with the model at
+    x0 when a step did not lower V, no stop came within :data:`CHORD_ITERATIONS` steps, or a joint error is
+    held (then the factorization is not the rows' information); the caller then runs the solver.
     """
     t0 = time.perf_counter()
     layout = problem.layout
-    x = layout.get().to(problem.model.device)
+    x0 = layout.get().to(problem.model.device)
     v = problem.v_zero()
     if problem.v_free is not None and not bool(problem.v_free.all()) and problem.estimate_v:
         return None
-    f, A, C = problem.linearize(x, v)
-    H_blk, g_blk, c_blk = _blocks(problem, x)
-    cost = float(problem.cost_from(f, x, v, c_blk))
-    db, dv, _, (H_rows, g_rows) = _schur_step(f, A, C, problem.w_v, v, problem.prior_precision,
-                                              x - problem.prior_mean, 0.0, H_blk, g_blk, problem.v_free,
-                                              rows_information=True)
-    x1, v1 = x + db, v + dv
-    lin = f + (A @ db[:, None])[..., 0] + (C @ dv[..., None])[..., 0]
-    lin_blk = None if H_blk is None else c_blk + 2 * (g_blk @ db) + db @ (H_blk @ db)
-    predicted = cost - float(problem.cost_from(lin, x1, v1, lin_blk))
-    new_cost = float(problem.cost_from(problem.residual(x1, v1), x1, v1))
-    actual = cost - new_cost
-    if not (actual > 0 and predicted > 0 and abs(actual - predicted) <= ftol * cost):
-        layout.set(x)
-        return None
-    # the gradient the quadratic model has at the step's end (what LM reports at its solution)
-    R, d, P = A.shape
-    g_b = A.reshape(R * d, P).T @ lin.reshape(-1) + problem.prior_precision * (x1 - problem.prior_mean)
-    if H_blk is not None:
-        g_b = g_b + g_blk + H_blk @ db
-    g_v = (C.transpose(1, 2) @ lin[..., None])[..., 0] + problem.w_v * v1
-    if problem.v_free is not None:
-        g_v = g_v * problem.v_free[:, None].to(g_v)
-    grad = 2.0 * torch.cat([g_b, g_v.reshape(-1)])
-    result = FitResult(x=x1.detach().clone(), v=v1.detach().clone(), success=True, message=ONE_STEP, nit=1, nfev=2,
-                       fun=new_cost, grad_norm=float(grad.norm()), time=time.perf_counter() - t0, method="lm",
-                       history=[cost, new_cost], names=layout.names())
-    return result, (x.detach().clone(), H_rows, g_rows)
+    f, A, C = problem.linearize(x0, v)
+    H_blk, g_blk, c_blk = _blocks(problem, x0)
+    factor = _schur_factor(A, C, problem.w_v, problem.prior_precision, 0.0, H_blk)
+    x, cost = x0, float(problem.cost_from(f, x0, v, c_blk))
+    history = [cost]
+    for k in range(CHORD_ITERATIONS + 1):
+        db, dv, _, (H_rows, g_rows) = _schur_solve(factor, f, v, problem.prior_precision, x - problem.prior_mean,
+                                                   g_blk, problem.v_free, rows_information=True)
+        lin = f + (A @ db[:, None])[..., 0] + (C @ dv[..., None])[..., 0]
+        lin_blk = None if H_blk is None else c_blk + 2 * (g_blk @ db) + db @ (H_blk @ db)
+        predicted = cost - float(problem.cost_from(lin, x + db, v + dv, lin_blk))
+        if k > 0 and predicted <= ftol * float((f * f).sum()):
+            result = FitResult(x=x.detach().clone(), v=v.detach().clone(), success=True, message=ONE_STEP, nit=k,
+                               nfev=k + 1, fun=cost, grad_norm=float("nan"), time=time.perf_counter() - t0,
+                               method="lm", history=history, names=layout.names())
+            return result, (x.detach().clone(), H_rows, g_rows)
+        if k == CHORD_ITERATIONS:
+            break
+        x1, v1 = x + db, v + dv
+        f1 = problem.residual(x1, v1)
+        H1, g1, c1 = _blocks(problem, x1)
+        new_cost = float(problem.cost_from(f1, x1, v1, c1))
+        if not new_cost < cost:
+            break
+        x, v, f, cost, g_blk, c_blk = x1, v1, f1, new_cost, g1, c1
+        history.append(cost)
+    layout.set(x0)
+    return None
 
 
 @torch.no_grad()

@@ -55,13 +55,17 @@ def _cpu_constant(name: str, dtype: torch.dtype, make) -> torch.Tensor:
     key = (name, dtype)
     out = _CPU_CONSTANTS.get(key)
     if out is None:
-        out = _CPU_CONSTANTS[key] = make().to(dtype)
+        # a plain CPU tensor whatever the caller's context: one made under inference_mode could never be saved
+        # for a backward pass, one made under a default-device context would live elsewhere
+        with torch.inference_mode(False):
+            out = _CPU_CONSTANTS[key] = make().to(device="cpu", dtype=dtype)
     return out
 
 
 def _skew_map() -> torch.Tensor:
     """(3, 9): row k holds the coefficients of v_k in S(v) flattened row-major."""
-    return torch.tensor([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]])
+    return torch.tensor([[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]],
+                        device="cpu")
 
 
 def skew(v: torch.Tensor) -> torch.Tensor:
@@ -101,7 +105,7 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
     b = torch.where(small, 0.5 - theta2 / 24.0 + h / 720.0, (1.0 - t.cos()) / t2)
     k = skew(w)
     if w.device.type == "cpu":
-        eye = _cpu_constant("eye3", w.dtype, lambda: torch.eye(3))
+        eye = _cpu_constant("eye3", w.dtype, lambda: torch.eye(3, device="cpu"))
     else:
         eye = torch.eye(3, dtype=w.dtype, device=w.device)
     return eye + a * k + b * small_matmul(k, k)

@@ -76,6 +76,30 @@ def _small_model(fanuc, tools_m):
     return torchcal.RobotModel(fanuc, tools_m, orders=0)
 
 
+def test_blocks_marked_linear_are_their_own_gauss_newton_model(fanuc, tools_m):
+    """What one_step relies on for blocks marked linear_residual (the carried InformationBlock, GaussianPrior):
+    J^T r and |r|^2 at x + dx follow from x's J^T J, J^T r and |r|^2 exactly."""
+    from torchcal.identify.blocks import GaussianPrior, block_normal_equations
+
+    layout = ParameterLayout(_small_model(fanuc, tools_m))
+    names = layout.names()
+    g = torch.Generator().manual_seed(1)
+    k = 6
+    B = torch.randn(k + 2, k, generator=g, dtype=torch.float64)
+    pick = [names[i] for i in torch.randperm(len(names), generator=g)[:k].tolist()]
+    blocks = [InformationBlock(pick, B.T @ B, torch.randn(k, generator=g, dtype=torch.float64),
+                               torch.randn(k, generator=g, dtype=torch.float64) * 1e-3),
+              GaussianPrior(pick[::-1], torch.randn(k, generator=g, dtype=torch.float64) * 1e-3,
+                            B.T @ B * 1e-6 + 1e-8 * torch.eye(k, dtype=torch.float64))]
+    assert all(b.linear_residual is True for b in blocks)
+    x = layout.get() + 1e-3 * torch.randn(layout.size, generator=g, dtype=torch.float64)
+    dx = 1e-3 * torch.randn(layout.size, generator=g, dtype=torch.float64)
+    H0, g0, c0 = block_normal_equations(blocks, x, layout)
+    H1, g1, c1 = block_normal_equations(blocks, x + dx, layout)
+    assert torch.allclose(g1, g0 + H0 @ dx, rtol=1e-10, atol=1e-10 * float(g1.abs().max()))
+    assert float(c1) == pytest.approx(float(c0 + 2 * g0 @ dx + dx @ H0 @ dx), rel=1e-10)
+
+
 def test_information_block_normal_equations_follow_names(fanuc, tools_m):
     """J^T J = H and J^T r = H (x - x_ref) + g on the free entries, whatever the layout's order or pins;
     a pinned entry enters at its model value."""

@@ -41,6 +41,9 @@ class GaussianPrior:
         [0.0]
     """
 
+    linear_residual = True
+    """Its residual is linear in x: a Gauss-Newton model of its cost is the cost itself."""
+
     def __init__(self, names: Sequence[str], mean: torch.Tensor, cov: torch.Tensor):
         self.names = list(names)
         self.mean = torch.as_tensor(mean, dtype=torch.float64).reshape(-1)

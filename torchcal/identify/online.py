@@ -49,8 +49,9 @@ simulated FANUC + STS on six seeds, every warm update one linearization and
 one or two steps, the information strategy within 0.5-1.1 % (position) and 0.2-1.1 %
 (angle) of the non-adaptive models at every N (with LM's updates, two or
 three linearizations each: 0.4-1.9 % and 0.4-1.7 %), and the whole adaptive
-sequence 23.5-28.7 % of the non-adaptive sequence's CPU time (one quiet run a
-seed; the target is 25 %; 39.5-43.5 % with LM's updates). Point targets (3 tools,
+sequence 23.5-28.7 % and 23.9-27.0 % of the non-adaptive sequence's CPU time
+(two passes, one quiet run a seed; the target is 25 %; 39.5-43.5 % with LM's
+updates). Point targets (3 tools,
 measured when written, with LM updates): within 3.3 % on five seeds and 6.0 %
 at N = 75 on the sixth (1.8 % from N = 100 on), the literal one 1.24-1.40x
 above. Where the information strategy falls short it is at small N: the first
@@ -145,6 +146,9 @@ class InformationBlock:
         >>> b.quadratic(torch.tensor([3.0], dtype=torch.float64)).item()  # (3 - 1) * 4 * (3 - 1)
         16.0
     """
+
+    linear_residual = True
+    """Q is a quadratic in x (a linear residual): a Gauss-Newton model of it is Q itself."""
 
     def __init__(self, names, H: torch.Tensor, g: torch.Tensor, x_ref: torch.Tensor, rtol: float = 1e-13):
         self.names = list(names)
@@ -709,6 +713,7 @@ def one_step(problem: CalibrationProblem, ftol: float):
     f, A, C = problem.linearize(x0, v)
     H_blk, g_blk, c_blk = _blocks(problem, x0)
     factor = _schur_factor(A, C, problem.w_v, problem.prior_precision, 0.0, H_blk)
+    quadratic_blocks = H_blk is not None and all(getattr(b, "linear_residual", False) is True for b in problem.blocks)
     x, cost = x0, float(problem.cost_from(f, x0, v, c_blk))
     history = [cost]
     for k in range(CHORD_ITERATIONS + 1):
@@ -726,7 +731,10 @@ def one_step(problem: CalibrationProblem, ftol: float):
             break
         x1, v1 = x + db, v + dv
         f1 = problem.residual(x1, v1)
-        H1, g1, c1 = _blocks(problem, x1)
+        if quadratic_blocks:  # their J^T r and cost at x1 follow from x's exactly
+            g1, c1 = g_blk + H_blk @ db, lin_blk
+        else:
+            _, g1, c1 = _blocks(problem, x1)
         new_cost = float(problem.cost_from(f1, x1, v1, c1))
         if not new_cost < cost:
             break

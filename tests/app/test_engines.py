@@ -85,3 +85,44 @@ def test_ray_engine_unwraps_a_cells_own_error():
         ray.shutdown()
     assert out[0] == 1 and out[2] == 4
     assert type(out[1]) is statistics.StatisticsError and "at least one data point" in str(out[1])
+
+
+def test_ctrl_c_while_ray_starts_or_cells_are_sent_hands_back_every_cell_interrupted(monkeypatch):
+    """Interrupted before any cell ran (Ray starting, or the cells being sent): every cell comes back Interrupted,
+    so a fleet or sweep still writes its summary (the interrupt used to escape with nothing written), and what was
+    sent is cancelled."""
+    import torchcal.app.engines as engines
+
+    monkeypatch.setattr(engines, "_check_reachable", lambda address, where: None)
+    fake = types.ModuleType("ray")
+    state = {"up": False, "shut": 0, "cancelled": []}
+    fake.is_initialized = lambda: state["up"]
+
+    def init(**kw):
+        state["up"] = True  # half started, then Ctrl-C
+        raise KeyboardInterrupt
+
+    def shutdown():
+        state["up"], state["shut"] = False, state["shut"] + 1
+
+    fake.init, fake.shutdown = init, shutdown
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    out = run_cells(_cell, [(0,), (1,), (3,)], "ray")
+    assert len(out) == 3 and all(isinstance(r, Interrupted) for r in out) and interrupted(out)
+    assert state["shut"] == 1 and not state["up"]
+
+    sent = []
+
+    class _Task:
+        def remote(self, *a):
+            if len(sent) == 2:
+                raise KeyboardInterrupt
+            sent.append(a)
+            return f"ref{len(sent)}"
+
+    fake.init = lambda **kw: state.update(up=True)
+    fake.remote = lambda **kw: (lambda fn: _Task())
+    fake.cancel = lambda ref, force: state["cancelled"].append(ref)
+    out = run_cells(_cell, [(0,), (1,), (3,)], "ray")
+    assert all(isinstance(r, Interrupted) for r in out) and state["cancelled"] == ["ref1", "ref2"]
+    assert state["shut"] == 2  # the Ray this call started is shut down

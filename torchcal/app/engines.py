@@ -79,12 +79,23 @@ def run_cells(fn: Callable, args: Sequence[tuple], engine: str = "local", addres
         _check_reachable(address, where)
         try:
             ray.init(address=address, include_dashboard=False, log_to_driver=False)
+        except KeyboardInterrupt:  # Ctrl-C while Ray starts: no cell ran; the caller still writes its summary
+            if ray.is_initialized():
+                ray.shutdown()
+            return [_interrupted() for _ in args]
         except Exception as exc:  # an unreachable cluster: one line naming it, before any cell is sent
             raise ConfigError(f"{where}: cannot start or reach Ray"
                               + (f" at {address}" if address else "") + f": {type(exc).__name__}: {exc}") from None
     try:
         task = ray.remote(max_retries=0, num_cpus=1)(fn)
-        refs = [task.remote(*a) for a in args]
+        refs = []
+        try:
+            for a in args:
+                refs.append(task.remote(*a))
+        except KeyboardInterrupt:  # Ctrl-C while the cells are sent: none has been waited for
+            for ref in refs:
+                ray.cancel(ref, force=True)
+            return [_interrupted() for _ in args]
         place = {ref: i for i, ref in enumerate(refs)}
         out = [None] * len(refs)
         pending = list(refs)

@@ -122,6 +122,13 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     assert got.reason[0].startswith("out of reach") and bad >= 1
     assert (f"{bad} of 20 commands flagged ({int((~got.converged.astype(bool) & within).sum())} did not converge or "
             f"are out of reach, {int((~within).sum())} outside") in said, said
+    # x, y, z with no orientation and no tool column: targets, not commands; refused rather than read as commands
+    # with x, y, z ignored (a tracker file's points name their tool and compensate as commands, as before)
+    df.drop(columns=["rx", "ry", "rz"]).to_csv(tmp_path / "t_xyz.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "t_xyz.csv"), str(tmp_path / "out_x.csv")])
+    said = " ".join(r.output.split())
+    assert r.exit_code == 2 and "t_xyz.csv" in said and "x, y, z without an orientation" in said, said
+    assert not (tmp_path / "out_x.csv").exists()
     # targets in metres, and an orientation given twice: refused, nothing written
     metres = df.copy()
     metres[["x", "y", "z"]] = metres[["x", "y", "z"]] / 1000.0

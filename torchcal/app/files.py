@@ -307,6 +307,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
 
     with progress_task(f"reading {input}"):
         df = read_raw_table(Path(input))
+        _refuse_targets_without_orientation(Path(input), df)
         unseeded = None
         if target_kind(df) is not None and _has_flags(df, robot):  # the controller's branch by configuration flags
             df, unseeded = _seeds_from_flags(model, Path(input), df)
@@ -406,6 +407,22 @@ def _seeds_from_flags(model, path, df):
     for i, c in enumerate(joint_columns(model.robot.joint_map.n)):
         out[c] = qf[:, i]
     return out, ~found.cpu()
+
+
+def _refuse_targets_without_orientation(path: Path, df) -> None:
+    """x, y, z with no orientation and no pose column: meant as Cartesian targets (a tracker file's rows carry
+    their pose id), which would otherwise be read as joint commands, their x, y, z ignored (17.7 mm off on a
+    user's truth robot, every row 'converged')."""
+    from ..io.csv import TARGET_QUAT, TARGET_RPY, XYZ, DataError, Problem, target_kind
+
+    cols = set(df.columns)
+    if target_kind(df) is not None or not set(XYZ) <= cols or "pose" in cols:
+        return
+    have = [c for c in (*TARGET_RPY, *TARGET_QUAT) if c in cols]
+    raise DataError(path, [Problem(None, "rx, ry, rz", (
+        f"x, y, z without an orientation ({'only ' + ', '.join(have) if have else 'no orientation columns'}): "
+        "Cartesian targets need rx, ry, rz (deg) or qw, qx, qy, qz; to compensate the joint commands q1..qN "
+        "instead, leave x, y, z out (a tracker file's measured points come with its pose column)"))])
 
 
 def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,

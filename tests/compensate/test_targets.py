@@ -120,6 +120,10 @@ def test_compensate_command_on_a_targets_file(tmp_path, fanuc, tools_m):
     within = got.within_limits.astype(bool)
     said = " ".join(r.output.split())
     assert got.reason[0].startswith("out of reach") and bad >= 1
+    # the unreachable row keeps its seed (the IK's last iterate was no command: J2 at 803 deg in a helper's run)
+    joints = [f"q{j + 1}" for j in range(6)]
+    assert np.allclose(got.loc[0, joints].to_numpy(float), far.loc[0, joints].to_numpy(float), atol=1e-8)
+    assert float(got.max_dq[0]) == 0.0 and bool(got.within_limits[0])
     assert (f"{bad} of 20 commands flagged ({int((~got.converged.astype(bool) & within).sum())} did not converge or "
             f"are out of reach, {int((~within).sum())} outside") in said, said
     # x, y, z with no orientation and no tool column: targets, not commands; refused rather than read as commands

@@ -168,6 +168,15 @@ def _general(model, target, seed, direction, t_nominal, t_actual, ik_tol, ik_max
                                     max_iter=ik_max_iter)
         q_ik, reached = ik_c.q, ik_c.converged
     comp = compensate(model, q_ik, direction, target=flange_for(target, t_actual), **options)
+    if not bool(reached.all()):
+        # out of reach: the IK's last iterate is no command (a helper's 5 m target came back with J2 at 803 deg
+        # while max_dq said 30): the row keeps its seed, unmoved, and is flagged
+        away = ~reached
+        q_ik = torch.where(away[:, None], seed, q_ik)
+        comp.q = torch.where(away[:, None], seed, comp.q)
+        comp.correction = torch.where(away, torch.zeros_like(comp.correction), comp.correction)
+        comp.converged = comp.converged & reached
+        comp.within_limits, comp.direction_outside = range_and_coverage(model, comp.q, direction)
     ok = reached & comp.converged & comp.within_limits
     command = tool_pose(model.nominal_flange(comp.q), t_nominal)
     reason = comp.reasons(options.get("max_correction"), model.robot.joint_map.prismatic)

@@ -334,16 +334,14 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
             note = units_note(new, model.robot, *check_units(new, model.robot, tools, new_path))
             if note:
                 progress.warn(note)
-        before = check_new_data(model, new, new_path, is_sensor_run(cfg))
-        if before is not None:  # an update would absorb a moved tracker into the robot's parameters
-            from .common import moved_frame_note
+        before, pred = check_new_data(model, new, new_path, is_sensor_run(cfg))
+        from .common import moved_frame_note
 
-            with torch.no_grad():
-                pred = model.points(new.q, new.tool, new.direction if new.has_direction else None)
-            note = moved_frame_note(pred, new.xyz.to(pred), "an update takes the parent's measurement frame: "
-                                    "measure from the parent's placement, or fit afresh (measurement_frame: estimate)")
-            if note:
-                progress.warn(f"{new_path}: {note}")
+        # an update would absorb a moved tracker into the robot's parameters
+        note = moved_frame_note(pred, new.xyz.to(pred), "an update takes the parent's measurement frame: "
+                                "measure from the parent's placement, or fit afresh (measurement_frame: estimate)")
+        if note:
+            progress.warn(f"{new_path}: {note}")
         repeated = rows_in_parent(cfg.data.identification, model, new, is_sensor_run(cfg))
         if repeated:
             shown = ", ".join(str(r) for r in repeated[:10]) + (" ..." if len(repeated) > 10 else "")
@@ -364,7 +362,7 @@ def _run_update(parent: Path, cfg, new_path: Path, out: Path, dev, strategy, con
 
 
 def _write_update(parent, cfg, new_path, run, new, instrument, online, history, notes, early, progress, dev,
-                  before=None, placed=""):
+                  before, placed=""):
     """Everything written into the new run directory, in order (config, versions, update, model, state, metrics)."""
     model = online.model
     files: dict[str, Path] = {}
@@ -384,9 +382,9 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
                 progress.info(note)
         progress.info(f"earlier rows: {online.rows} in {online.batches} batch(es), from the parent's {history}; "
                       f"strategy '{online.strategy}'")
-        if before is not None:  # the parent's model on the new rows: how far the robot moved from its calibration
-            progress.info(f"the parent's model on the new rows: mean {before.mean:.4f} mm, max {before.max:.4f} mm "
-                          "(before the update)")
+        # the parent's model on the new rows: how far the robot moved from its calibration
+        progress.info(f"the parent's model on the new rows: mean {before.mean:.4f} mm, max {before.max:.4f} mm "
+                      "(before the update)")
         parent_coverage = getattr(model, "coverage", None)  # the update replaces it with a widened one
         with progress.step(f"updating with {len(new)} rows of {new_path}"):
             step = online.update(new, instrument)
@@ -414,7 +412,7 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
             sets, table = _evaluate(cfg, model, new, progress, new_path)
         metrics = {"units": "mm, deg, percent" if is_sensor_run(cfg) else "mm, percent", "parent": str(parent),
                    "lineage": lineage, "history": history, "update": step.summary(), "sets": sets, "table6": table,
-                   "parent_model_on_new_rows_mm": None if before is None else vars(before),
+                   "parent_model_on_new_rows_mm": vars(before),
                    "warnings": progress.warnings}
         files["metrics"] = write_json(run / "metrics.json", metrics)
         progress.info(f"done: {run}")

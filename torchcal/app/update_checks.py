@@ -18,7 +18,8 @@ from ..core.measurements import Measurements
 def check_new_data(model, new: Measurements, new_path: Path, sensor: bool):
     """Refuse rows the update cannot use as the parent's robot: no approach directions for a backlash model,
     or points the calibrated model misses by more than any calibration error (another robot, frame or unit).
-    -> the parent model's residual statistics (mm) on the new rows (a sensor run's: of the sensor positions)."""
+    -> the parent model's residual statistics (mm) on the new rows (a sensor run's: of the sensor positions) and its
+    predictions of them (R, 3) m."""
     from ..io.csv import DataError, Problem
 
     je = getattr(getattr(model, "model", model), "joint_errors", None)  # a sensor rig's: its robot model's
@@ -30,21 +31,18 @@ def check_new_data(model, new: Measurements, new_path: Path, sensor: bool):
             raise DataError(new_path, [Problem(None, f"dir1..dir{n}", (
                 f"missing on rows 1..{len(new)}: the run's model has backlash terms on {', '.join(names[j] for j in on)}, "
                 f"which need each row's approach directions (+1 / -1 per joint)"))])
-    from .fit import NOMINAL_IMPLAUSIBLE_MM, evaluate
+    from ..analysis.stats import point_residuals
+    from .fit import NOMINAL_IMPLAUSIBLE_MM
 
     what = "sensor positions" if sensor else "points"
-    with torch.no_grad():
-        if sensor:  # the sensor origin's position, the part of a 6-DOF row a moved tracker shows in
-            pred = model.points(new.q, new.tool, new.direction if new.has_direction else None)
-            modeled_m = (new.xyz.to(pred) - pred).norm(dim=-1)
-            stats = residual_stats(modeled_m).scaled(units.m_to_mm(1.0))
-            nominal_said = ""
-        else:
-            ev = evaluate(model, new)
-            modeled_m, stats = ev["modeled"], ev["modeled_stats"]
-            nominal_said = f" (nominal {ev['nominal_stats'].mean:.1f} mm)"
+    with torch.no_grad():  # a sensor rig's points are its sensor origin's, the part of a 6-DOF row a moved tracker shows in
+        pred = model.points(new.q, new.tool, new.direction if new.has_direction else None)
+    modeled_m = (new.xyz.to(pred) - pred).norm(dim=-1)
+    stats = residual_stats(modeled_m).scaled(units.m_to_mm(1.0))
     modeled = stats.mean
     if modeled > NOMINAL_IMPLAUSIBLE_MM:
+        nominal_said = "" if sensor else \
+            f" (nominal {units.m_to_mm(float(point_residuals(model, new, nominal=True).mean())):.1f} mm)"
         raise DataError(new_path, [Problem(None, "x, y, z", (
             f"the run's model misses these {what} by {modeled:.1f} mm on average{nominal_said}, far beyond "
             f"any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): data of another robot, tool set, measurement "
@@ -57,7 +55,7 @@ def check_new_data(model, new: Measurements, new_path: Path, sensor: bool):
             f"the run's model misses this point by {float(miss[i]):.1f} mm (the file's median {float(miss.median()):.3f} "
             f"mm), beyond any calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): a gross measurement (another "
             "reflector, a beam break)? Remove the row; an update would absorb it")) for i in gross])
-    return stats
+    return stats, pred
 
 
 def held_backlash(model, pinned, parent_coverage) -> list[str]:

@@ -19,8 +19,10 @@ nominal tool vectors onto the identified ones (least squares over the tools,
 :func:`tool_set_frame`). Then the tool points land on the nominal robot's
 points F_n(q_nom) t_nominal,k up to the tool set's non-rigid difference (a
 tool that is itself bent), and any two models that predict the same points
-give the same commands. With fewer than three tools, or tools on one line, the
-rotation of G is not determined by them: G is the mean translation.
+give the same commands. Two tools, or tools on one line, fix their line's direction but not the turn
+about it: G is then the smallest rotation carrying the nominal line onto the identified one (no turn about
+the line, which 5-DOF compensation leaves free) and the mean's translation; one tool (or tools that
+coincide) fixes no orientation: G is the mean translation.
 
 Shapes: nominal, identified (T, 3) m; G (4, 4).
 """
@@ -33,12 +35,13 @@ from ..core.exceptions import InputError
 
 LINE_TOL = 1e-3
 """m: tools whose second spread (singular value of the centred nominal vectors) is below this lie on one line
-(or coincide): G's rotation is then left out (identity)."""
+(G's rotation is then the line's tilt alone); whose first is below it coincide (G a translation)."""
 
 
 def tool_set_frame(nominal: torch.Tensor, identified: torch.Tensor) -> torch.Tensor:
-    """The rigid motion G (4, 4) with G t_nominal,k ~ t_identified,k in least squares (Kabsch; translation only
-    for fewer than three tools or tools on one line).
+    """The rigid motion G (4, 4) with G t_nominal,k ~ t_identified,k in least squares (Kabsch for three or more tools
+    off one line; for tools on one line the smallest rotation between the lines, no turn about them; for one
+    tool the translation alone).
 
     Example:
         >>> import torch
@@ -55,18 +58,41 @@ def tool_set_frame(nominal: torch.Tensor, identified: torch.Tensor) -> torch.Ten
     ca, cb = a.mean(0), b.mean(0)
     A, Bc = a - ca, b - cb
     R = torch.eye(3, dtype=torch.float64, device=a.device)
-    if a.shape[0] >= 3 and float(torch.linalg.svdvals(A)[1]) > LINE_TOL:
+    spread = torch.linalg.svdvals(A) if a.shape[0] >= 2 else torch.zeros(3, dtype=torch.float64, device=a.device)
+    if a.shape[0] >= 3 and float(spread[1]) > LINE_TOL:
         U, _, Vh = torch.linalg.svd(A.T @ Bc)
         d = torch.sign(torch.linalg.det(Vh.T @ U.T))
         R = Vh.T @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ U.T
+    elif float(spread[0]) > LINE_TOL:
+        R = _line_rotation(A, Bc)
     G[:3, :3] = R
     G[:3, 3] = cb - R @ ca
     return G
 
 
+def _line_rotation(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """The smallest rotation (3, 3) carrying the line of the centred points A (T, 3) onto that of B (T, 3).
+
+    Two tools (or tools on one line) fix their line's direction and nothing about the turn about it, so G takes
+    the tilt the points show and no turn: its axis is orthogonal to both lines. Leaving the tilt out (G a pure
+    translation) made 5-DOF compensation restore the modeled flange's orientation instead of the tools' line,
+    which the fit's gauge is free to tilt: a 2-reflector FANUC landed its reflectors 0.09 mm off (1 and 3
+    reflectors: 0.02 mm).
+    """
+    a = torch.linalg.svd(A, full_matrices=False)[2][0]
+    b = (A @ a) @ B  # B's line, signed by the correspondence of the points along A's
+    b = b / b.norm()
+    v, c = torch.linalg.cross(a, b), a @ b
+    K = torch.zeros(3, 3, dtype=A.dtype, device=A.device)
+    K[0, 1], K[0, 2], K[1, 2] = -v[2], v[1], -v[0]
+    K = K - K.T
+    return torch.eye(3, dtype=A.dtype, device=A.device) + K + K @ K / (1.0 + c)
+
+
 def model_tool_set_frame(model) -> torch.Tensor | None:
     """G (4, 4) of a model with nominal and identified tool vectors (``model.tools.nominal``, ``model.tools()``),
-    on the model's device and dtype; None where the two are equal (G the identity: nothing to change) or the
+    judged on the tools its data measured (``model.measured_tools``, as :func:`observed_dof`), on the model's
+    device and dtype; None where the two are equal (G the identity: nothing to change) or the
     model carries no tool vectors."""
     tools = getattr(model, "tools", None)
     nominal = getattr(tools, "nominal", None)
@@ -76,6 +102,11 @@ def model_tool_set_frame(model) -> torch.Tensor | None:
         identified = tools().detach()
         if torch.equal(identified, nominal):
             return None
+        seen = getattr(model, "measured_tools", None)
+        if seen is not None:  # a tool the data never measured keeps its nominal vector: no evidence of G
+            keep = [i for i in seen if i < identified.shape[0]]
+            if keep:
+                nominal, identified = nominal[keep], identified[keep]
         return tool_set_frame(nominal, identified).to(identified.device, identified.dtype)
 
 

@@ -121,3 +121,38 @@ def test_fit_takes_autograd_for_a_subclass_term_and_the_batched_solver_refuses(f
     assert res.success and miss < 1e-6  # m: the closed form ended 1 mm off here
     with pytest.raises(ValueError, match="fit_batch needs closed-form Jacobians"):
         fit_batch(ShiftedFlange(fanuc, tools_m, orders=1), [ShiftedFlange(fanuc, tools_m, orders=1)], data)
+
+
+def test_a_sensor_rig_around_a_subclass_takes_autograd(fanuc):
+    """The rig's closed-form pose Jacobians go through the wrapped model's chain, which knows the paper's terms
+    only: a rig around ShiftedFlange linearized without its shift (the residual itself 1 mm off), silently. The
+    instrument now declines the closed form for it and linearizes exactly as autograd does."""
+    from torchcal.identify import CalibrationProblem, NoiseModel, Prior
+    from torchcal.measure import STSInstrument
+    from torchcal.measure.base import closed_form_declined
+    from torchcal.models.sensor_rig import SensorRig
+    from torchcal.sim.sensor_truth import SensorTruth
+
+    st = SensorTruth(fanuc, seed=3)
+    s = st.sample_commands(15, seed=3)
+    m = st.measure_sts(s.q, s.direction, seed=4)
+
+    def rig(cls):
+        inner = cls(fanuc, torch.zeros(1, 3, dtype=torch.float64), orders=1, backlash=True)
+        r = SensorRig(inner, mount=st.mount_nominal, gravity=st.virtual_level)
+        randomize(inner, 5)
+        return r
+
+    plain, shifted = rig(torchcal.RobotModel), rig(ShiftedFlange)
+    assert not closed_form_declined(plain) and closed_form_declined(shifted)
+    inst = STSInstrument.from_measurements(m, gravity=st.virtual_level)
+    P = CalibrationProblem(shifted, m, NoiseModel.from_robot(fanuc), Prior(), instrument=inst)
+    x, v = P.layout.get(), P.v_zero()
+    f, A, C = P.linearize(x, v)
+    fa, Aa, Ca = P.linearize(x, v, "autodiff")
+    assert torch.equal(f, fa) and torch.equal(A, Aa) and torch.equal(C, Ca)
+    with torch.no_grad():  # the shift is in the residual the instrument sees (what the closed form left out)
+        p = shifted.sensor_pose(m.q, None, m.direction)[:, :3, 3]
+        p0 = plain.sensor_pose(m.q, None, m.direction)[:, :3, 3]
+    assert float((p - p0).norm(dim=1).min()) > 1e-3
+    assert inst.predict_jacobians(plain, m.q, m.tool, m.direction, None) is not None

@@ -36,7 +36,7 @@ import torch
 
 from ..core.exceptions import TorchcalError
 from ..core.measurements import Measurements
-from .base import Instrument
+from .base import Instrument, closed_form_declined
 from .pose import pose_covariance
 from .weights import CovarianceWeight
 
@@ -345,7 +345,7 @@ class STSInstrument(Instrument):
         """Closed form through the rig's pose Jacobians (:meth:`SensorRig.pose_jacobians`) and the
         derivatives of (17)-(27) w.r.t. the pose and gravity; None for models without them (autograd then)."""
         pj = getattr(model, "pose_jacobians", None)
-        if pj is None:
+        if pj is None or closed_form_declined(model):
             return None
         T, J = pj(q, direction, v)
         R, p = T[:, :3, :3], T[:, :3, 3]

@@ -149,6 +149,16 @@ class SensorRig(nn.Module):
         return self.model.base.nominal @ self.model.nominal_flange(q) @ self.mount.nominal
 
     # -------------------------------------------------------------- Jacobians
+    def closed_form(self) -> bool:
+        """Whether :meth:`pose_jacobians` hold every term of this rig: not when the wrapped model is a research
+        subclass with a term of its own (:meth:`RobotModel.extended`; its chain Jacobians know the paper's terms
+        only, and a rig around one was fitted on them silently), nor for a rig subclass that moved the sensor frame
+        without writing its own Jacobians. Its instruments then take autograd."""
+        if type(self).pose_jacobians is not SensorRig.pose_jacobians:
+            return True
+        extended = getattr(self.model, "extended", None)
+        return type(self).sensor_pose is SensorRig.sensor_pose and not (extended is not None and extended())
+
     def pose_jacobians(self, q, direction=None, v=None):
         """Sensor poses and their closed-form Jacobians (no autograd: the fixed cost of a small batch stays small).
 

@@ -172,3 +172,36 @@ def test_every_flagged_command_says_why(fanuc, tools_m):
                       branch=False)
     assert bool((~free.converged | (free.correction > bound)).all())
     assert not bool(res.within_limits.all())
+
+
+def test_a_targets_file_marks_the_rows_approached_from_an_unseen_direction(tmp_path, fanuc, tools_m):
+    """The console counts targets approached from a direction the identification data never covered: the output
+    names them (the column was missing from the targets output while the console pointed to it)."""
+    import numpy as np
+    import pandas as pd
+    from typer.testing import CliRunner
+
+    from torchcal.analysis.coverage import DirectionCoverage
+    from torchcal.cli import app
+    from torchcal.io.rundir import save_model
+
+    model = randomize(RobotModel(fanuc, tools_m, orders=2, backlash=True), 9, rot=5e-4, trans=5e-5)
+    q_id = random_commands(fanuc, 500, 59)
+    s_id = torch.where(torch.rand(q_id.shape, generator=torch.Generator().manual_seed(60)) < 0.5, -1.0, 1.0).double()
+    s_id[:, 1] = 1.0  # joint 2 approached from below only
+    model.coverage = DirectionCoverage.from_data(q_id, s_id, model.command_limits, bins=4)
+    run = tmp_path / "run"
+    run.mkdir()
+    save_model(run, model)
+    q = random_commands(fanuc, 12, 4)
+    s = torch.ones_like(q)
+    s[::3, 1] = -1.0
+    with torch.no_grad():
+        T = _tool_pose(model.nominal_flange(q), model.tools.nominal[[0] * 12])
+    write_targets(tmp_path / "t.csv", T, q, **{f"dir{j + 1}": s[:, j].numpy().astype(int) for j in range(6)})
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "t.csv"), str(tmp_path / "o.csv")])
+    assert r.exit_code == 0, r.output
+    out = pd.read_csv(tmp_path / "o.csv")
+    assert list(out.direction_outside) == (s[:, 1] < 0).tolist()
+    assert "4 of 12 commands approach a joint from a direction" in " ".join(r.output.split())
+    assert np.isfinite(out.max_dq).all()

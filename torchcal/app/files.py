@@ -430,7 +430,8 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     """``torchcal compensate`` on Cartesian targets (x, y, z mm; rx, ry, rz deg or qw, qx, qy, qz; robot base
     frame; q1..qN the seeds on the controller's branch; tool optional, default 0): writes q1..qN calibrated,
     x_cmd .. rz_cmd the corrected target for a controller that runs nominal IK with its nominal tool data,
-    converged, within_limits, max_dq (against the nominal IK's commands) and reason (empty when converged)."""
+    converged, within_limits, max_dq (against the nominal IK's commands) [, direction_outside] and reason (empty
+    when converged)."""
     from ..compensate.targets import compensate_targets, pose_rpy, target_poses
     from ..io.csv import joint_columns, joints_to_file, read_targets
 
@@ -470,6 +471,8 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
         out["within_limits"] = out["within_limits"].astype(object)
         out.loc[out.index[unseeded.numpy()], ["within_limits", "max_dq"]] = [None, np.nan]
         within = within | unseeded  # counted as not converged, not as outside the range
+    if comp.direction_outside is not None:  # the console counts it: the rows must say which
+        out["direction_outside"] = comp.direction_outside.cpu().numpy()
     said: list[str] = []
     _mark_outside_data(out, _outside_data_column(model, res.q), input, said)
     out["reason"] = res.reason

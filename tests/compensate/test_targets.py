@@ -205,3 +205,39 @@ def test_a_targets_file_marks_the_rows_approached_from_an_unseen_direction(tmp_p
     assert list(out.direction_outside) == (s[:, 1] < 0).tolist()
     assert "4 of 12 commands approach a joint from a direction" in " ".join(r.output.split())
     assert np.isfinite(out.max_dq).all()
+
+
+def test_a_targets_file_with_its_orientations_in_radians_is_refused(tmp_path, fanuc, tools_m):
+    """rx, ry, rz typed in radians came back as flagged rows with nothing said of the unit: the seeds (the
+    controller's commands for the targets, here 2 deg off) show where the tool points, and the file's angles
+    match them only as radians."""
+    import numpy as np
+    import pandas as pd
+    from typer.testing import CliRunner
+
+    from torchcal.cli import app
+    from torchcal.io.rundir import save_model
+
+    model = randomize(RobotModel(fanuc, tools_m, orders=1), 9, rot=5e-4, trans=5e-5)
+    run = tmp_path / "run"
+    run.mkdir()
+    save_model(run, model)
+    q = random_commands(fanuc, 30, 4)
+    with torch.no_grad():
+        T = _tool_pose(model.nominal_flange(q), model.tools.nominal[[0] * 30])
+    seeds = q + torch.deg2rad(2.0 * torch.randn(q.shape, generator=torch.Generator().manual_seed(1), dtype=q.dtype))
+    seeds = torch.minimum(torch.maximum(seeds, model.command_limits[:, 0]), model.command_limits[:, 1])
+    write_targets(tmp_path / "deg.csv", T, seeds)
+    df = pd.read_csv(tmp_path / "deg.csv")
+    df[["rx", "ry", "rz"]] = np.radians(df[["rx", "ry", "rz"]])
+    df.to_csv(tmp_path / "rad.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "deg.csv"), str(tmp_path / "o.csv")])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "rad.csv"), str(tmp_path / "o2.csv")])
+    said = " ".join(r.output.split())
+    assert r.exit_code != 0 and "rad.csv" in said and "the orientations look like radians" in said, said
+    assert not (tmp_path / "o2.csv").exists()
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "rad.csv"), str(tmp_path / "o3.csv"),
+                                 "--units-checked"])
+    assert r.exit_code == 0, r.output  # the user's word: read as degrees, the rows flagged as before
+    assert not pd.read_csv(tmp_path / "o3.csv").converged.all()

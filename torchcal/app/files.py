@@ -318,6 +318,8 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         from ..io.unit_checks import check_point_scale
 
         check_point_scale(data, robot, model.tools().detach().cpu(), path=input)
+        if unseeded is None and not freedom.get("position_only"):  # seeds from the file: they tell the unit
+            _refuse_radian_orientations(model, Path(input), df, data.q)
 
     said = _input_warnings(model, input, df, data, targets=targets)
     if dof_note is not None:
@@ -423,6 +425,40 @@ def _refuse_targets_without_orientation(path: Path, df) -> None:
         f"x, y, z without an orientation ({'only ' + ', '.join(have) if have else 'no orientation columns'}): "
         "Cartesian targets need rx, ry, rz (deg) or qw, qx, qy, qz; to compensate the joint commands q1..qN "
         "instead, leave x, y, z out (a tracker file's measured points come with its pose column)"))])
+
+
+RADIAN_RPY_DEG = (20.0, 5.0)
+"""deg: a targets file's rx, ry, rz are refused as radians when, read as degrees, their orientations lie more than
+the first (median over rows) from the nominal robot's at the seeds, and read as radians within the second."""
+
+
+def _refuse_radian_orientations(model, path: Path, df, seeds: torch.Tensor) -> None:
+    """rx, ry, rz typed in radians: read as degrees every target turns by up to 180 deg from where the seeds point
+    the tool, and the rows come back flagged with nothing said about the unit. The seeds (the controller's own
+    commands for the targets) decide, as the measured points do for joints in radians."""
+    from ..compensate.targets import target_poses
+    from ..io.csv import TARGET_RPY, DataError, Problem, read_targets
+    from ..io.unit_checks import OVERRIDE
+
+    kind, pos, ori = read_targets(df, path)
+    ok = torch.isfinite(seeds).all(1)
+    if kind != "rpy" or int(ok.sum()) == 0:
+        return
+    with torch.no_grad():
+        R = model.nominal_flange(seeds[ok].to(model.device, model.dtype))[:, :3, :3].cpu().to(torch.float64)
+
+    def off_deg(rpy):
+        T = target_poses(pos[ok], rpy[ok])[:, :3, :3]
+        c = (((R.transpose(1, 2) @ T).diagonal(dim1=1, dim2=2).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+        return float(units.rad_to_deg(torch.acos(c)).median())
+
+    as_deg, as_rad = off_deg(ori), off_deg(units.rad_to_deg(ori))  # the file's numbers read as radians
+    far, near = RADIAN_RPY_DEG
+    if as_deg > far and as_rad < near:
+        raise DataError(path, [Problem(None, ", ".join(TARGET_RPY), (
+            f"the orientations look like radians: read as degrees (the file contract) they lie {as_deg:.1f} deg "
+            f"(median) from the nominal orientation at the seeds q1..q{model.robot.joint_map.n}, read as radians "
+            f"{as_rad:.2f} deg; write rx, ry, rz in degrees, or pass {OVERRIDE} if they really are degrees"))])
 
 
 def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter,

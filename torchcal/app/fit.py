@@ -685,6 +685,7 @@ def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict
     for name, ev in evaluations.items():
         if far := far_rows_message(ev["modeled"], sets[name], f"{name.lower()} set ({sets[name].source})"):
             progress.warn(far)
+    _check_noise(inp, model, sets, evaluations, progress)
     for name, ev in evaluations.items():
         nom, mod = ev["nominal_stats"].mean, ev["modeled_stats"].mean
         if mod > nom:  # a calibration that makes the robot worse is no calibration, whatever the solver said
@@ -701,6 +702,28 @@ def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict
     return sets, evaluations, table6(evaluations)
 
 
+def _check_noise(inp: FitInputs, model, sets: dict, evaluations: dict, progress: Progress) -> None:
+    """Each set's residual against what the noise model explains (:mod:`torchcal.analysis.noise_check`): said, kept
+    in the evaluations ('noise_ratio'), and warned about where the validation set (else the identification set)
+    is beyond :data:`~torchcal.analysis.noise_check.NOISE_RATIO_WARN`: a fit 16x the tracker noise said nothing."""
+    from ..analysis.noise_check import NOISE_RATIO_WARN, noise_ratio
+
+    for name, ev in evaluations.items():
+        ev["noise_ratio"] = noise_ratio(model, sets[name], inp.noise, ev["modeled"])
+    name = "Validation" if "Validation" in evaluations else "Identification"
+    rho = evaluations[name]["noise_ratio"]
+    if rho is None:
+        return
+    said = ", ".join(f"{n.lower()} {ev['noise_ratio']:.2f}" for n, ev in evaluations.items())
+    progress.info(f"residual / noise model (1 or below: the model holds the systematic errors): {said}")
+    if rho > NOISE_RATIO_WARN:
+        progress.warn(f"the {name.lower()} residual is {rho:.1f}x what the noise model explains (noise.sigma_m "
+                      f"{units.m_to_mm(inp.noise.sigma_m):g} mm and the joints' repeatability, {inp.noise_source}): the "
+                      "model lacks an error source (arm sag: model.compliance; a higher model.order; thermal drift "
+                      "between sessions) or the tracker and robot scatter more than the config says; the parameters' "
+                      f"standard deviations (parameters.csv) assume the noise model and are about {rho:.0f}x too small")
+
+
 def fit_metrics(orders, selection, result: FitResult, alignment, sets: dict, evaluations: dict, table) -> dict:
     """What metrics.json holds (mm, percent); Table 7 and the warnings are added by later stages."""
     return {
@@ -711,7 +734,8 @@ def fit_metrics(orders, selection, result: FitResult, alignment, sets: dict, eva
         "alignment": None if alignment is None else alignment.summary(),
         "sets": {name.lower(): {"rows": len(sets[name]), "poses": sets[name].n_poses,
                                 "nominal": vars(ev["nominal_stats"]), "modeled": vars(ev["modeled_stats"]),
-                                "decrease_percent": ev["decrease"]} for name, ev in evaluations.items()},
+                                "decrease_percent": ev["decrease"], "noise_ratio": ev.get("noise_ratio")}
+                 for name, ev in evaluations.items()},
         "table6": table,
         "table7": None,
     }

@@ -436,6 +436,12 @@ def test_fit_with_the_prior_of_a_fleet_run(tmp_path, robot):
 
     rec = json.loads((helped.run_dir / "fit.json").read_text())["fleet_prior"]
     assert rec["units"] == 6 and rec["left_out"] == ["unit03"]
+    # a unit of the type lies no farther from the fleet than its spread explains (its own truth, as the fleet's):
+    # said, recorded, not warned (identify/test_fleet_prior.py holds d^2 to its expectation and a damaged unit)
+    t = rec["tension"]
+    assert 0.0 < t["expected"] < rec["entries"] and t["ratio"] == pytest.approx(t["d2"] / t["expected"])
+    assert sum(share for _, share in t["groups"]) == pytest.approx(t["d2"], rel=1e-9)
+    assert not any("farther from the fleet" in w for w in helped.warnings), (t, helped.warnings)
     # the run reports the same unit fitted alone beside it: what the plain run of the same config computes
     cmp = json.loads((helped.run_dir / "metrics.json").read_text())["fleet_prior"]
     plain = json.loads((alone.run_dir / "metrics.json").read_text())["sets"]["identification"]["modeled"]

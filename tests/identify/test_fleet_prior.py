@@ -284,3 +284,64 @@ def _shrunk_covariance(Z: torch.Tensor) -> tuple[torch.Tensor, float]:
     Rs = (1.0 - lam) * R
     Rs.diagonal().fill_(1.0)
     return Rs * sd[:, None] * sd[None, :], lam
+
+
+def _tension_units(fanuc, tools_m, spread, count, seed, damage=None):
+    """Units drawn from a known Gaussian fleet N(mu, S) (S diagonal: ``spread`` x the default prior's sigmas),
+    each measured on 30 poses with the noise model's own scatter and fitted under that prior: prior_tension of
+    each (damage: (entry name, sigmas) added to every unit's draw). spread: 1 is 1 mrad / 0.1 mm."""
+    from conftest import random_commands
+
+    from torchcal.identify import CalibrationProblem, NoiseModel
+    from torchcal.identify.blocks import GaussianPrior
+    from torchcal.identify.fleet_prior import prior_tension
+    from torchcal.identify.layout import ParameterLayout
+    from torchcal.models.robot import RobotModel
+
+    make = lambda: RobotModel(fanuc, tools_m, orders=1, backlash=False)  # noqa: E731
+    layout = ParameterLayout(make())
+    angle = torch.tensor([k == "angle" for k in layout.kinds()])
+    sigma = torch.where(angle, 1e-3, 1e-4).to(torch.float64) * spread  # rad, m: a fleet's spread of errors
+    g = torch.Generator().manual_seed(seed)
+    mu = sigma * torch.randn(sigma.shape, generator=g, dtype=torch.float64)
+    block = GaussianPrior(layout.names(), mu, torch.diag(sigma ** 2))
+    noise = NoiseModel.from_robot(fanuc, 5e-6)
+    out = []
+    for k in range(count):
+        truth = make()
+        x = mu + sigma * torch.randn(sigma.shape, generator=g, dtype=torch.float64)
+        if damage is not None:
+            i = layout.names().index(damage[0])
+            x[i] += damage[1] * sigma[i]
+        ParameterLayout(truth).set(x)
+        q = random_commands(fanuc, 30, 100 * seed + k).repeat_interleave(3, 0)
+        tool = torch.arange(90) % 3
+        v = torch.randn(q.shape, generator=g, dtype=torch.float64) * noise.joint_variance(torch.zeros_like(q)).sqrt()
+        with torch.no_grad():
+            xyz = truth.points(q, tool, None, v) + 5e-6 * torch.randn(90, 3, generator=g, dtype=torch.float64)
+        data = torchcal.Measurements.from_tensors(q, tool, xyz)
+        model = make()
+        ParameterLayout(model).set(mu.clone())
+        res = fit(model, data, noise, None, blocks=[block], gauge=False)
+        assert res.success
+        problem = CalibrationProblem(model, data, noise, None)
+        out.append(prior_tension(block, problem, problem.layout.get(), res.v))
+    return out
+
+
+def test_prior_tension_is_its_expectation_for_a_unit_like_the_fleet(fanuc, tools_m):
+    """Units drawn from the prior itself: d^2 averages its expectation k - tr(S^-1 S_post) (the linear Gaussian
+    result; the robot is near-linear at this size); the expectation lies between 0 and the k entries and grows
+    with the data's information over the fleet's spread. A unit whose joint 3 transmission error grows over its range 12
+    sigmas beyond the fleet's (a damaged gearbox) lies far beyond it, with that joint named first."""
+    from torchcal.identify.fleet_prior import TENSION_WARN
+
+    units = _tension_units(fanuc, tools_m, 1.0, 8, 1)
+    ratios = torch.tensor([t.ratio for t in units])
+    assert 0.75 < float(ratios.mean()) < 1.3, ratios
+    k = 6 * 6 * 2 + 6 + 9
+    assert all(0.0 < t.expected < k and t.sd > 0.0 for t in units)
+    tight = _tension_units(fanuc, tools_m, 0.1, 2, 1)  # a fleet 10x tighter: the data see fewer directions
+    assert max(t.expected for t in tight) < min(t.expected for t in units)
+    (bad,) = _tension_units(fanuc, tools_m, 1.0, 1, 2, damage=("joint3.eps_z.c1", 12.0))
+    assert bad.ratio > TENSION_WARN and bad.groups[0][0] == "joint3", (bad.ratio, bad.groups[:3])

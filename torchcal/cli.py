@@ -362,6 +362,13 @@ def fleet_cmd(
     caption = None if rows is result.rows else (
         f"{len(rows)} of {len(result.rows)} units shown: failed, flagged, changed, not converged or undetermined; every "
         "unit in summary.csv and the fleet report")
+    if any(isinstance(r.get("outlier_score"), float) for r in result.rows):  # a large score alone is no finding
+        from .identify.fleet import OUTLIER_MIN_RATIO
+
+        caption = ((caption + "\n") if caption else "") + (
+            "outlier score: the unit's largest robust z over its joints' features; a joint is flagged where its z "
+            f"exceeds fleet.threshold and its feature is at least {OUTLIER_MIN_RATIO:g}x the fleet's median "
+            "(features.csv)")
     t = Table(title=f"Fleet: {len(result.rows)} units ({result.time:.1f} s, solve {result.solve_time:.1f} s)",
               caption=caption)
     cols = ["unit", "status", "converged", "identification_mean_mm", "validation_mean_mm", "validation_max_mm",
@@ -385,6 +392,11 @@ def fleet_cmd(
     typer.echo(f"run directory: {result.run_dir}{result.placed}")
     if (result.run_dir / "report.html").is_file():
         typer.echo(f"fleet report: {result.run_dir / 'report.html'}")
+    if not any(r["status"] == "fitted" and not r.get("implausible") for r in result.rows):
+        # written, but nothing to deploy: a script must not read the run as a fleet calibrated
+        typer.echo("error: no unit's model describes its robot (each is beyond any plausible calibration error: "
+                   "summary.csv 'findings'); nothing to deploy", err=True)
+        raise typer.Exit(1)
 
 
 # --------------------------------------------------------------------- predict

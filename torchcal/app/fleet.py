@@ -209,7 +209,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         if orphans:
             warn(f"data.validation: {', '.join(p.name for p in orphans)} name{'s' if len(orphans) == 1 else ''} no "
                  "unit's identification file: not used")
-        loaded, rows = [], {}
+        loaded, rows, val_errors = [], {}, {}
         with task("reading the units' files", total=len(files)) as bar:
             for name, fi, fv in files:
                 notes: list[str] = []
@@ -223,6 +223,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                         notes = []
                         ident, val = read_sets(cfg, robot, T, fi, None, notes, torch.device("cpu"), label)
                         notes.append(f"validation file not used: {type(exc).__name__}: {exc}")
+                        val_errors[name] = f"{type(exc).__name__}: {exc}"
                 except Exception as exc:  # a broken file is this unit's failure, not the fleet's
                     rows[name] = failed_row(exc, unit=name)
                     log.warning("unit %s: not fitted: %s", name, exc)
@@ -282,9 +283,11 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
         with threads.limit_threads(_solve_threads(cfg)):  # the same sums whatever the engine left in this process
             for u, model in fitted:
                 _evaluate(u, model, idents, vals, rows, device, warn)
+                if u["name"] in val_errors:  # summary.csv and fleet.json say why its validation columns are empty
+                    rows[u["name"]]["validation_error"] = val_errors[u["name"]]
                 if u["name"] in reused:
                     rows[u["name"]]["reused_from"] = str(earlier)
-        implausible = _implausible(fitted, rows, robot, frames, warn)
+        implausible = _implausible(fitted, rows, robot, frames, warn, float(cfg.fleet.threshold))
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
         for u, _ in fitted:
@@ -294,7 +297,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                 rows[name].update(outlier_score=float("nan"), flagged=False, findings=f"not scored: {thin[name]}")
         scored = [(u, m) for u, m in fitted if u["name"] not in thin and u["name"] not in implausible]
         for name, why in implausible.items():  # flagged: a look is needed, and the fleet prior leaves it out
-            rows[name].update(outlier_score=float("nan"), flagged=True, findings=why)
+            rows[name].update(outlier_score=float("nan"), flagged=True, findings=why, implausible=True)
         if len(scored) >= 3:
             fake = FleetFit([m for _, m in scored], None)
             scores = feature_scores(fake.models)
@@ -352,22 +355,49 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
     return result
 
 
-def _implausible(fitted: list, rows: dict, robot, frames: dict, warn) -> dict:
-    """{unit: why} for the fitted units whose identification residual after the fit is beyond any plausible
-    calibration error (:data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`): the robot description, the tools or the
-    measurement frame are not this unit's, and its parameters say nothing about its gearboxes."""
+NOMINAL_FLEET_RATIO = 2.0
+"""How many times the fleet's median nominal residual a unit's must be (beside robust z > fleet.threshold) to be
+taken for another robot: a sister arm 10 mm longer lay 37x above a helper's fleet (0.50 mm median), fitted,
+unflagged and in the fleet prior. Healthy units stay within 1.7x of the median at robust z 2.9 or less (two
+100-FANUC fleets of the simulated type, 4.3-4.4 mm median; the helper's 23 units)."""
+
+
+def _implausible(fitted: list, rows: dict, robot, frames: dict, warn, threshold: float) -> dict:
+    """{unit: why} for the fitted units that are not this robot as described: the identification residual of the
+    nominal robot (as ``torchcal fit`` warns) or of the fitted model beyond any plausible calibration error
+    (:data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`), or the nominal residual far above the fleet's
+    (:data:`NOMINAL_FLEET_RATIO`): the robot description, the tools (labels swapped) or the measurement frame
+    are not this unit's, and the model's parameters, which absorb that, say nothing about its gearboxes."""
     from .fit import NOMINAL_IMPLAUSIBLE_MM
 
+    hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
+    check = (f"check the robot description of '{robot.name}', the tool vectors and labels, the measurement frame and "
+             f"the file's units (deg, mm){hint}")
     out = {}
+    nominal = {u["name"]: rows[u["name"]]["identification_nominal_mean_mm"] for u, _ in fitted}
     for u, _ in fitted:
         name = u["name"]
-        mean = rows[name]["identification_mean_mm"]
+        mean, nom = rows[name]["identification_mean_mm"], nominal[name]
         if mean > NOMINAL_IMPLAUSIBLE_MM:
-            hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
             out[name] = (f"identification residual mean {mean:.1f} mm after the fit, beyond any plausible calibration "
-                         f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): check the robot description of '{robot.name}', "
-                         f"the tool vectors, the measurement frame and the file's units (deg, mm){hint}")
-            warn(f"unit {name}: {out[name]}; not scored for outliers, left out of the fleet prior")
+                         f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): {check}")
+        elif nom > NOMINAL_IMPLAUSIBLE_MM:
+            out[name] = (f"the nominal robot misses its identification points by {nom:.1f} mm (mean), beyond any "
+                         f"plausible calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm), which the fit absorbed "
+                         f"({mean:.3f} mm after it): {check}")
+    rest = torch.tensor([v for k, v in nominal.items() if k not in out], dtype=torch.float64)
+    if rest.numel() >= 3:  # judged against the units the absolute bound let through
+        med = float(rest.median())
+        mad = max(float((rest - med).abs().median()), 0.01 * med, 1e-12)
+        for u, _ in fitted:
+            name, nom = u["name"], nominal[u["name"]]
+            if name not in out and nom > NOMINAL_FLEET_RATIO * med and 0.6745 * (nom - med) / mad > threshold:
+                out[name] = (f"the nominal robot misses its identification points by {nom:.2f} mm (mean), "
+                             f"{nom / med:.1f}x the fleet's median {med:.2f} mm, which the fit absorbed "
+                             f"({rows[name]['identification_mean_mm']:.3f} mm after it): another robot than the "
+                             f"fleet's? {check}")
+    for name, why in out.items():
+        warn(f"unit {name}: {why}; not scored for outliers, left out of the fleet prior")
     return out
 
 
@@ -464,9 +494,10 @@ def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device, warn
     if far := far_rows_message(res, ident, f"unit {name}: identification ({ident.source})"):
         warn(far)
     s = residual_stats(res).scaled(units.m_to_mm(1.0))
+    nominal = residual_stats(point_residuals(model, ident, nominal=True).cpu()).scaled(units.m_to_mm(1.0))
     row = {"unit": name, "status": "fitted", "rows": len(ident), "converged": bool(u["fit"]["converged"]),
            "iterations": int(u["fit"]["iterations"]), "identification_mean_mm": s.mean,
-           "identification_max_mm": s.max}
+           "identification_max_mm": s.max, "identification_nominal_mean_mm": nominal.mean}
     if vals[name] is not None:
         val = point_residuals(model, vals[name].to(device), compiled=True)
         v = residual_stats(val.cpu()).scaled(units.m_to_mm(1.0))

@@ -144,9 +144,9 @@ def test_long_lists_are_cut_with_a_count(tmp_path, fanuc):
     with pytest.raises(DataError) as err:
         read_measurements(write(tmp_path, rows), fanuc, n_tools=1)
     msg = str(err.value)
-    assert len(err.value.problems) == MAX_LISTED + 7
-    assert "... and 7 more problems" in msg
-    assert len(re.findall(r"column 'q1'", msg)) == MAX_LISTED
+    assert len(err.value.problems) == MAX_LISTED + 8  # every row's cell, and the whole file's note listed first
+    assert "... and 8 more problems" in msg and "another robot?" in msg.splitlines()[1]
+    assert len(re.findall(r"column 'q1'", msg)) == MAX_LISTED - 1
 
 
 def test_missing_columns_and_wrong_robot(tmp_path, fanuc):
@@ -444,3 +444,18 @@ def test_a_file_without_a_header_line_is_named_as_such(tmp_path, fanuc):
         read_measurements(path, fanuc, n_tools=1)
     msg = str(err.value)
     assert "the file has no header line" in msg and "appears twice" not in msg and msg.count("\n  - ") == 1
+
+
+def test_a_file_for_another_robot_says_so_before_its_cells(tmp_path, fanuc):
+    """Most rows beyond the controller range (an IRB 120's file read as a FANUC: 1 539 cells listed one by one)
+    is the file's problem, said first; a few stray rows are not."""
+    rows = [HEADER] + [f"{k},0,150,20,30,40,50,60,1,1,1,1,1,1,100,200,300,r{k}" for k in range(12)]
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, rows, "other.csv"), fanuc, n_tools=2)
+    first = str(err.value).splitlines()[1]
+    assert "12 of 12 rows command a joint outside the controller range of 'fanuc_lrmate200i': is this file for "\
+           "another robot?" in first
+    few = [HEADER] + [f"{k},0,{150 if k < 2 else 10},20,30,40,50,60,1,1,1,1,1,1,100,200,300,r{k}" for k in range(12)]
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, few, "few.csv"), fanuc, n_tools=2)
+    assert "another robot" not in str(err.value) and len(err.value.problems) == 2

@@ -423,6 +423,7 @@ def parse_table(
     q = np.zeros((R, n))
     limits = _file_limits(robot)
     beyond = np.zeros(R, dtype=bool)
+    refused = np.zeros(R, dtype=bool)
     for i, c in enumerate(qcols):
         if c not in cols:
             continue
@@ -432,9 +433,13 @@ def parse_table(
         if outside_limits == "mark":
             beyond |= outside
             continue
+        refused |= outside
         for r in np.flatnonzero(outside):
             problems.append(Problem(int(r) + 1, c, f"{q[r, i]:.6g} {unit[i]} is outside the controller range "
                                                     f"[{lo:.6g}, {hi:.6g}] {unit[i]} of '{robot.name}'"))
+    if R >= 10 and refused.mean() > 0.5:  # not a few stray rows: the whole file (1 539 cells listed one by one)
+        problems.append(Problem(None, None, f"{int(refused.sum())} of {R} rows command a joint outside the controller "
+                                            f"range of '{robot.name}': is this file for another robot?"))
 
     # approach directions: exactly +1 or -1
     has_direction = len(present_dirs) == n

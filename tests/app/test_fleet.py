@@ -323,6 +323,17 @@ def test_fleet_command_judges_a_unit_with_too_few_poses_apart(tmp_path, robot):
         assert r["determined"] is True and math.isfinite(r["outlier_score"])
     got = prior_from_fleet_run(res.run_dir)
     assert got.left_out == ["unit09"] and len(got.units) == 4
+    # its run directory predicts and compensates, saying the model is the prior's (it said nothing); a determined
+    # unit's does not
+    from torchcal.app.files import compensate_file, predict_file
+
+    cmds = tmp_path / "cmds.csv"
+    cmds.write_text("q1,q2,q3,q4,q5,q6\n" + "10,20,30,40,50,60\n-10,10,20,-30,40,-50\n")
+    for unit, said in (("unit09", True), ("unit01", False)):
+        run = res.run_dir / "units" / unit
+        for done in (predict_file(run, cmds, tmp_path / f"p_{unit}.csv"),
+                     compensate_file(run, cmds, tmp_path / f"c_{unit}.csv")):
+            assert any("not determined by its data" in w and "too few poses" in w for w in done.warnings) is said
 
 
 def test_fleet_command_chooses_one_backlash_structure(tmp_path, robot):

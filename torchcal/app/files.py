@@ -121,7 +121,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     data = data.to(model.device)
     # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
     tools = range(T) if per_tool else [None]
-    said = _input_warnings(model, input, df, data, targets=False)
+    said = _undetermined_note(run_dir) + _input_warnings(model, input, df, data, targets=False)
     outside = _outside_data_column(model, data.q)
     parts = []
     with torch.no_grad(), progress_task(f"predicting {len(df) * len(tools)} rows"):
@@ -187,6 +187,23 @@ def _input_warnings(model, input, df, data, targets: bool) -> list[str]:
         out.append(f"{input}: no 'tool' column: every target is for tool 0 ({t0} mm in the flange frame, the run's "
                    f"identified tool 0), not the flange; add a 'tool' column (0..{model.tools.count - 1}) to choose")
     return out
+
+
+def _undetermined_note(run_dir) -> list[str]:
+    """A fleet unit whose data could not determine its model (``determined: false`` in its metrics.json: fewer
+    equations than parameters, the prior's values held): its predictions and commands are the prior's, which
+    predict and compensate used without a word (a 5-pose unit: 0.46 mm off, as far as the nominal robot)."""
+    import json
+
+    try:
+        m = json.loads((Path(run_dir) / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(m, dict) or m.get("determined") is not False:
+        return []
+    why = m.get("findings") or "its data could not determine its model"
+    return [f"{run_dir}: this unit's model is not determined by its data ({why}): its error terms are mostly the "
+            "prior's, not the robot's; measure more poses and fit it again before relying on these rows"]
 
 
 def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
@@ -321,7 +338,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         if unseeded is None and not freedom.get("position_only"):  # seeds from the file: they tell the unit
             _refuse_radian_orientations(model, Path(input), df, data.q)
 
-    said = _input_warnings(model, input, df, data, targets=targets)
+    said = _undetermined_note(run_dir) + _input_warnings(model, input, df, data, targets=targets)
     if dof_note is not None:
         said.insert(0, dof_note)
     if targets:  # Cartesian targets: q1..qN are the controller's seeds (its branch)

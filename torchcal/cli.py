@@ -394,8 +394,9 @@ def fleet_cmd(
         typer.echo(f"fleet report: {result.run_dir / 'report.html'}")
     if not any(r["status"] == "fitted" and not r.get("implausible") for r in result.rows):
         # written, but nothing to deploy: a script must not read the run as a fleet calibrated
-        typer.echo("error: no unit's model describes its robot (each is beyond any plausible calibration error: "
-                   "summary.csv 'findings'); nothing to deploy", err=True)
+        implausible = sum(bool(r.get("implausible")) for r in result.rows)
+        typer.echo(f"error: no usable unit: {len(failed)} not fitted (summary.csv 'reason'), {implausible} fitted but "
+                   "not describing its robot (summary.csv 'findings'); nothing to deploy", err=True)
         raise typer.Exit(1)
 
 

@@ -765,3 +765,35 @@ def test_a_unit_that_is_not_the_fleets_robot_is_flagged_and_left_out(tmp_path, r
                                  "report=false"])
     assert r.exit_code == 1 and "nothing to deploy" in r.output, r.output
     assert (tmp_path / "bad-run" / "summary.csv").is_file()
+
+
+def test_a_badly_damaged_gearbox_is_named_at_its_joint_not_called_another_robot(tmp_path, robot):
+    """A J3 gearbox with 0.3 deg of backlash and 10x its strain-wave error raises the unit's nominal residual past
+    the another-robot rule (2x the fleet's median, robust z > threshold): judged against the fleet's features it is
+    named at joint 3 and scored, not called another robot (the review's case: flagged 'another robot?', no joint)."""
+    from torchcal.app.fleet import run_fleet
+    from torchcal.io.csv import write_measurements
+
+    fleet = fleet_truths(robot, TOOLS, 8, 0, damaged={5: 2}, damage={"backlash_deg": 0.3, "wave": 10.0})
+    noise = torchcal.NoiseModel.from_robot(robot)
+    (tmp_path / "ident").mkdir()
+    q = torchcal.sim.quasi_random_commands(robot.joint_map.limits, 40, 0)
+    g = torch.Generator().manual_seed(3)
+    s = torch.where(torch.rand(q.shape, generator=g) < 0.5, -1.0, 1.0).double()
+    for k, t in enumerate(fleet.truths):
+        write_measurements(tmp_path / "ident" / f"unit{k:02d}.csv",
+                           torchcal.simulate(t, q, [0, 1, 2], noise, 100 + k, directions=s), robot)
+    tools = ", ".join(f"[{x * 1000:.2f}, {y * 1000:.2f}, {z * 1000:.2f}]" for x, y, z in TOOLS.tolist())
+    cfg = tmp_path / "fleet.yaml"
+    cfg.write_text(f"robot: fanuc_lrmate200i\ntools: [{tools}]\ndata: {{identification: ident}}\n"
+                   "model: {order: 2, backlash: true}\nout: runs\nreport: false\n")
+    res = run_fleet(cfg, out=tmp_path / "fleet-run")
+    rows = {r["unit"]: r for r in res.rows}
+    nominal = torch.tensor([rows[f"unit{k:02d}"]["identification_nominal_mean_mm"] for k in range(8)])
+    others = torch.cat([nominal[:5], nominal[6:]])
+    assert float(nominal[5]) > 2.0 * float(others.median())  # the case: past the ratio of the another-robot rule
+    bad = rows["unit05"]
+    assert bad["flagged"] and not bad.get("implausible") and "another robot" not in bad["findings"], bad
+    assert bad["findings"].startswith("joint3") and "nominal residual" in bad["findings"]
+    assert bad["outlier_score"] == bad["outlier_score"]  # scored
+    assert any(f.unit == "unit05" and f.joint == "joint3" for f in res.findings)

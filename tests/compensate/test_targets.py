@@ -241,3 +241,14 @@ def test_a_targets_file_with_its_orientations_in_radians_is_refused(tmp_path, fa
                                  "--units-checked"])
     assert r.exit_code == 0, r.output  # the user's word: read as degrees, the rows flagged as before
     assert not pd.read_csv(tmp_path / "o3.csv").converged.all()
+    # seeds that are only hints of the branch (8 deg off per joint): still told apart
+    hints = q + torch.deg2rad(8.0 * torch.randn(q.shape, generator=torch.Generator().manual_seed(2), dtype=q.dtype))
+    hints = torch.minimum(torch.maximum(hints, model.command_limits[:, 0]), model.command_limits[:, 1])
+    write_targets(tmp_path / "hint_deg.csv", T, hints)
+    far = pd.read_csv(tmp_path / "hint_deg.csv")
+    far[["rx", "ry", "rz"]] = np.radians(far[["rx", "ry", "rz"]])
+    far.to_csv(tmp_path / "hint_rad.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "hint_rad.csv"), str(tmp_path / "o4.csv")])
+    assert r.exit_code != 0 and "look like radians" in " ".join(r.output.split()), r.output
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "hint_deg.csv"), str(tmp_path / "o5.csv")])
+    assert "look like radians" not in " ".join(r.output.split()), r.output

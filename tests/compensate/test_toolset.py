@@ -164,3 +164,26 @@ def test_a_tool_the_data_never_measured_does_not_pull_the_frame(fanuc, tools_m):
     model.measured_tools = None
     F = model_tool_set_frame(model)
     assert not torch.allclose(t @ F[:3, :3].T + F[:3, 3], model.tools()[:2].detach(), atol=1e-5)
+
+
+def test_swapped_tool_labels_or_one_point_under_two_labels_are_refused():
+    """The fit absorbs tool labels swapped in the data by swapping the identified vectors: G would then turn the
+    flange 180 deg (two tools: NaN before; three: a silent half turn). Refused, naming the labels; as is a pair of
+    identified tools that coincide (one point measured under two labels)."""
+    import pytest
+
+    from torchcal.core.exceptions import InputError
+
+    two = torch.tensor([[0.0, 0.0, 0.1], [0.05, 0.0, 0.1]], dtype=torch.float64)
+    with pytest.raises(InputError, match="turned by 180 deg"):
+        tool_set_frame(two, two.flip(0))
+    with pytest.raises(InputError, match="turned by 180 deg"):
+        tool_set_frame(two, two.flip(0) + torch.tensor([1e-9, 0.0, 0.0], dtype=torch.float64))
+    three = torch.tensor([[0.033, 0.058, 0.161], [0.057, -0.034, 0.161], [-0.034, -0.057, 0.161]],
+                         dtype=torch.float64)
+    with pytest.raises(InputError, match="labels are swapped"):
+        tool_set_frame(three, three[[1, 0, 2]])
+    with pytest.raises(InputError, match="coincide"):
+        tool_set_frame(two, two[:1].expand(2, 3))
+    G = _rigid([0.0, 0.0, 0.3], [0.0, 0.0, 0.0])  # 17 deg: a mount that differs from its drawing, accepted
+    assert torch.allclose(tool_set_frame(three, three @ G[:3, :3].T), G, atol=1e-12)

@@ -314,7 +314,7 @@ def _tension_units(fanuc, tools_m, spread, count, seed, damage=None):
             i = layout.names().index(damage[0])
             x[i] += damage[1] * sigma[i]
         ParameterLayout(truth).set(x)
-        q = random_commands(fanuc, 30, 100 * seed + k).repeat_interleave(3, 0)
+        q = random_commands(fanuc, 30, seed).repeat_interleave(3, 0)  # one program: one expectation
         tool = torch.arange(90) % 3
         v = torch.randn(q.shape, generator=g, dtype=torch.float64) * noise.joint_variance(torch.zeros_like(q)).sqrt()
         with torch.no_grad():
@@ -336,9 +336,12 @@ def test_prior_tension_is_its_expectation_for_a_unit_like_the_fleet(fanuc, tools
     sigmas beyond the fleet's (a damaged gearbox) lies far beyond it, with that joint named first."""
     from torchcal.identify.fleet_prior import TENSION_WARN
 
-    units = _tension_units(fanuc, tools_m, 1.0, 8, 1)
-    ratios = torch.tensor([t.ratio for t in units])
-    assert 0.75 < float(ratios.mean()) < 1.3, ratios
+    units = _tension_units(fanuc, tools_m, 1.0, 16, 1)
+    d2 = torch.tensor([t.d2 for t in units])
+    E, sd = units[0].expected, units[0].sd  # one program for all: the same expectation
+    assert all(abs(t.expected - E) < 0.02 * E for t in units)  # linearized at each unit's own solution
+    assert abs(float(d2.mean()) - E) < 3.0 * sd / 16 ** 0.5, (float(d2.mean()), E, sd)  # the mean of 16 draws
+    assert 0.5 * sd < float(d2.std()) < 1.6 * sd, (float(d2.std()), sd)  # and their scatter
     k = 6 * 6 * 2 + 6 + 9
     assert all(0.0 < t.expected < k and t.sd > 0.0 for t in units)
     tight = _tension_units(fanuc, tools_m, 0.1, 2, 1)  # a fleet 10x tighter: the data see fewer directions

@@ -444,9 +444,11 @@ def _refuse_targets_without_orientation(path: Path, df) -> None:
         "instead, leave x, y, z out (a tracker file's measured points come with its pose column)"))])
 
 
-RADIAN_RPY_DEG = (20.0, 5.0)
-"""deg: a targets file's rx, ry, rz are refused as radians when, read as degrees, their orientations lie more than
-the first (median over rows) from the nominal robot's at the seeds, and read as radians within the second."""
+RADIAN_RPY_DEG = (20.0, 0.25)
+"""A targets file's rx, ry, rz are refused as radians when, read as degrees, their orientations lie more than the
+first (deg, median over rows) from the nominal robot's at the seeds, and read as radians less than the second
+times that: seeds that are only branch hints lie tens of degrees from their targets, and the wrong reading of a
+file is a random turn (~120 deg median) away."""
 
 
 def _refuse_radian_orientations(model, path: Path, df, seeds: torch.Tensor) -> None:
@@ -470,8 +472,8 @@ def _refuse_radian_orientations(model, path: Path, df, seeds: torch.Tensor) -> N
         return float(units.rad_to_deg(torch.acos(c)).median())
 
     as_deg, as_rad = off_deg(ori), off_deg(units.rad_to_deg(ori))  # the file's numbers read as radians
-    far, near = RADIAN_RPY_DEG
-    if as_deg > far and as_rad < near:
+    far, share = RADIAN_RPY_DEG
+    if as_deg > far and as_rad < share * as_deg:
         raise DataError(path, [Problem(None, ", ".join(TARGET_RPY), (
             f"the orientations look like radians: read as degrees (the file contract) they lie {as_deg:.1f} deg "
             f"(median) from the nominal orientation at the seeds q1..q{model.robot.joint_map.n}, read as radians "
@@ -524,8 +526,13 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
         out["within_limits"] = out["within_limits"].astype(object)
         out.loc[out.index[unseeded.numpy()], ["within_limits", "max_dq"]] = [None, np.nan]
         within = within | unseeded  # counted as not converged, not as outside the range
-    if comp.direction_outside is not None:  # the console counts it: the rows must say which
-        out["direction_outside"] = comp.direction_outside.cpu().numpy()
+    outside_dirs = None if comp.direction_outside is None else comp.direction_outside.cpu().clone()
+    if outside_dirs is not None:  # the console counts it: the rows must say which
+        out["direction_outside"] = outside_dirs.numpy()
+        if unseeded is not None and bool(unseeded.any()):  # no command: no approach to judge
+            outside_dirs &= ~unseeded
+            out["direction_outside"] = out["direction_outside"].astype(object)
+            out.loc[out.index[unseeded.numpy()], "direction_outside"] = None
     said: list[str] = []
     _mark_outside_data(out, _outside_data_column(model, res.q), input, said)
     out["reason"] = res.reason
@@ -533,8 +540,7 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
     flagged = int((~converged).sum())
     # a target the nominal IK cannot reach (or with no seed for its flags) is a row that did not converge too
     return CompensationFile(len(df), int((~converged & within).sum()), int((~within).sum()), flagged,
-                            0 if comp.direction_outside is None else int(comp.direction_outside.sum()), comp, said,
-                            targets=True)
+                            0 if outside_dirs is None else int(outside_dirs.sum()), comp, said, targets=True)
 
 
 def compensation_kwargs(tol_deg: float | None = None, max_iter: int | None = None) -> dict:

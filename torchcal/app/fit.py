@@ -473,7 +473,7 @@ def _prior_tension(inp: FitInputs, model, result: FitResult, fleet, opts: dict):
 
     try:
         problem = CalibrationProblem(model, inp.ident, inp.noise, inp.prior, opts.get("fixed", ()))
-        if result.pinned:  # the prior by name: set_layout would keep the full layout's
+        if result.pinned:  # the pinned entries out, the prior's precision kept by name (as identifiability does)
             names, prec = problem.layout.names(), problem.prior_precision
             pinned = set(result.pinned)
             drop = torch.tensor([n in pinned for n in names], dtype=torch.bool)
@@ -490,10 +490,11 @@ def _say_prior_tension(t, progress: Progress) -> None:
     damaged gearbox and 30 poses fitted 0.034 mm on its poses, 0.17 mm off the robot, and said nothing."""
     from ..identify.fleet_prior import TENSION_WARN
 
-    top = ", ".join(f"{g} {share / t.d2:.0%}" for g, share in t.groups[:2]) if t.d2 > 0 else "none"
+    pos = sum(max(share, 0.0) for _, share in t.groups)  # a correlated prior's cross terms can be negative
+    top = ", ".join(f"{g} {share / pos:.0%}" for g, share in t.groups[:2] if share > 0) if pos > 0 else "none"
     progress.info(f"distance from the fleet prior: d² {t.d2:.0f} against {t.expected:.0f} ± {t.sd:.0f} for a unit like "
                   f"the fleet's on these data ({t.ratio:.2f}x; most in {top})")
-    if t.ratio > TENSION_WARN:
+    if t.ratio > TENSION_WARN and t.d2 > t.expected + 4.0 * t.sd:  # few directions seen: d^2 alone scatters wide
         progress.warn(f"the unit lies {t.ratio:.1f}x farther from the fleet than the fleet's spread explains for these "
                       f"data (d² {t.d2:.0f} against {t.expected:.0f} ± {t.sd:.0f}; most in {top}): a damaged part or "
                       "another kind of unit, which the fleet's prior holds toward the fleet while its few poses fit "

@@ -155,6 +155,7 @@ def _run_cells(cfg, cells: list[list]) -> list:
 def run_fleet(config, overrides: list[str] | None = None, out=None, console=None) -> FleetRunResult:
     """Fit every unit of the fleet ``config`` (see the module docstring) into one run directory."""
     from ..identify.fleet import FleetFit, feature_scores, parameter_outliers
+    from ..identify.fleet_outliers import judge_against
     from ..io.rundir import collect_versions, make_run_dir, placed_note, run_log, save_model, write_json
     from ..kinematics import load_robot
     from .fit import config_tool_count, read_sets
@@ -287,7 +288,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     rows[u["name"]]["validation_error"] = val_errors[u["name"]]
                 if u["name"] in reused:
                     rows[u["name"]]["reused_from"] = str(earlier)
-        implausible = _implausible(fitted, rows, robot, frames, warn, float(cfg.fleet.threshold))
+        implausible, suspects = _implausible(fitted, rows, robot, frames, warn, float(cfg.fleet.threshold))
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
         for u, _ in fitted:
@@ -295,9 +296,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             rows[name]["determined"] = name not in thin
             if name in thin:
                 rows[name].update(outlier_score=float("nan"), flagged=False, findings=f"not scored: {thin[name]}")
-        scored = [(u, m) for u, m in fitted if u["name"] not in thin and u["name"] not in implausible]
-        for name, why in implausible.items():  # flagged: a look is needed, and the fleet prior leaves it out
-            rows[name].update(outlier_score=float("nan"), flagged=True, findings=why, implausible=True)
+        scored = [(u, m) for u, m in fitted if u["name"] not in thin and u["name"] not in implausible
+                  and u["name"] not in suspects]
         if len(scored) >= 3:
             fake = FleetFit([m for _, m in scored], None)
             scores = feature_scores(fake.models)
@@ -312,8 +312,25 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     s.split(": ", 1)[1] for s in mine))
             for f in findings:
                 log.warning("flagged: %s", f)
+            for u, model in fitted:  # held out of the fleet's scoring: a damaged joint, or another robot
+                name = u["name"]
+                if name not in suspects or name in thin:
+                    continue
+                top, mine = judge_against(scores, model, float(cfg.fleet.threshold))
+                if mine:
+                    for f in mine:
+                        f.unit = name
+                        log.warning("flagged: %s", f)
+                    result.findings.extend(mine)
+                    rows[name].update(outlier_score=top, flagged=True, findings="; ".join(
+                        str(f).split(": ", 1)[1] for f in mine) + f"; {suspects.pop(name)[0]}")
         elif fitted:
             warn(f"outliers: {len(scored)} unit(s) with data enough to judge, at least 3 are needed; none scored")
+        for name, (_, why) in suspects.items():  # no joint explains the miss: another robot than the fleet's
+            implausible[name] = why
+            warn(f"unit {name}: {why}; not scored for outliers, left out of the fleet prior")
+        for name, why in implausible.items():  # flagged: a look is needed, and the fleet prior leaves it out
+            rows[name].update(outlier_score=float("nan"), flagged=True, findings=why, implausible=True)
         if baseline is not None and fitted:
             try:
                 result.changes = compare_with_baseline(*baseline, fitted, idents, rows, run_dir,
@@ -357,23 +374,29 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
 
 NOMINAL_FLEET_RATIO = 2.0
 """How many times the fleet's median nominal residual a unit's must be (beside robust z > fleet.threshold) to be
-taken for another robot: a sister arm 10 mm longer lay 37x above a helper's fleet (0.50 mm median), fitted,
+suspected of being another robot (judged then against the fleet's joint features): a sister arm 10 mm longer lay
+37x above a helper's fleet (0.50 mm median), one 12 mm longer 2.6x above a simulated one (4.8 mm), each fitted,
 unflagged and in the fleet prior. Healthy units stay within 1.7x of the median at robust z 2.9 or less (two
 100-FANUC fleets of the simulated type, 4.3-4.4 mm median; the helper's 23 units)."""
 
 
-def _implausible(fitted: list, rows: dict, robot, frames: dict, warn, threshold: float) -> dict:
-    """{unit: why} for the fitted units that are not this robot as described: the identification residual of the
-    nominal robot (as ``torchcal fit`` warns) or of the fitted model beyond any plausible calibration error
-    (:data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`), or the nominal residual far above the fleet's
-    (:data:`NOMINAL_FLEET_RATIO`): the robot description, the tools (labels swapped) or the measurement frame
-    are not this unit's, and the model's parameters, which absorb that, say nothing about its gearboxes."""
+def _implausible(fitted: list, rows: dict, robot, frames: dict, warn, threshold: float) -> tuple[dict, dict]:
+    """The fitted units that may not be this robot as described -> ({unit: why}, {unit: (short, why)}).
+
+    The first: the identification residual of the nominal robot (as ``torchcal fit`` warns) or of the fitted
+    model beyond any plausible calibration error (:data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`): the robot
+    description, the tools (labels swapped) or the measurement frame are not this unit's, and the model's
+    parameters, which absorb that, say nothing about its gearboxes (warned here). The second, suspects: the
+    nominal residual far above the fleet's (:data:`NOMINAL_FLEET_RATIO`), which a badly damaged gearbox also
+    gives; the caller judges them against the fleet's joint features (:func:`~torchcal.identify.fleet_outliers.
+    judge_against`) and calls "another robot" only the ones no joint explains."""
+    from ..identify.fleet_outliers import MAD_FLOOR
     from .fit import NOMINAL_IMPLAUSIBLE_MM
 
     hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
     check = (f"check the robot description of '{robot.name}', the tool vectors and labels, the measurement frame and "
              f"the file's units (deg, mm){hint}")
-    out = {}
+    out, suspects = {}, {}
     nominal = {u["name"]: rows[u["name"]]["identification_nominal_mean_mm"] for u, _ in fitted}
     for u, _ in fitted:
         name = u["name"]
@@ -385,20 +408,21 @@ def _implausible(fitted: list, rows: dict, robot, frames: dict, warn, threshold:
             out[name] = (f"the nominal robot misses its identification points by {nom:.1f} mm (mean), beyond any "
                          f"plausible calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm), which the fit absorbed "
                          f"({mean:.3f} mm after it): {check}")
+    for name, why in out.items():
+        warn(f"unit {name}: {why}; not scored for outliers, left out of the fleet prior")
     rest = torch.tensor([v for k, v in nominal.items() if k not in out], dtype=torch.float64)
-    if rest.numel() >= 3:  # judged against the units the absolute bound let through
+    if rest.numel() >= 3:  # judged against the units the absolute bound let through, as the features are
         med = float(rest.median())
-        mad = max(float((rest - med).abs().median()), 0.01 * med, 1e-12)
+        mad = max(float((rest - med).abs().median()), MAD_FLOOR * med, 1e-12)
         for u, _ in fitted:
             name, nom = u["name"], nominal[u["name"]]
             if name not in out and nom > NOMINAL_FLEET_RATIO * med and 0.6745 * (nom - med) / mad > threshold:
-                out[name] = (f"the nominal robot misses its identification points by {nom:.2f} mm (mean), "
-                             f"{nom / med:.1f}x the fleet's median {med:.2f} mm, which the fit absorbed "
-                             f"({rows[name]['identification_mean_mm']:.3f} mm after it): another robot than the "
-                             f"fleet's? {check}")
-    for name, why in out.items():
-        warn(f"unit {name}: {why}; not scored for outliers, left out of the fleet prior")
-    return out
+                short = f"nominal residual {nom:.2f} mm, {nom / med:.1f}x the fleet's median"
+                suspects[name] = (short, (
+                    f"the nominal robot misses its identification points by {nom:.2f} mm (mean), {nom / med:.1f}x the "
+                    f"fleet's median {med:.2f} mm, which the fit absorbed ({rows[name]['identification_mean_mm']:.3f} "
+                    f"mm after it) and no joint's features explain: another robot than the fleet's? {check}"))
+    return out, suspects
 
 
 def _same_format(loaded: list, rows: dict, robot) -> list:

@@ -29,9 +29,17 @@ Shapes: nominal, identified (T, 3) m; G (4, 4).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from ..core.exceptions import InputError
+from ..kinematics.transforms import so3_exp
+
+TOOL_SET_MAX_DEG = 30.0
+"""deg: a tool set whose identified vectors are its nominal ones turned further than this is not these tools
+(labels swapped in the data, another tool's vectors in the config): G is refused, since compensation would turn
+the flange by as much. Reflector mounts differ from their drawings by a few degrees."""
 
 LINE_TOL = 1e-3
 """m: tools whose second spread (singular value of the centred nominal vectors) is below this lie on one line
@@ -64,7 +72,16 @@ def tool_set_frame(nominal: torch.Tensor, identified: torch.Tensor) -> torch.Ten
         d = torch.sign(torch.linalg.det(Vh.T @ U.T))
         R = Vh.T @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ U.T
     elif float(spread[0]) > LINE_TOL:
+        if float(torch.linalg.svdvals(Bc)[0]) <= LINE_TOL:
+            raise InputError("the identified tools coincide where their nominal vectors do not: the data measured one "
+                             "point under several tool labels; check the file's 'tool' column and fit again")
         R = _line_rotation(A, Bc)
+    turn = math.degrees(math.acos(max(-1.0, min(1.0, (float(R.trace()) - 1.0) / 2.0))))  # up to 180: no log
+    if turn > TOOL_SET_MAX_DEG:
+        raise InputError(f"the identified tool vectors are the nominal ones turned by {turn:.0f} deg (more than "
+                         f"{TOOL_SET_MAX_DEG:g}): these are not the configured tools, or their labels are swapped in "
+                         "the data (compensation would turn the flange by as much); check the 'tool' column and the "
+                         "config's tool vectors, and fit again")
     G[:3, :3] = R
     G[:3, 3] = cb - R @ ca
     return G
@@ -80,13 +97,20 @@ def _line_rotation(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     reflectors: 0.02 mm).
     """
     a = torch.linalg.svd(A, full_matrices=False)[2][0]
-    b = (A @ a) @ B  # B's line, signed by the correspondence of the points along A's
+    b = (A @ a) @ B  # B's line, signed by the correspondence of the points along A's (swapped labels: reversed)
     b = b / b.norm()
-    v, c = torch.linalg.cross(a, b), a @ b
-    K = torch.zeros(3, 3, dtype=A.dtype, device=A.device)
-    K[0, 1], K[0, 2], K[1, 2] = -v[2], v[1], -v[0]
-    K = K - K.T
-    return torch.eye(3, dtype=A.dtype, device=A.device) + K + K @ K / (1.0 + c)
+    v = torch.linalg.cross(a, b)
+    s = v.norm()
+    if float(s) < 1e-15:  # parallel (or reversed, which the turn check refuses): no tilt about a defined axis
+        return so3_exp(torch.zeros_like(v)) if float(a @ b) > 0 else so3_exp(math.pi * _orthogonal(a))
+    return so3_exp(v / s * torch.atan2(s, a @ b))
+
+
+def _orthogonal(a: torch.Tensor) -> torch.Tensor:
+    """A unit vector (3,) orthogonal to the unit vector a (3,)."""
+    e = torch.eye(3, dtype=a.dtype, device=a.device)[int(a.abs().argmin())]
+    e = e - (e @ a) * a
+    return e / e.norm()
 
 
 def model_tool_set_frame(model) -> torch.Tensor | None:

@@ -135,5 +135,26 @@ def parameter_outliers(fit, threshold: float = 5.0, min_ratio: float = OUTLIER_M
     return score, found
 
 
+def judge_against(scores: FeatureScores, model, threshold: float = 5.0,
+                  min_ratio: float = OUTLIER_MIN_RATIO) -> tuple[float, list[Outlier]]:
+    """One more unit's :func:`joint_features` judged against a fleet's ``scores`` (its median and MAD, which the
+    unit does not move): -> (its largest robust z, its flagged joints as :class:`Outlier` with unit -1).
+
+    For a unit held out of the fleet's own scoring (its nominal residual says it may be another robot): a damaged
+    gearbox also raises the nominal residual, and is then named at its joint rather than called another robot."""
+    feats = joint_features(model)
+    score, found = float("-inf"), []
+    for key, value in feats.items():
+        v = value.detach().cpu().clamp(min=1e-15)
+        med, mad = scores.median[key], scores.mad[key]
+        z = 0.6745 * (v - med) / mad
+        ratio = v / med
+        score = max(score, float(z.max()))
+        for j in ((z > threshold) & (ratio >= min_ratio)).nonzero()[:, 0].tolist():
+            found.append(Outlier(-1, scores.joints[j], key, float(ratio[j]), float(z[j])))
+    found.sort(key=lambda o: -o.z)
+    return score, found
+
+
 __all__ = ["FeatureScores", "MAD_FLOOR", "OUTLIER_MIN_RATIO", "Outlier", "axis_errors", "feature_scores", "joint_features",
-           "parameter_outliers", "scores_from_values"]
+           "judge_against", "parameter_outliers", "scores_from_values"]

@@ -235,8 +235,8 @@ def fleet_prior(fit, exclude: Sequence[int] = (), inflate: float = 1.0, floor: f
 
 
 TENSION_WARN = 2.0
-"""d^2 / E above which a unit fitted under a fleet prior is said to lie farther from the fleet than its spread
-explains (:func:`prior_tension`). Measured on a helper's 24-FANUC fleet with 30 poses: a healthy new unit 0.34,
+"""d^2 / E above which (and beyond E + 4 sd, for data that see few directions) a unit fitted under a fleet prior
+is said to lie farther from the fleet than its spread explains (:func:`prior_tension`). Measured on a helper's 24-FANUC fleet with 30 poses: a healthy new unit 0.34,
 one with a J3 gearbox whose backlash is 8x the fleet's 4.1 (its model 0.17 mm off, 8x its 250-pose fit)."""
 
 
@@ -245,7 +245,8 @@ class PriorTension:
     """How far a unit fitted under a Gaussian prior lies from the prior's mean, against what its data let a unit
     drawn from the prior move (:func:`prior_tension`): ``d2`` the Mahalanobis distance squared of the fitted
     entries, ``expected`` its expectation and ``sd`` its standard deviation for such a unit, ``groups`` each
-    module's share of ``d2`` ('joint3', 'base', 'tool1'; largest first)."""
+    module's share of ``d2`` ('joint3', 'base', 'tool1'; largest first; a correlated prior's cross terms can make
+    a share negative)."""
 
     d2: float
     expected: float

@@ -363,7 +363,7 @@ def fleet_cmd(
         f"{len(rows)} of {len(result.rows)} units shown: failed, flagged, changed, not converged or undetermined; every "
         "unit in summary.csv and the fleet report")
     if any(isinstance(r.get("outlier_score"), float) for r in result.rows):  # a large score alone is no finding
-        from .identify.fleet import OUTLIER_MIN_RATIO
+        from .app.fleet import OUTLIER_MIN_RATIO
 
         caption = ((caption + "\n") if caption else "") + (
             "outlier score: the unit's largest robust z over its joints' features; a joint is flagged where its z "

@@ -42,8 +42,10 @@ from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 from .fleet_files import identical_files, ignored_files, unit_files, validation_gaps
 from .fleet_frames import align_units, in_base
+from .fleet_nominal import implausible_units
 from .fleet_reuse import reuse_run, reused_units
 from .fleet_summary import write_features, write_summary
+from ..identify.fleet_outliers import OUTLIER_MIN_RATIO  # noqa: F401  the CLI's caption states the rule
 
 log = logging.getLogger("torchcal")
 
@@ -288,7 +290,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     rows[u["name"]]["validation_error"] = val_errors[u["name"]]
                 if u["name"] in reused:
                     rows[u["name"]]["reused_from"] = str(earlier)
-        implausible, suspects = _implausible(fitted, rows, robot, frames, warn, float(cfg.fleet.threshold))
+        implausible, suspects = implausible_units(fitted, rows, robot, frames, warn, float(cfg.fleet.threshold))
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
         for u, _ in fitted:
@@ -370,59 +372,6 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
             log.warning("fleet report not written: %s: %s", type(exc).__name__, exc)
             result.warnings.append(f"fleet report not written: {type(exc).__name__}: {exc}")
     return result
-
-
-NOMINAL_FLEET_RATIO = 2.0
-"""How many times the fleet's median nominal residual a unit's must be (beside robust z > fleet.threshold) to be
-suspected of being another robot (judged then against the fleet's joint features): a sister arm 10 mm longer lay
-37x above a helper's fleet (0.50 mm median), one 12 mm longer 2.6x above a simulated one (4.8 mm), each fitted,
-unflagged and in the fleet prior. Healthy units stay within 1.7x of the median at robust z 2.9 or less (two
-100-FANUC fleets of the simulated type, 4.3-4.4 mm median; the helper's 23 units)."""
-
-
-def _implausible(fitted: list, rows: dict, robot, frames: dict, warn, threshold: float) -> tuple[dict, dict]:
-    """The fitted units that may not be this robot as described -> ({unit: why}, {unit: (short, why)}).
-
-    The first: the identification residual of the nominal robot (as ``torchcal fit`` warns) or of the fitted
-    model beyond any plausible calibration error (:data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`): the robot
-    description, the tools (labels swapped) or the measurement frame are not this unit's, and the model's
-    parameters, which absorb that, say nothing about its gearboxes (warned here). The second, suspects: the
-    nominal residual far above the fleet's (:data:`NOMINAL_FLEET_RATIO`), which a badly damaged gearbox also
-    gives; the caller judges them against the fleet's joint features (:func:`~torchcal.identify.fleet_outliers.
-    judge_against`) and calls "another robot" only the ones no joint explains."""
-    from ..identify.fleet_outliers import MAD_FLOOR
-    from .fit import NOMINAL_IMPLAUSIBLE_MM
-
-    hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
-    check = (f"check the robot description of '{robot.name}', the tool vectors and labels, the measurement frame and "
-             f"the file's units (deg, mm){hint}")
-    out, suspects = {}, {}
-    nominal = {u["name"]: rows[u["name"]]["identification_nominal_mean_mm"] for u, _ in fitted}
-    for u, _ in fitted:
-        name = u["name"]
-        mean, nom = rows[name]["identification_mean_mm"], nominal[name]
-        if mean > NOMINAL_IMPLAUSIBLE_MM:
-            out[name] = (f"identification residual mean {mean:.1f} mm after the fit, beyond any plausible calibration "
-                         f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): {check}")
-        elif nom > NOMINAL_IMPLAUSIBLE_MM:
-            out[name] = (f"the nominal robot misses its identification points by {nom:.1f} mm (mean), beyond any "
-                         f"plausible calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm), which the fit absorbed "
-                         f"({mean:.3f} mm after it): {check}")
-    for name, why in out.items():
-        warn(f"unit {name}: {why}; not scored for outliers, left out of the fleet prior")
-    rest = torch.tensor([v for k, v in nominal.items() if k not in out], dtype=torch.float64)
-    if rest.numel() >= 3:  # judged against the units the absolute bound let through, as the features are
-        med = float(rest.median())
-        mad = max(float((rest - med).abs().median()), MAD_FLOOR * med, 1e-12)
-        for u, _ in fitted:
-            name, nom = u["name"], nominal[u["name"]]
-            if name not in out and nom > NOMINAL_FLEET_RATIO * med and 0.6745 * (nom - med) / mad > threshold:
-                short = f"nominal residual {nom:.2f} mm, {nom / med:.1f}x the fleet's median"
-                suspects[name] = (short, (
-                    f"the nominal robot misses its identification points by {nom:.2f} mm (mean), {nom / med:.1f}x the "
-                    f"fleet's median {med:.2f} mm, which the fit absorbed ({rows[name]['identification_mean_mm']:.3f} "
-                    f"mm after it) and no joint's features explain: another robot than the fleet's? {check}"))
-    return out, suspects
 
 
 def _same_format(loaded: list, rows: dict, robot) -> list:
@@ -529,4 +478,4 @@ def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device, warn
     rows[name] = row
 
 
-__all__ = ["FleetRunResult", "fit_cell", "run_fleet", "unit_files"]
+__all__ = ["FleetRunResult", "OUTLIER_MIN_RATIO", "fit_cell", "run_fleet", "unit_files"]

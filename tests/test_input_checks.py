@@ -508,3 +508,31 @@ def test_a_machines_rotary_axes_typed_in_radians_are_refused(machine, span_deg):
         with pytest.raises(UnitsError, match=r"machine.csv: the rotary columns look like radians"):
             check_units(rows(typed), machine, tools)
     check_units(rows(q), machine, tools)  # the same points with their degrees: nothing to say
+
+
+def test_a_sensor_fit_on_rotations_of_another_convention_says_do_not_deploy(tmp_path, fanuc):
+    """A T-Mac file imported with the wrong rotation order was fitted to 93 mm, "converged", with no warning (the
+    point runs' checks were missing from sensor runs). The same rows with each rotation rebuilt from its angles
+    in another Euler order are now warned about; the true rows are not."""
+    from scipy.spatial.transform import Rotation
+
+    from torchcal.app.config import load_config
+    from torchcal.app.sensor import run_sensor_fit
+    from torchcal.io.sensor_csv import write_pose_measurements
+
+    q, xyz, R = _sensor_rows(fanuc, n=40)
+    angles = Rotation.from_matrix(R.numpy()).as_euler("xyz")
+    wrong = torch.from_numpy(Rotation.from_euler("ZYX", angles).as_matrix())
+    for name, rot in (("poses.csv", R), ("zyx.csv", wrong)):
+        data = Measurements.from_tensors(q, 0, xyz, pose=torch.arange(len(q)))
+        data.extra["rotation"] = rot
+        write_pose_measurements(tmp_path / name, data, fanuc)
+    cfg = tmp_path / "sensor.yaml"
+    cfg.write_text("robot: fanuc_lrmate200i\ndata: {identification: poses.csv}\nsensor: {kind: pose, mount: estimate}\n"
+                   "measurement_frame: estimate\nmodel: {order: 0, backlash: false}\nreport: false\nplots: false\n")
+    good = run_sensor_fit(load_config(cfg, [f"out={tmp_path / 'good'}"]))
+    assert not any("do not deploy" in w or "plausible" in w for w in good.warnings), good.warnings
+    bad = run_sensor_fit(load_config(cfg, [f"out={tmp_path / 'bad'}", f"data.identification={tmp_path / 'zyx.csv'}"]))
+    said = " ".join(bad.warnings)
+    assert "do not deploy" in said or "beyond any plausible calibration error" in said, bad.warnings
+    assert "import-tmac --convention" in said

@@ -247,6 +247,31 @@ def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[di
     return out, table
 
 
+def warn_implausible_pose_fit(result, evaluations: dict, progress) -> None:
+    """The point runs' checks (:func:`torchcal.app.fit.evaluate_sets`) for a sensor run, whose fit said nothing:
+    a T-Mac file imported with the wrong rotation order was fitted to 93 mm, "converged", warnings: [] (another
+    order: 261 mm, the orientation 3.2 -> 12.5 deg, not converged, still nothing)."""
+    from .fit import NOMINAL_IMPLAUSIBLE_MM
+
+    if not result.success:
+        progress.warn("the solver did not converge; see fit.json (raise solver.max_iter?)")
+    for name, ev in evaluations.items():
+        pos, ang = ev["position_mm"], ev["orientation_deg"]
+        worse = [f"{what} mean {e['modeled']['mean']:.4f} against {e['nominal']['mean']:.4f} {unit}"
+                 for what, e, unit in (("position", pos, "mm"), ("orientation", ang, "deg"))
+                 if e["modeled"]["mean"] > 1.001 * e["nominal"]["mean"] + 1e-6]  # not at rounding level
+        if worse:
+            progress.warn(f"the fitted model is worse than the nominal robot on the {name} set ({'; '.join(worse)}): do "
+                          "not deploy it; look for a unit slip, the rotation convention of the import "
+                          "(import-tmac --convention), a wrong frame or mount, or a solver that did not converge")
+    nominal, modeled = (evaluations["identification"]["position_mm"][k]["mean"] for k in ("nominal", "modeled"))
+    if max(nominal, modeled) > NOMINAL_IMPLAUSIBLE_MM:
+        progress.warn(f"the identification position residual ({nominal:.1f} mm nominal, {modeled:.1f} mm after the fit) is "
+                      f"beyond any plausible calibration error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): the sensor's poses do "
+                      "not describe this robot as configured; check the rotation convention of the import "
+                      "(import-tmac --convention), the file's units (mm, deg), sensor.mount and the robot description")
+
+
 def choose_sensor_orders(cfg, inp: SensorInputs, make, ident: Measurements, instrument, fixed, run_dir: Path,
                          progress, files: dict) -> list[int]:
     """``model.order: auto`` for a sensor run: the order search of point-target runs on the sensor's own residuals
@@ -356,6 +381,7 @@ def run_sensor_fit(cfg, console=None):
             sets = {"identification": inp.ident} | ({"validation": inp.val} if inp.val is not None else {})
             with progress.step("evaluating the residuals", quiet=True):
                 evaluations, table = evaluate_pose_sets(rig, sets, progress)
+            warn_implausible_pose_fit(result, evaluations, progress)
             metrics = {"units": "mm, deg, percent", "orders": orders, "sensor": cfg.sensor.kind,
                        "fit": {"converged": bool(result.success), "iterations": int(result.nit), "cost": float(result.fun)},
                        "frames": frames, "excluded_rows": excluded, "sets": evaluations, "table6": table, "warnings": progress.warnings}

@@ -522,7 +522,7 @@ def test_a_sensor_fit_on_rotations_of_another_convention_says_do_not_deploy(tmp_
 
     q, xyz, R = _sensor_rows(fanuc, n=40)
     angles = Rotation.from_matrix(R.numpy()).as_euler("xyz")
-    wrong = torch.from_numpy(Rotation.from_euler("ZYX", angles).as_matrix())
+    wrong = torch.from_numpy(Rotation.from_euler("zyx", angles).as_matrix())  # (ZYX: refused as transposed)
     for name, rot in (("poses.csv", R), ("zyx.csv", wrong)):
         data = Measurements.from_tensors(q, 0, xyz, pose=torch.arange(len(q)))
         data.extra["rotation"] = rot

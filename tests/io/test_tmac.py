@@ -175,3 +175,24 @@ def test_rows_repeated_bit_for_bit_are_kept_and_named(tmp_path):
         from torchcal.io.tmac import convert_tmac
 
         convert_tmac(src, tmp_path / "e.csv", torchcal.load_robot("ur10"))
+
+
+def test_a_stale_reading_is_named(tmp_path):
+    """The tracker did not update: a row repeats the previous row's measurement bit for bit while the joints moved
+    (the UR10's Series B, rows 533 and 1064). Said with its --exclude, kept; a row whose joints also repeat is a
+    logger's repeat instead, and a second measurement of the same pose differs in its last digits."""
+    from typer.testing import CliRunner
+
+    from torchcal.cli import app
+    from torchcal.io.tmac import stale_rows
+
+    q, xyz, ang, std = _rows(6, seed=7)
+    xyz[2], ang[2], std[2] = xyz[1], ang[1], std[1]  # row 3: row 2's reading, its own joints
+    src = _write(tmp_path / "m.csv", q, xyz, ang, std)
+    assert stale_rows(read_tmac(src)) == [(3, 2)]
+    res = CliRunner().invoke(app, ["import-tmac", str(src), str(tmp_path / "c.csv")])
+    said = " ".join(res.output.split())
+    assert res.exit_code == 0 and "1 data row repeats the previous row's measurement bit for bit while the joints moved: "\
+        "3 (= row 2)" in said and "--exclude 3" in said, said
+    q[2] = q[1]  # now a logger's repeat: the other message, not this one
+    assert stale_rows(read_tmac(_write(tmp_path / "r.csv", q, xyz, ang, std))) == []

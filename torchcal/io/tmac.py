@@ -198,13 +198,35 @@ def repeated_rows(data: Measurements) -> list[tuple[int, int]]:
     return [(rows[i], rows[int(j)]) for i, j in enumerate(earliest) if j != i]
 
 
+def stale_rows(data: Measurements) -> list[tuple[int, int]]:
+    """(row, previous row) for every data row whose measurement (position and rotation) equals the previous row's
+    bit for bit while its joints differ: the tracker did not update (a stale reading), so the row puts the robot
+    where it was not (the UR10's Series B, data rows 533 and 1064, SOURCE.md's known defect). A sample the logger
+    wrote twice, joints included, is :func:`repeated_rows`' instead. Rows are the 1-based data rows."""
+    if len(data) < 2:
+        return []
+    m = torch.cat([data.xyz, data.extra["rotation"].reshape(len(data), 9)], 1)
+    same = (m[1:] == m[:-1]).all(1) & (data.q[1:] != data.q[:-1]).any(1)
+    rows = data.rows.tolist()
+    return [(rows[i + 1], rows[i]) for i in same.nonzero()[:, 0].tolist()]
+
+
+def _say(said: str, warnings: list | None) -> None:
+    if warnings is None:
+        import warnings as _warnings
+
+        _warnings.warn(said, stacklevel=3)
+    else:
+        warnings.append(said)
+
+
 def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=(), warnings: list | None = None) -> Path:
     """Write a T-Mac export as the sensor CSV contract (:func:`torchcal.io.sensor_csv.write_pose_measurements`).
 
     exclude: 1-based data rows to leave out (e.g. the known bad rows of a series); each must exist,
     else a DataError naming it. The pose ids stay the source rows, so what was left out stays visible.
-    Rows repeated bit for bit (:func:`repeated_rows`) are kept and said: appended to ``warnings`` where a list
-    is given, else a Python warning.
+    Rows repeated bit for bit (:func:`repeated_rows`) and stale readings (:func:`stale_rows`) are kept and said:
+    appended to ``warnings`` where a list is given, else a Python warning.
     """
     from .sensor_csv import rotation_fit, transposed_message, write_pose_measurements
 
@@ -220,15 +242,15 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=(), warn
     repeats = repeated_rows(data)
     if repeats:
         shown = ", ".join(f"{r} (= row {f})" for r, f in repeats[:10]) + (" ..." if len(repeats) > 10 else "")
-        said = (f"{src}: {len(repeats)} data row{'s' if len(repeats) > 1 else ''} repeat an earlier row bit for bit "
-                f"(joints and measurement): {shown}; a logger's repeat counts one measurement twice in the fit. Kept; "
-                "leave them out with " + " ".join(f"--exclude {r}" for r, _ in repeats[:10]))
-        if warnings is None:
-            import warnings as _warnings
-
-            _warnings.warn(said, stacklevel=2)
-        else:
-            warnings.append(said)
+        _say(f"{src}: {len(repeats)} data row{'s repeat' if len(repeats) > 1 else ' repeats'} an earlier row bit for bit "
+             f"(joints and measurement): {shown}; a logger's repeat counts one measurement twice in the fit. Kept; "
+             "leave them out with " + " ".join(f"--exclude {r}" for r, _ in repeats[:10]), warnings)
+    stale = stale_rows(data)
+    if stale:
+        shown = ", ".join(f"{r} (= row {f})" for r, f in stale[:10]) + (" ..." if len(stale) > 10 else "")
+        _say(f"{src}: {len(stale)} data row{'s repeat' if len(stale) > 1 else ' repeats'} the previous row's measurement bit for "
+             f"bit while the joints moved: {shown}; a stale reading (the tracker did not update) puts the robot where "
+             "it was not. Kept; leave them out with " + " ".join(f"--exclude {r}" for r, _ in stale[:10]), warnings)
     msg = transposed_message(rotation_fit(data.q, data.extra["rotation"], robot), "measurement_rx/ry/rz")
     if msg:
         raise DataError(src, [Problem(None, "measurement_rx/ry/rz", msg + f"; is the Euler convention '{convention}' "
@@ -236,4 +258,5 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=(), warn
     return write_pose_measurements(dst, data, robot)
 
 
-__all__ = ["TMAC_EULER", "TMAC_JOINTS", "convert_tmac", "read_tmac", "read_tmac_table", "read_trafo", "repeated_rows"]
+__all__ = ["TMAC_EULER", "TMAC_JOINTS", "convert_tmac", "read_tmac", "read_tmac_table", "read_trafo", "repeated_rows",
+           "stale_rows"]

@@ -34,15 +34,20 @@ def test_the_ratio_is_one_under_the_noise_model_and_large_with_an_unmodelled_err
     tool = torch.arange(R) % 3
     s = torch.where(torch.rand(q.shape, generator=torch.Generator().manual_seed(5)) < 0.5, -1.0, 1.0).double()
     data = torchcal.Measurements.from_tensors(q, tool, _draw(model, q, tool, s, noise, 6), direction=s)
-    rho = noise_ratio(model, data, noise, point_residuals(model, data))
-    assert abs(rho - 1.0) < 0.05, rho
+    check = noise_ratio(model, data, noise, point_residuals(model, data))
+    assert abs(check.ratio - 1.0) < 0.05, check
+    assert abs(check.sigma_m / noise.sigma_m - 1.0) < 0.5, check  # the tracker's part: a small share of the rows'
     sag = torch.zeros(R, 3, dtype=torch.float64)
     sag[:, 2] = 3e-4 * torch.cos(q[:, 1])
     bent = torchcal.Measurements.from_tensors(q, tool, data.xyz + sag, direction=s)
-    assert noise_ratio(model, bent, noise, point_residuals(model, bent)) > NOISE_RATIO_WARN
+    bent_check = noise_ratio(model, bent, noise, point_residuals(model, bent))
+    assert bent_check.ratio > NOISE_RATIO_WARN
+    # the sigma that would describe it, given as such, brings the ratio to 1
+    fitted = torchcal.NoiseModel(bent_check.sigma_m, noise.joint_var_fwd, noise.joint_var_bwd)
+    assert abs(noise_ratio(model, bent, fitted, point_residuals(model, bent)).ratio - 1.0) < 1e-9
     # a noise model that admits the scatter: the same rows explained (tracker sigma 0.3 mm per axis)
     wide = torchcal.NoiseModel(3e-4, noise.joint_var_fwd, noise.joint_var_bwd)
-    assert noise_ratio(model, bent, wide, point_residuals(model, bent)) < 1.0
+    assert noise_ratio(model, bent, wide, point_residuals(model, bent)).ratio < 1.0
 
 
 def test_no_ratio_where_the_closed_form_declines(fanuc, tools_m):
@@ -54,4 +59,4 @@ def test_no_ratio_where_the_closed_form_declines(fanuc, tools_m):
     data = torchcal.Measurements.from_tensors(q, tool, torch.zeros(5, 3, dtype=torch.float64))
     assert noise_ratio(model, data, torchcal.NoiseModel.from_robot(fanuc), torch.ones(5, dtype=torch.float64)) is None
     assert math.isfinite(noise_ratio(RobotModel(fanuc, tools_m, orders=1), data,
-                                     torchcal.NoiseModel.from_robot(fanuc), torch.ones(5, dtype=torch.float64)))
+                                     torchcal.NoiseModel.from_robot(fanuc), torch.ones(5, dtype=torch.float64)).ratio)

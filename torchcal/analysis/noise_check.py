@@ -20,13 +20,24 @@ gravity sag fitted without compliance rho was 2.2 (identification) / 2.8
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 NOISE_RATIO_WARN = 2.0
 """rho above which ``torchcal fit`` warns (the validation set's where there is one)."""
 
 
-def noise_ratio(model, data, noise, distance: torch.Tensor) -> float | None:
+class NoiseCheck(NamedTuple):
+    """:func:`noise_ratio`'s answer: ``ratio`` rho, and ``sigma_m`` (m) the tracker sigma per axis that, with the
+    joints' repeatability as given, would explain the rows' mean squared residual (0 where the joints' part alone
+    exceeds it)."""
+
+    ratio: float
+    sigma_m: float
+
+
+def noise_ratio(model, data, noise, distance: torch.Tensor) -> NoiseCheck | None:
     """rho of rows ``data`` whose modeled residuals have lengths ``distance`` (R,) m, under ``noise``
     (:class:`~torchcal.identify.NoiseModel`: ``sigma_m`` m, ``joint_variance(direction)`` (R, n)).
 
@@ -40,8 +51,8 @@ def noise_ratio(model, data, noise, distance: torch.Tensor) -> float | None:
         >>> q = torch.zeros(4, 6, dtype=torch.float64)
         >>> data = torchcal.Measurements.from_tensors(q, torch.zeros(4, dtype=torch.long), torch.zeros(4, 3))
         >>> noise = torchcal.NoiseModel.from_robot(robot)
-        >>> rho = noise_ratio(model, data, noise, torch.full((4,), 1e-3, dtype=torch.float64))
-        >>> rho > 10.0  # 1 mm against 5 um of tracker noise and the joints' repeatability
+        >>> check = noise_ratio(model, data, noise, torch.full((4,), 1e-3, dtype=torch.float64))
+        >>> check.ratio > 10.0  # 1 mm against 5 um of tracker noise and the joints' repeatability
         True
     """
     jac = getattr(model, "point_jacobians", None)
@@ -52,9 +63,11 @@ def noise_ratio(model, data, noise, distance: torch.Tensor) -> float | None:
     with torch.no_grad():
         _, J = jac(data.q, data.tool, direction if data.has_direction else None)
         var = noise.joint_variance(direction.to(J["v"]))
-        expected = 3.0 * noise.sigma_m ** 2 + (J["v"] ** 2 * var[:, None, :]).sum((1, 2))
-        d = distance.to(expected)
-        return float(((d * d).mean() / expected.mean()).sqrt())
+        joints = (J["v"] ** 2 * var[:, None, :]).sum((1, 2)).mean()
+        d = distance.to(joints)
+        seen = (d * d).mean()
+        ratio = float((seen / (3.0 * noise.sigma_m ** 2 + joints)).sqrt())
+        return NoiseCheck(ratio, float(((seen - joints).clamp(min=0.0) / 3.0).sqrt()))
 
 
-__all__ = ["NOISE_RATIO_WARN", "noise_ratio"]
+__all__ = ["NOISE_RATIO_WARN", "NoiseCheck", "noise_ratio"]

@@ -749,19 +749,24 @@ def _check_noise(inp: FitInputs, model, sets: dict, evaluations: dict, progress:
     is beyond :data:`~torchcal.analysis.noise_check.NOISE_RATIO_WARN`: a fit 16x the tracker noise said nothing."""
     from ..analysis.noise_check import NOISE_RATIO_WARN, noise_ratio
 
+    checks = {name: noise_ratio(model, sets[name], inp.noise, ev["modeled"]) for name, ev in evaluations.items()}
     for name, ev in evaluations.items():
-        ev["noise_ratio"] = noise_ratio(model, sets[name], inp.noise, ev["modeled"])
+        ev["noise_ratio"] = None if checks[name] is None else checks[name].ratio
     name = "Validation" if "Validation" in evaluations else "Identification"
-    rho = evaluations[name]["noise_ratio"]
-    if rho is None:
+    check = checks[name]
+    if check is None:
         return
-    said = ", ".join(f"{n.lower()} {ev['noise_ratio']:.2f}" for n, ev in evaluations.items())
+    said = ", ".join(f"{n.lower()} {c.ratio:.2f}" for n, c in checks.items())
     progress.info(f"residual / noise model (1 or below: the model holds the systematic errors): {said}")
-    if rho > NOISE_RATIO_WARN:
+    if check.ratio > NOISE_RATIO_WARN:
+        rho = check.ratio
+        causes = ["gravity sag (model.compliance)"] if getattr(model, "compliance", None) is None else []
+        causes += ["too low a model.order (where the validation residual falls with a higher one)",
+                   "thermal drift between sessions"]
         progress.warn(f"the {name.lower()} residual is {rho:.1f}x what the noise model explains (noise.sigma_m "
-                      f"{units.m_to_mm(inp.noise.sigma_m):g} mm and the joints' repeatability, {inp.noise_source}): the "
-                      "model lacks an error source (arm sag: model.compliance; a higher model.order; thermal drift "
-                      "between sessions) or the tracker and robot scatter more than the config says; the parameters' "
+                      f"{units.m_to_mm(inp.noise.sigma_m):g} mm and the joints' repeatability, {inp.noise_source}): "
+                      f"an error source the model lacks ({'; '.join(causes)}), or scatter beyond the config's, which "
+                      f"noise.sigma_m {units.m_to_mm(check.sigma_m):.3g} mm would describe; until then the parameters' "
                       f"standard deviations (parameters.csv) assume the noise model and are about {rho:.0f}x too small")
 
 

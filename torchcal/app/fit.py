@@ -703,11 +703,11 @@ def parameter_uncertainty(ia) -> list[dict]:
     """Each free parameter's value and Laplace standard deviation (:class:`torchcal.analysis.identifiability.
     Identifiability`, at the solution, joint errors marginalized, prior included), in mm / deg: the rows of
     ``parameters.csv``. Entries the gauge pinned are not free and have no row (fit.json lists them)."""
-    scale = {"angle": ("deg", units.rad_to_deg), "length": ("mm", units.m_to_mm)}
+    scale = {"angle": units.rad_to_deg, "length": units.m_to_mm}
     rows = []
     for name, role, kind, x, s in zip(ia.names, ia.layout.roles(), ia.layout.kinds(), ia.x.tolist(), ia.std.tolist()):
-        unit, conv = scale.get(kind, ("1", float))
-        rows.append({"name": name, "role": role, "unit": unit, "value": conv(x), "std": conv(s)})
+        conv = scale.get(kind, float)
+        rows.append({"name": name, "role": role, "unit": units.entry_unit(kind, name), "value": conv(x), "std": conv(s)})
     return rows
 
 

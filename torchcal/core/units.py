@@ -61,3 +61,15 @@ def joints_from_si(q, prismatic):
 def joint_unit_names(prismatic) -> list[str]:
     """'deg' or 'mm' per joint, for messages and headers."""
     return ["mm" if bool(p) else "deg" for p in prismatic]
+
+
+PER_NEWTON_METRE = ".tau"
+"""Parameter entries named ``*.tau`` (gravity compliance, :mod:`torchcal.error_models.compliance` 'gravity' mode)
+are a deflection per N·m of joint torque: their kind is an angle, their unit deg / (N·m)."""
+
+
+def entry_unit(kind: str, name: str = "") -> str:
+    """The file / report unit of a parameter entry of ``kind`` ('angle' -> 'deg', 'length' -> 'mm', else '1'), per
+    N·m for a compliance per torque (:data:`PER_NEWTON_METRE`; it read 'deg' in parameters.csv and the report)."""
+    base = {"angle": "deg", "length": "mm"}.get(kind, "1")
+    return f"{base}/(N·m)" if name.endswith(PER_NEWTON_METRE) and base != "1" else base

@@ -21,16 +21,17 @@ FULL_LIST_INLINE = 40
 """Parameter groups with at most this many entries are listed in full; larger ones collapse into a details box."""
 
 
-def _display(values, kinds):
-    """SI values and kinds -> (values in mm / deg / 1, unit names)."""
+def _display(values, kinds, names=None):
+    """SI values and kinds [and entry names] -> (values in mm / deg / 1, unit names: per N·m for a compliance per
+    torque, :func:`torchcal.core.units.entry_unit`)."""
     from ..core import units
 
     out, unit = [], []
-    for v, k in zip(values, kinds):
+    for v, k, n in zip(values, kinds, names if names is not None else [""] * len(values)):
         if k == "angle":
-            out.append(units.rad_to_deg(v)), unit.append("deg")
+            out.append(units.rad_to_deg(v)), unit.append(units.entry_unit(k, n))
         elif k == "length":
-            out.append(units.m_to_mm(v)), unit.append("mm")
+            out.append(units.m_to_mm(v)), unit.append(units.entry_unit(k, n))
         else:
             out.append(v), unit.append("")
     return out, unit
@@ -100,11 +101,12 @@ def parameters(run: RunFiles) -> str:
         for _, v, kind, _ in entries:
             by_kind.setdefault(kind, []).append(v)
         for kind, vals in by_kind.items():
-            shown, unit = _display(vals, [kind] * len(vals))
+            first = next(n for n, _, k, _ in entries if k == kind)  # a group's entries share their unit
+            shown, unit = _display(vals, [kind] * len(vals), [first] * len(vals))
             summary_rows.append([g.name, g.role, f"{kind} ({unit[0] or '1'})", num(len(vals)),
                                  num(sum(1 for n, _, k, _ in entries if k == kind and n in pinned)),
                                  num(max(abs(x) for x in shown), 5), num(_rms(shown), 5)])
-        shown, unit = _display([e[1] for e in entries], [e[2] for e in entries])
+        shown, unit = _display([e[1] for e in entries], [e[2] for e in entries], [e[0] for e in entries])
         sig, _ = _display([e[3] for e in entries], [e[2] for e in entries])
         std = run.uncertainty if isinstance(run.uncertainty, dict) else {}
         rows = [[n, num(v, 6), num(f"{std[n]:.2g}" if n in std else None), u, num(s, 6), "pinned (gauge)" if n in pinned else ""]

@@ -181,7 +181,7 @@ def test_compensate_refuses_machine_and_sensor_runs(tmp_path, fanuc, machine, ki
         cols, n, hint = ["tool", "q1", "q2", "q3", "q4", "q5"], 5, "export-tables"
     else:
         save_model(run, SensorRig.for_robot(fanuc, orders=1))
-        cols, n, hint = ["tool", *[f"q{i}" for i in range(1, 7)]], 6, "sensor rig"
+        cols, n, hint = ["tool", *[f"q{i}" for i in range(1, 7)]], 6, "it predicts sensor poses (torchcal predict)"
     pd.DataFrame([[0] + [0.0] * n], columns=cols).to_csv(tmp_path / "in.csv", index=False)
     r = invoke("compensate", run, tmp_path / "in.csv", tmp_path / "c.csv")
     assert r.exit_code == 2

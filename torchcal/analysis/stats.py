@@ -181,8 +181,8 @@ def far_rows_message(residuals: torch.Tensor, data: Measurements, what: str) -> 
     shown = ", ".join(f"row {r} ({v:.3f} mm)" for r, v in zip(rows[:5], mm[idx][:5].tolist()))
     return (f"{what}: {idx.numel()} row(s) lie far beyond the rest after the fit (>= {FAR_ROW_FACTOR:g}x the median "
             f"residual {float(mm.median()):.4f} mm): {shown}{', ...' if idx.numel() > 5 else ''}; a gross "
-            "measurement error (a reflector off its nest, a beam break) or a pose number used twice? They are "
-            "fitted as they are")
+            "measurement error (a reflector off its nest, a beam break), a pose number used twice, or an error the "
+            "model lacks there (does a higher model.order fit them)? They are fitted as they are")
 
 
 def percent_decrease(before: float, after: float) -> float:

@@ -143,6 +143,8 @@ def require(model, capability: str, who: str | None = None) -> None:
         return
     has = capabilities(model)
     can = f"it can: {', '.join(has)}" if has else f"it has none of: {', '.join(CAPABILITIES)}"
+    if hasattr(model, "sensor_pose"):  # predict works on it: it predicts poses, not points (a user read "none")
+        can = "it predicts sensor poses (torchcal predict), not tool points" + (f"; it can: {', '.join(has)}" if has else "")
     raise TypeError(f"{who or 'torchcal'}: {type(model).__name__} cannot {capability} ({can}). "
                     f"{_instead(model, capability, has)}".rstrip())
 

@@ -532,6 +532,12 @@ def test_a_sensor_fit_on_rotations_of_another_convention_says_do_not_deploy(tmp_
                    "measurement_frame: estimate\nmodel: {order: 0, backlash: false}\nreport: false\nplots: false\n")
     good = run_sensor_fit(load_config(cfg, [f"out={tmp_path / 'good'}"]))
     assert not any("do not deploy" in w or "plausible" in w for w in good.warnings), good.warnings
+    # the log and the report say which weights a pose sensor used (noise.sigma_m is none of them)
+    assert "pose weights: torchcal's default" in (good.run_dir / "run.log").read_text()
+    from torchcal.report import render_report
+
+    page = render_report(good.run_dir)
+    assert "Tracker noise sigma" not in page and "each row&#x27;s sx..srz" in page.replace("'", "&#x27;")
     bad = run_sensor_fit(load_config(cfg, [f"out={tmp_path / 'bad'}", f"data.identification={tmp_path / 'zyx.csv'}"]))
     said = " ".join(bad.warnings)
     assert "do not deploy" in said or "beyond any plausible calibration error" in said, bad.warnings

@@ -156,6 +156,16 @@ def sensor_instrument(cfg, data: Measurements, noise, progress=None):
         return PointTargets(data.xyz, cov=TrackerNoise.paper3().covariance(data.xyz)), data, []
     if kind == "pose":
         std = config_pose_std(cfg)
+        if progress is not None:  # which weights the fit uses: noise.sigma_m is not one of them (a user read it was)
+            from ..measure.pose import DEFAULT_POSE_STD
+
+            src = ("sensor.pose_std" if std is not None else f"the file's sx..srz ({data.source})"
+                   if "pose_std" in data.extra else "torchcal's default (sensor.pose_std to set them)")
+            shown = std if std is not None else None if "pose_std" in data.extra else torch.as_tensor(DEFAULT_POSE_STD)
+            progress.info(f"pose weights: {src}" + ("" if shown is None else (
+                f": {', '.join(f'{units.m_to_mm(float(v)):g}' for v in shown[:3])} mm, "
+                f"{', '.join(f'{units.rad_to_deg(float(v)):g}' for v in shown[3:])} deg"))
+                + "; noise.sigma_m is not used by a pose sensor")
         return PoseInstrument.from_measurements(data, pose_std=None if std is None else std.to(data.xyz)), data, []
     sel = STSInstrument.from_measurements(data, TrackerNoise.paper3(), gravity=up_vector(cfg).to(data.xyz),
                                           invalid="exclude")

@@ -141,10 +141,15 @@ def instrument(run: RunFiles) -> str:
         std = get(cfg, "sensor", "pose_std")
         if std:
             pairs.append(("Sensor noise (x, y, z mm; rx, ry, rz deg)", ", ".join(f"{float(s):g}" for s in std)))
+        elif sensor == "pose" and not get(cfg, "sensor", "position_only"):
+            pairs.append(("Sensor noise", "each row's sx..srz from the file, else torchcal's default (the run log's "
+                                          "'pose weights' line)"))
+        else:  # STS and position-only rigs weight by Paper III's tracker model, not noise.sigma_m
+            pairs.append(("Tracker noise", "Paper III's tracker model (torchcal.measure.TrackerNoise.paper3)"))
         pairs.append(("Sensor mount", str(get(cfg, "sensor", "mount"))))
     else:
         pairs.append(("Instrument", "laser tracker, position targets (one point per tool and pose)"))
-    pairs.append(("Tracker noise sigma", f"{get(cfg, 'noise', 'sigma_m')} mm (noise.sigma_m)"))
+        pairs.append(("Tracker noise sigma", f"{get(cfg, 'noise', 'sigma_m')} mm (noise.sigma_m)"))
     fwd, bwd = get(cfg, "noise", "joint_var_fwd"), get(cfg, "noise", "joint_var_bwd")
     if fwd is not None or bwd is not None:
         pairs.append(("Joint variances, forward (deg²)", ", ".join(f"{float(v):.3g}" for v in fwd or [])))

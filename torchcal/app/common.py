@@ -32,6 +32,11 @@ log = logging.getLogger("torchcal")
 
 STAT_KEYS = ("mean", "max", "gamma99")
 
+NOMINAL_IMPLAUSIBLE_MM = 20.0
+"""A mean nominal residual above this (mm) is beyond any plausible calibration error: the pipeline warns
+that the robot description (URDF, joint map, tools, frame) may not describe the measured robot (point runs,
+sensor runs and each unit of a fleet)."""
+
 
 @dataclass
 class RunResult:

@@ -60,6 +60,7 @@ from ..models.robot import RobotModel
 from .files import compensation_dof, compensation_kwargs  # the compensation check uses compensate's options
 from .common import (  # shared with app.sensor; re-exported here under the old names
     write_run_report,
+    NOMINAL_IMPLAUSIBLE_MM,
     STAT_KEYS,
     RunResult,
     collect_warnings,
@@ -258,9 +259,6 @@ def compensation_check(model, truth, data: Measurements, noise: NoiseModel | Non
                                      "compensated commands on the simulated truth")}
 
 
-NOMINAL_IMPLAUSIBLE_MM = 20.0
-"""A mean nominal residual above this (mm) is beyond any plausible calibration error: the pipeline warns
-that the robot description (URDF, joint map, tools, frame) may not describe the measured robot."""
 
 
 # ------------------------------------------------------------------- the stages

@@ -24,14 +24,14 @@ def implausible_units(fitted: list, rows: dict, robot, frames: dict, warn, thres
     """The fitted units that may not be this robot as described -> ({unit: why}, {unit: (short, why)}).
 
     The first: the identification residual of the nominal robot (as ``torchcal fit`` warns) or of the fitted
-    model beyond any plausible calibration error (:data:`torchcal.app.fit.NOMINAL_IMPLAUSIBLE_MM`): the robot
+    model beyond any plausible calibration error (:data:`torchcal.app.common.NOMINAL_IMPLAUSIBLE_MM`): the robot
     description, the tools (labels swapped) or the measurement frame are not this unit's, and the model's
     parameters, which absorb that, say nothing about its gearboxes (warned here). The second, suspects: the
     nominal residual far above the fleet's (:data:`NOMINAL_FLEET_RATIO`), which a badly damaged gearbox also
     gives; the caller judges them against the fleet's joint features (:func:`~torchcal.identify.fleet_outliers.
     judge_against`) and calls "another robot" only the ones no joint explains."""
     from ..identify.fleet_outliers import MAD_FLOOR
-    from .fit import NOMINAL_IMPLAUSIBLE_MM
+    from .common import NOMINAL_IMPLAUSIBLE_MM
 
     hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
     check = (f"check the robot description of '{robot.name}', the tool vectors and labels, the measurement frame and "

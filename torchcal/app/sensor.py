@@ -261,7 +261,7 @@ def warn_implausible_pose_fit(result, evaluations: dict, progress) -> None:
     """The point runs' checks (:func:`torchcal.app.fit.evaluate_sets`) for a sensor run, whose fit said nothing:
     a T-Mac file imported with the wrong rotation order was fitted to 93 mm, "converged", warnings: [] (another
     order: 261 mm, the orientation 3.2 -> 12.5 deg, not converged, still nothing)."""
-    from .fit import NOMINAL_IMPLAUSIBLE_MM
+    from .common import NOMINAL_IMPLAUSIBLE_MM
 
     if not result.success:
         progress.warn("the solver did not converge; see fit.json (raise solver.max_iter?)")

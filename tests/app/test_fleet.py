@@ -754,6 +754,14 @@ def test_a_unit_that_is_not_the_fleets_robot_is_flagged_and_left_out(tmp_path, r
     assert 5.0 < rows["unit05"]["identification_nominal_mean_mm"] < 20.0
     assert rows["unit06"].get("implausible") and "tool vectors and labels" in rows["unit06"]["findings"]
     assert rows["unit06"]["identification_nominal_mean_mm"] > 20.0
+    from torchcal.analysis.stats import point_residuals  # one pass for the fleet: each unit's own nominal residual
+    from torchcal.io.csv import read_measurements
+    from torchcal.io.rundir import load_model
+
+    for name in ("unit00", "unit05", "unit06"):
+        own = point_residuals(load_model(res.run_dir / "units" / name), read_measurements(
+            tmp_path / "ident" / f"{name}.csv", robot, 3), nominal=True)
+        assert rows[name]["identification_nominal_mean_mm"] == pytest.approx(float(own.mean()) * 1000, rel=1e-12)
     assert not any(rows[f"unit0{k}"].get("implausible") or rows[f"unit0{k}"]["flagged"] for k in range(5))
     assert sorted(prior_from_fleet_run(res.run_dir).left_out) == ["unit05", "unit06"]
     assert sum("not scored for outliers, left out of the fleet prior" in w for w in res.warnings) == 2

@@ -290,6 +290,8 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     rows[u["name"]]["validation_error"] = val_errors[u["name"]]
                 if u["name"] in reused:
                     rows[u["name"]]["reused_from"] = str(earlier)
+            for name, mean in _nominal_means(fitted, idents).items():
+                rows[name]["identification_nominal_mean_mm"] = mean
         implausible, suspects = implausible_units(fitted, rows, robot, frames, warn, float(cfg.fleet.threshold))
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
         # part of the fleet's spread
@@ -454,6 +456,28 @@ def _data_checks(cfg, robot, T: int, loaded: list, warn) -> dict:
     return out
 
 
+def _nominal_means(fitted: list, idents: dict) -> dict[str, float]:
+    """Each fitted unit's nominal residual mean (mm) on its identification rows: the nominal robot's points of
+    every unit in one pass, since the chain and the nominal tools are the fleet's and a unit carries only its own
+    measurement frame (a pass per unit cost 6 ms, 0.6 s of a 100-unit fleet's 7 s)."""
+    if not fitted:
+        return {}
+    m0 = fitted[0][1]
+    data = [idents[u["name"]] for u, _ in fitted]
+    q = torch.cat([d.q for d in data]).to(m0.device, m0.dtype)
+    tool = torch.cat([d.tool for d in data]).to(m0.device)
+    out, start = {}, 0
+    with torch.no_grad():
+        F = m0.nominal_flange(q)
+        p = (F[:, :3, :3] @ m0.tools.nominal[tool][..., None])[..., 0] + F[:, :3, 3]  # the robot base frame
+        for (u, model), d in zip(fitted, data):
+            B = model.base.nominal.to(p)
+            mine = p[start:start + len(d)] @ B[:3, :3].T + B[:3, 3]
+            out[u["name"]] = float(units.m_to_mm((mine - d.xyz.to(p)).norm(dim=1).mean()))
+            start += len(d)
+    return out
+
+
 def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device, warn) -> None:
     """A fitted unit's row: identification (and validation) residual statistics in mm; rows far beyond the rest
     are warned about (:func:`~torchcal.analysis.stats.far_rows`)."""
@@ -467,10 +491,9 @@ def _evaluate(u: dict, model, idents: dict, vals: dict, rows: dict, device, warn
     if far := far_rows_message(res, ident, f"unit {name}: identification ({ident.source})"):
         warn(far)
     s = residual_stats(res).scaled(units.m_to_mm(1.0))
-    nominal = residual_stats(point_residuals(model, ident, nominal=True).cpu()).scaled(units.m_to_mm(1.0))
     row = {"unit": name, "status": "fitted", "rows": len(ident), "converged": bool(u["fit"]["converged"]),
            "iterations": int(u["fit"]["iterations"]), "identification_mean_mm": s.mean,
-           "identification_max_mm": s.max, "identification_nominal_mean_mm": nominal.mean}
+           "identification_max_mm": s.max}
     if vals[name] is not None:
         val = point_residuals(model, vals[name].to(device), compiled=True)
         v = residual_stats(val.cpu()).scaled(units.m_to_mm(1.0))

@@ -539,6 +539,29 @@ def test_a_sensor_fit_on_rotations_of_another_convention_says_do_not_deploy(tmp_
     page = render_report(good.run_dir)
     assert "Tracker noise sigma" not in page and "each row&#x27;s sx..srz" in page.replace("'", "&#x27;")
     bad = run_sensor_fit(load_config(cfg, [f"out={tmp_path / 'bad'}", f"data.identification={tmp_path / 'zyx.csv'}"]))
-    said = " ".join(bad.warnings)
-    assert "do not deploy" in said or "beyond any plausible calibration error" in said, bad.warnings
-    assert "import-tmac --convention" in said
+    worse = [w for w in bad.warnings if "worse than the nominal robot" in w and "do not deploy" in w]
+    far = [w for w in bad.warnings if "beyond any plausible calibration error" in w]
+    assert len(worse) == 1 and len(far) == 1, bad.warnings
+    assert all("import-tmac --convention" in w for w in worse + far)
+
+
+def test_a_position_only_sensor_fit_is_not_judged_by_its_made_up_orientation():
+    """sensor.position_only fits never see the orientation: a real UR10 run halved its position error and was told
+    not to deploy because the orientation it made up was worse than nominal. Judged on position alone."""
+    from types import SimpleNamespace
+
+    from torchcal.app.sensor import warn_implausible_pose_fit
+
+    said = []
+    progress = SimpleNamespace(warn=said.append)
+    ev = {"identification": {"position_mm": {"nominal": {"mean": 0.92}, "modeled": {"mean": 0.42}},
+                             "orientation_deg": {"nominal": {"mean": 0.07}, "modeled": {"mean": 4.9}}}}
+    ok = SimpleNamespace(success=True)
+    warn_implausible_pose_fit(ok, ev, progress, position_only=True)
+    assert said == []
+    warn_implausible_pose_fit(ok, ev, progress, position_only=False)  # a full-pose fit that got worse: said
+    assert len(said) == 1 and "orientation mean 4.9000 against 0.0700 deg" in said[0]
+    ev["identification"]["position_mm"]["modeled"]["mean"] = 1.5  # worse in position: said, position only or not
+    said.clear()
+    warn_implausible_pose_fit(ok, ev, progress, position_only=True)
+    assert len(said) == 1 and "position mean 1.5000" in said[0] and "orientation" not in said[0]

@@ -196,3 +196,5 @@ def test_a_stale_reading_is_named(tmp_path):
         "3 (= row 2)" in said and "--exclude 3" in said, said
     q[2] = q[1]  # now a logger's repeat: the other message, not this one
     assert stale_rows(read_tmac(_write(tmp_path / "r.csv", q, xyz, ang, std))) == []
+    q[2, 0] += 1e-6  # a robot standing still, its encoder's last digits apart: no stale reading either
+    assert stale_rows(read_tmac(_write(tmp_path / "s.csv", q, xyz, ang, std))) == []

@@ -257,10 +257,12 @@ def evaluate_pose_sets(rig, sets: dict[str, Measurements], progress) -> tuple[di
     return out, table
 
 
-def warn_implausible_pose_fit(result, evaluations: dict, progress) -> None:
+def warn_implausible_pose_fit(result, evaluations: dict, progress, position_only: bool = False) -> None:
     """The point runs' checks (:func:`torchcal.app.fit.evaluate_sets`) for a sensor run, whose fit said nothing:
     a T-Mac file imported with the wrong rotation order was fitted to 93 mm, "converged", warnings: [] (another
-    order: 261 mm, the orientation 3.2 -> 12.5 deg, not converged, still nothing)."""
+    order: 261 mm, the orientation 3.2 -> 12.5 deg, not converged, still nothing). position_only: the fit never
+    saw the orientation, so its modeled orientation is no evidence either way (a real UR10 run halved the
+    position error and was told not to deploy for its made-up orientation)."""
     from .common import NOMINAL_IMPLAUSIBLE_MM
 
     if not result.success:
@@ -268,7 +270,7 @@ def warn_implausible_pose_fit(result, evaluations: dict, progress) -> None:
     for name, ev in evaluations.items():
         pos, ang = ev["position_mm"], ev["orientation_deg"]
         worse = [f"{what} mean {e['modeled']['mean']:.4f} against {e['nominal']['mean']:.4f} {unit}"
-                 for what, e, unit in (("position", pos, "mm"), ("orientation", ang, "deg"))
+                 for what, e, unit in (("position", pos, "mm"), ("orientation", ang, "deg"))[:1 if position_only else 2]
                  if e["modeled"]["mean"] > 1.001 * e["nominal"]["mean"] + 1e-6]  # not at rounding level
         if worse:
             progress.warn(f"the fitted model is worse than the nominal robot on the {name} set ({'; '.join(worse)}): do "
@@ -391,7 +393,7 @@ def run_sensor_fit(cfg, console=None):
             sets = {"identification": inp.ident} | ({"validation": inp.val} if inp.val is not None else {})
             with progress.step("evaluating the residuals", quiet=True):
                 evaluations, table = evaluate_pose_sets(rig, sets, progress)
-            warn_implausible_pose_fit(result, evaluations, progress)
+            warn_implausible_pose_fit(result, evaluations, progress, bool(cfg.sensor.position_only))
             metrics = {"units": "mm, deg, percent", "orders": orders, "sensor": cfg.sensor.kind,
                        "fit": {"converged": bool(result.success), "iterations": int(result.nit), "cost": float(result.fun)},
                        "frames": frames, "excluded_rows": excluded, "sets": evaluations, "table6": table, "warnings": progress.warnings}

@@ -78,8 +78,8 @@ def hand_eye(F: torch.Tensor, T: torch.Tensor, pairs: int = 8000, seed: int = 0,
             # the flange's turns, not the joints: a program can move every joint a lot and still turn the flange
             # about one direction only (a planar wrist pattern; the UR10's Series D)
             raise HandEyeError("hand_eye: between the poses the flange only turns about one direction, which leaves "
-                               "the mount's turn about it unknown; measure poses that also tilt the tool (other wrist "
-                               "orientations), or give sensor.mount")
+                               "the tracker frame's turn about it (and so the mount's) unknown; measure poses that also "
+                               "tilt the tool (other wrist orientations), or give measurement_frame or sensor.mount")
         RX, _ = kabsch(b[keep], a[keep])
         RM = _nearest_rotation((RF.transpose(1, 2) @ RX.T @ RT).sum(0))
         A = torch.cat([RX @ RF, torch.eye(3, dtype=F.dtype, device=F.device).expand(N, 3, 3)], 2).reshape(-1, 6)

@@ -198,6 +198,11 @@ def repeated_rows(data: Measurements) -> list[tuple[int, int]]:
     return [(rows[i], rows[int(j)]) for i, j in enumerate(earliest) if j != i]
 
 
+STALE_MOTION = 1e-4
+"""rad (m for a prismatic joint): the joint motion between two rows beyond which an unchanged measurement is a
+stale reading (Series B's two move up to 2.4 rad; Series A's smallest real move between rows is 3.4e-4 rad)."""
+
+
 def stale_rows(data: Measurements) -> list[tuple[int, int]]:
     """(row, previous row) for every data row whose measurement (position and rotation) equals the previous row's
     bit for bit while its joints differ: the tracker did not update (a stale reading), so the row puts the robot
@@ -206,7 +211,8 @@ def stale_rows(data: Measurements) -> list[tuple[int, int]]:
     if len(data) < 2:
         return []
     m = torch.cat([data.xyz, data.extra["rotation"].reshape(len(data), 9)], 1)
-    same = (m[1:] == m[:-1]).all(1) & (data.q[1:] != data.q[:-1]).any(1)
+    # moved: more than an encoder's last digits (a robot standing still between two readings is no stale reading)
+    same = (m[1:] == m[:-1]).all(1) & ((data.q[1:] - data.q[:-1]).abs().amax(1) > STALE_MOTION)
     rows = data.rows.tolist()
     return [(rows[i + 1], rows[i]) for i in same.nonzero()[:, 0].tolist()]
 
@@ -259,4 +265,4 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=(), warn
 
 
 __all__ = ["TMAC_EULER", "TMAC_JOINTS", "convert_tmac", "read_tmac", "read_tmac_table", "read_trafo", "repeated_rows",
-           "stale_rows"]
+           "STALE_MOTION", "stale_rows"]

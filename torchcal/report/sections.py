@@ -139,7 +139,7 @@ def instrument(run: RunFiles) -> str:
     if sensor:
         pairs.append(("Instrument", f"laser tracker with a 6-DOF sensor ({sensor}): position and orientation per row"))
         std = get(cfg, "sensor", "pose_std")
-        if std:
+        if std and not get(cfg, "sensor", "position_only"):
             pairs.append(("Sensor noise (x, y, z mm; rx, ry, rz deg)", ", ".join(f"{float(s):g}" for s in std)))
         elif sensor == "pose" and not get(cfg, "sensor", "position_only"):
             pairs.append(("Sensor noise", "each row's sx..srz from the file, else torchcal's default (the run log's "

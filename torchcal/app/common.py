@@ -32,6 +32,12 @@ log = logging.getLogger("torchcal")
 
 STAT_KEYS = ("mean", "max", "gamma99")
 
+def worse_than_nominal(modeled: float, nominal: float) -> bool:
+    """Whether a fitted model's mean residual is worse than the nominal robot's, beyond rounding (point and sensor
+    runs alike: a calibration that makes the robot worse is no calibration, whatever the solver said)."""
+    return modeled > 1.001 * nominal + 1e-6
+
+
 NOMINAL_IMPLAUSIBLE_MM = 20.0
 """A mean nominal residual above this (mm) is beyond any plausible calibration error: the pipeline warns
 that the robot description (URDF, joint map, tools, frame) may not describe the measured robot (point runs,

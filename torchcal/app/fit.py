@@ -60,6 +60,7 @@ from ..models.robot import RobotModel
 from .files import compensation_dof, compensation_kwargs  # the compensation check uses compensate's options
 from .common import (  # shared with app.sensor; re-exported here under the old names
     write_run_report,
+    worse_than_nominal,
     NOMINAL_IMPLAUSIBLE_MM,
     STAT_KEYS,
     RunResult,
@@ -727,7 +728,7 @@ def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict
     _check_noise(inp, model, sets, evaluations, progress)
     for name, ev in evaluations.items():
         nom, mod = ev["nominal_stats"].mean, ev["modeled_stats"].mean
-        if mod > nom:  # a calibration that makes the robot worse is no calibration, whatever the solver said
+        if worse_than_nominal(mod, nom):
             progress.warn(f"the fitted model is worse than the nominal robot on the {name.lower()} set (mean {mod:.4f} "
                           f"against {nom:.4f} mm): do not deploy it; look for a unit slip, a wrong frame or tools, too "
                           "few poses for the orders (model.order), or a solver that did not converge")

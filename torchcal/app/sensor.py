@@ -263,7 +263,7 @@ def warn_implausible_pose_fit(result, evaluations: dict, progress, position_only
     order: 261 mm, the orientation 3.2 -> 12.5 deg, not converged, still nothing). position_only: the fit never
     saw the orientation, so its modeled orientation is no evidence either way (a real UR10 run halved the
     position error and was told not to deploy for its made-up orientation)."""
-    from .common import NOMINAL_IMPLAUSIBLE_MM
+    from .common import NOMINAL_IMPLAUSIBLE_MM, worse_than_nominal
 
     if not result.success:
         progress.warn("the solver did not converge; see fit.json (raise solver.max_iter?)")
@@ -271,7 +271,7 @@ def warn_implausible_pose_fit(result, evaluations: dict, progress, position_only
         pos, ang = ev["position_mm"], ev["orientation_deg"]
         worse = [f"{what} mean {e['modeled']['mean']:.4f} against {e['nominal']['mean']:.4f} {unit}"
                  for what, e, unit in (("position", pos, "mm"), ("orientation", ang, "deg"))[:1 if position_only else 2]
-                 if e["modeled"]["mean"] > 1.001 * e["nominal"]["mean"] + 1e-6]  # not at rounding level
+                 if worse_than_nominal(e["modeled"]["mean"], e["nominal"]["mean"])]
         if worse:
             progress.warn(f"the fitted model is worse than the nominal robot on the {name} set ({'; '.join(worse)}): do "
                           "not deploy it; look for a unit slip, the rotation convention of the import "

@@ -47,7 +47,7 @@ import torch
 from collections.abc import Mapping
 
 from ..core import threads, units
-from ..analysis.stats import far_rows_message, percent_decrease, point_residuals, residual_stats
+from ..analysis.stats import far_rows, far_rows_message, percent_decrease, point_residuals, residual_stats
 from ..identify import FitResult, NoiseModel, Prior, fit
 from ..identify.fit import frame_check
 from .config import ConfigError, check_config, source_of
@@ -725,13 +725,22 @@ def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict
     for name, ev in evaluations.items():
         if far := far_rows_message(ev["modeled"], sets[name], f"{name.lower()} set ({sets[name].source})"):
             progress.warn(far)
+    # far before the fit too: one row 210 mm off can pull a small set's whole fit with it, so that after the fit
+    # no row stands out
+    gross = far_rows(evaluations["Identification"]["nominal"])
+    gross = gross if gross.numel() else far_rows(evaluations["Identification"]["modeled"])
     _check_noise(inp, model, sets, evaluations, progress)
     for name, ev in evaluations.items():
         nom, mod = ev["nominal_stats"].mean, ev["modeled_stats"].mean
         if worse_than_nominal(mod, nom):
+            # a gross row (a line cut inside a number: 210 mm off) pulls the whole least-squares fit
+            named = ", ".join(f"row {r}" for r in inp.ident.rows.cpu()[gross[:3].cpu()].tolist())
+            more = ", ..." if gross.numel() > 3 else ""
+            pulled = ("" if gross.numel() == 0 else f"; the identification rows far beyond the rest ({named}{more}) "
+                      "pull the whole fit: mend or leave them out and fit again")
             progress.warn(f"the fitted model is worse than the nominal robot on the {name.lower()} set (mean {mod:.4f} "
                           f"against {nom:.4f} mm): do not deploy it; look for a unit slip, a wrong frame or tools, too "
-                          "few poses for the orders (model.order), or a solver that did not converge")
+                          f"few poses for the orders (model.order), or a solver that did not converge{pulled}")
     nominal = evaluations["Identification"]["nominal_stats"].mean
     if nominal > NOMINAL_IMPLAUSIBLE_MM:
         progress.warn(f"the nominal residual (identification mean {nominal:.1f} mm) is far beyond any plausible calibration "

@@ -227,10 +227,13 @@ def test_a_targets_file_with_its_orientations_in_radians_is_refused(tmp_path, fa
         T = _tool_pose(model.nominal_flange(q), model.tools.nominal[[0] * 30])
     seeds = q + torch.deg2rad(2.0 * torch.randn(q.shape, generator=torch.Generator().manual_seed(1), dtype=q.dtype))
     seeds = torch.minimum(torch.maximum(seeds, model.command_limits[:, 0]), model.command_limits[:, 1])
-    write_targets(tmp_path / "deg.csv", T, seeds)
-    df = pd.read_csv(tmp_path / "deg.csv")
-    df[["rx", "ry", "rz"]] = np.radians(df[["rx", "ry", "rz"]])
-    df.to_csv(tmp_path / "rad.csv", index=False)
+    def both(stem, seeds):  # the targets in degrees (the contract) and the same numbers typed in radians
+        write_targets(tmp_path / f"{stem}deg.csv", T, seeds)
+        df = pd.read_csv(tmp_path / f"{stem}deg.csv")
+        df[["rx", "ry", "rz"]] = np.radians(df[["rx", "ry", "rz"]])
+        df.to_csv(tmp_path / f"{stem}rad.csv", index=False)
+
+    both("", seeds)
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "deg.csv"), str(tmp_path / "o.csv")])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "rad.csv"), str(tmp_path / "o2.csv")])
@@ -244,10 +247,7 @@ def test_a_targets_file_with_its_orientations_in_radians_is_refused(tmp_path, fa
     # seeds that are only hints of the branch (8 deg off per joint): still told apart
     hints = q + torch.deg2rad(8.0 * torch.randn(q.shape, generator=torch.Generator().manual_seed(2), dtype=q.dtype))
     hints = torch.minimum(torch.maximum(hints, model.command_limits[:, 0]), model.command_limits[:, 1])
-    write_targets(tmp_path / "hint_deg.csv", T, hints)
-    far = pd.read_csv(tmp_path / "hint_deg.csv")
-    far[["rx", "ry", "rz"]] = np.radians(far[["rx", "ry", "rz"]])
-    far.to_csv(tmp_path / "hint_rad.csv", index=False)
+    both("hint_", hints)
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "hint_rad.csv"), str(tmp_path / "o4.csv")])
     assert r.exit_code != 0 and "look like radians" in " ".join(r.output.split()), r.output
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "hint_deg.csv"), str(tmp_path / "o5.csv")])

@@ -42,7 +42,7 @@ from .engines import check_engine, interrupted
 from .fleet_baseline import KEY, baseline_model, baseline_units, check_structure, compare_with_baseline
 from .fleet_files import identical_files, ignored_files, unit_files, validation_gaps
 from .fleet_frames import align_units, in_base
-from .fleet_nominal import implausible_units
+from .fleet_nominal import implausible_units, nominal_means
 from .fleet_reuse import reuse_run, reused_units
 from .fleet_summary import write_features, write_summary
 from ..identify.fleet_outliers import OUTLIER_MIN_RATIO  # noqa: F401  the CLI's caption states the rule
@@ -290,7 +290,7 @@ def run_fleet(config, overrides: list[str] | None = None, out=None, console=None
                     rows[u["name"]]["validation_error"] = val_errors[u["name"]]
                 if u["name"] in reused:
                     rows[u["name"]]["reused_from"] = str(earlier)
-            for name, mean in _nominal_means(fitted, idents).items():
+            for name, mean in nominal_means(fitted, idents).items():
                 rows[name]["identification_nominal_mean_mm"] = mean
         implausible, suspects = implausible_units(fitted, rows, robot, frames, warn, float(cfg.fleet.threshold))
         # a unit whose data cannot determine its parameters holds the prior's values: no evidence of damage, and no
@@ -453,28 +453,6 @@ def _data_checks(cfg, robot, T: int, loaded: list, warn) -> dict:
             warn(f"unit {name}: {few}; its parameters are mostly the prior's (measure at least "
                  f"{-(-P // per_pose)} poses with {len(seen)} tool{'s' if len(seen) != 1 else ''}): fitted, not "
                  "judged for outliers, left out of the fleet prior")
-    return out
-
-
-def _nominal_means(fitted: list, idents: dict) -> dict[str, float]:
-    """Each fitted unit's nominal residual mean (mm) on its identification rows: the nominal robot's points of
-    every unit in one pass, since the chain and the nominal tools are the fleet's and a unit carries only its own
-    measurement frame (a pass per unit cost 6 ms, 0.6 s of a 100-unit fleet's 7 s)."""
-    if not fitted:
-        return {}
-    m0 = fitted[0][1]
-    data = [idents[u["name"]] for u, _ in fitted]
-    q = torch.cat([d.q for d in data]).to(m0.device, m0.dtype)
-    tool = torch.cat([d.tool for d in data]).to(m0.device)
-    out, start = {}, 0
-    with torch.no_grad():
-        F = m0.nominal_flange(q)
-        p = (F[:, :3, :3] @ m0.tools.nominal[tool][..., None])[..., 0] + F[:, :3, 3]  # the robot base frame
-        for (u, model), d in zip(fitted, data):
-            B = model.base.nominal.to(p)
-            mine = p[start:start + len(d)] @ B[:3, :3].T + B[:3, 3]
-            out[u["name"]] = float(units.m_to_mm((mine - d.xyz.to(p)).norm(dim=1).mean()))
-            start += len(d)
     return out
 
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import torch
 
+from ..core import units
+
 
 NOMINAL_FLEET_RATIO = 2.0
 """How many times the fleet's median nominal residual a unit's must be (beside robust z > fleet.threshold) to be
@@ -65,4 +67,26 @@ def implausible_units(fitted: list, rows: dict, robot, frames: dict, warn, thres
     return out, suspects
 
 
-__all__ = ["NOMINAL_FLEET_RATIO", "implausible_units"]
+def nominal_means(fitted: list, idents: dict) -> dict[str, float]:
+    """Each fitted unit's nominal residual mean (mm) on its identification rows: the nominal robot's points of
+    every unit in one pass, since the chain and the nominal tools are the fleet's and a unit carries only its own
+    measurement frame (a pass per unit cost 6 ms, 0.6 s of a 100-unit fleet's 7 s)."""
+    if not fitted:
+        return {}
+    m0 = fitted[0][1]
+    data = [idents[u["name"]] for u, _ in fitted]
+    q = torch.cat([d.q for d in data]).to(m0.device, m0.dtype)
+    tool = torch.cat([d.tool for d in data]).to(m0.device)
+    out, start = {}, 0
+    with torch.no_grad():
+        F = m0.nominal_flange(q)
+        p = (F[:, :3, :3] @ m0.tools.nominal[tool][..., None])[..., 0] + F[:, :3, 3]  # the robot base frame
+        for (u, model), d in zip(fitted, data):
+            B = model.base.nominal.to(p)
+            mine = p[start:start + len(d)] @ B[:3, :3].T + B[:3, 3]
+            out[u["name"]] = float(units.m_to_mm((mine - d.xyz.to(p)).norm(dim=1).mean()))
+            start += len(d)
+    return out
+
+
+__all__ = ["NOMINAL_FLEET_RATIO", "implausible_units", "nominal_means"]

@@ -217,7 +217,14 @@ def stale_rows(data: Measurements) -> list[tuple[int, int]]:
     return [(rows[i + 1], rows[i]) for i in same.nonzero()[:, 0].tolist()]
 
 
-def _say(said: str, warnings: list | None) -> None:
+def _say(src, pairs: list[tuple[int, int]], what: str, why: str, warnings: list | None) -> None:
+    """Rows ``pairs`` ((row, the row it repeats)) said, kept, with the --exclude that drops them: appended to
+    ``warnings`` where a list is given, else a Python warning at the caller's caller."""
+    if not pairs:
+        return
+    shown = ", ".join(f"{r} (= row {f})" for r, f in pairs[:10]) + (" ..." if len(pairs) > 10 else "")
+    said = (f"{src}: {len(pairs)} data row{'s repeat' if len(pairs) > 1 else ' repeats'} {what}: {shown}; {why}. Kept; "
+            "leave them out with " + " ".join(f"--exclude {r}" for r, _ in pairs[:10]))
     if warnings is None:
         import warnings as _warnings
 
@@ -245,18 +252,10 @@ def convert_tmac(src, dst, robot, convention: str = TMAC_EULER, exclude=(), warn
             raise DataError(src, [Problem(None, None, f"rows {missing} to exclude are not data rows of the file "
                                                       f"(1..{len(data)})")])
         data = data.subset(~torch.isin(data.rows, torch.tensor(exclude)))
-    repeats = repeated_rows(data)
-    if repeats:
-        shown = ", ".join(f"{r} (= row {f})" for r, f in repeats[:10]) + (" ..." if len(repeats) > 10 else "")
-        _say(f"{src}: {len(repeats)} data row{'s repeat' if len(repeats) > 1 else ' repeats'} an earlier row bit for bit "
-             f"(joints and measurement): {shown}; a logger's repeat counts one measurement twice in the fit. Kept; "
-             "leave them out with " + " ".join(f"--exclude {r}" for r, _ in repeats[:10]), warnings)
-    stale = stale_rows(data)
-    if stale:
-        shown = ", ".join(f"{r} (= row {f})" for r, f in stale[:10]) + (" ..." if len(stale) > 10 else "")
-        _say(f"{src}: {len(stale)} data row{'s repeat' if len(stale) > 1 else ' repeats'} the previous row's measurement bit for "
-             f"bit while the joints moved: {shown}; a stale reading (the tracker did not update) puts the robot where "
-             "it was not. Kept; leave them out with " + " ".join(f"--exclude {r}" for r, _ in stale[:10]), warnings)
+    _say(src, repeated_rows(data), "an earlier row bit for bit (joints and measurement)",
+         "a logger's repeat counts one measurement twice in the fit", warnings)
+    _say(src, stale_rows(data), "the previous row's measurement bit for bit while the joints moved",
+         "a stale reading (the tracker did not update) puts the robot where it was not", warnings)
     msg = transposed_message(rotation_fit(data.q, data.extra["rotation"], robot), "measurement_rx/ry/rz")
     if msg:
         raise DataError(src, [Problem(None, "measurement_rx/ry/rz", msg + f"; is the Euler convention '{convention}' "

@@ -236,8 +236,9 @@ def fleet_prior(fit, exclude: Sequence[int] = (), inflate: float = 1.0, floor: f
 
 TENSION_WARN = 2.0
 """d^2 / E above which (and beyond E + 4 sd, for data that see few directions) a unit fitted under a fleet prior
-is said to lie farther from the fleet than its spread explains (:func:`prior_tension`). Measured on a helper's 24-FANUC fleet with 30 poses: a healthy new unit 0.34,
-one with a J3 gearbox whose backlash is 8x the fleet's 4.1 (its model 0.17 mm off, 8x its 250-pose fit)."""
+is said to lie farther from the fleet than its spread explains (:func:`prior_tension`). Measured on a helper's
+24-FANUC fleet with 30 poses: a healthy new unit 0.34, one with a J3 gearbox whose backlash is 8x the fleet's 4.1
+(its model 0.17 mm off, 8x its 250-pose fit)."""
 
 
 @dataclass
@@ -302,5 +303,6 @@ def prior_tension(block, problem, x: torch.Tensor, v: torch.Tensor) -> PriorTens
                         sorted(share.items(), key=lambda kv: -kv[1]))
 
 
-__all__ = ["FleetPriorParts", "PriorTension", "TENSION_WARN", "prior_tension", "METHODS", "entry_groups", "factor_correlation", "fleet_covariance", "fleet_prior",
-           "ledoit_wolf_correlation", "prior_from_parameters", "shrunk_correlation"]
+__all__ = ["FleetPriorParts", "METHODS", "PriorTension", "TENSION_WARN", "entry_groups", "factor_correlation",
+           "fleet_covariance", "fleet_prior", "ledoit_wolf_correlation", "prior_from_parameters", "prior_tension",
+           "shrunk_correlation"]

@@ -25,6 +25,7 @@ from __future__ import annotations
 import torch
 
 from ..core.exceptions import InputError
+from ..kinematics.transforms import orthogonal_unit
 
 
 class ToolAxis:
@@ -42,10 +43,7 @@ class ToolAxis:
             if a.shape != (3,) or not bool(torch.isfinite(a).all()) or float(a.norm()) == 0.0:
                 raise InputError(f"compensate: free_tool_axis must be a nonzero 3-vector in the flange frame, got {axis!r}")
             a = a / a.norm()
-            # b1: the unit vector farthest from a among x, y, z, made orthogonal; b2 = a x b1
-            e = torch.eye(3, dtype=dtype, device=device)[int(a.abs().argmin())]
-            b1 = e - (e @ a) * a
-            b1 = b1 / b1.norm()
+            b1 = orthogonal_unit(a)  # b2 = a x b1
             b2 = torch.linalg.cross(a, b1)
             W = torch.zeros(5, 6, dtype=dtype, device=device)
             W[:3, :3] = torch.eye(3, dtype=dtype, device=device)

@@ -34,7 +34,7 @@ import math
 import torch
 
 from ..core.exceptions import InputError
-from ..kinematics.transforms import so3_exp
+from ..kinematics.transforms import orthogonal_unit, so3_exp
 
 TOOL_SET_MAX_DEG = 30.0
 """deg: a tool set whose identified vectors are its nominal ones turned further than this is not these tools
@@ -102,15 +102,8 @@ def _line_rotation(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     v = torch.linalg.cross(a, b)
     s = v.norm()
     if float(s) < 1e-15:  # parallel (or reversed, which the turn check refuses): no tilt about a defined axis
-        return so3_exp(torch.zeros_like(v)) if float(a @ b) > 0 else so3_exp(math.pi * _orthogonal(a))
+        return so3_exp(torch.zeros_like(v)) if float(a @ b) > 0 else so3_exp(math.pi * orthogonal_unit(a))
     return so3_exp(v / s * torch.atan2(s, a @ b))
-
-
-def _orthogonal(a: torch.Tensor) -> torch.Tensor:
-    """A unit vector (3,) orthogonal to the unit vector a (3,)."""
-    e = torch.eye(3, dtype=a.dtype, device=a.device)[int(a.abs().argmin())]
-    e = e - (e @ a) * a
-    return e / e.norm()
 
 
 def model_tool_set_frame(model) -> torch.Tensor | None:

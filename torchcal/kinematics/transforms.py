@@ -90,6 +90,14 @@ def axis_angle_to_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tenso
     return eye + s * k + (1.0 - c) * small_matmul(k, k)
 
 
+def orthogonal_unit(a: torch.Tensor) -> torch.Tensor:
+    """A unit vector (3,) orthogonal to the unit vector a (3,): the axis farthest from a among x, y, z, with its
+    part along a removed (well conditioned for any a)."""
+    e = torch.eye(3, dtype=a.dtype, device=a.device)[int(a.abs().argmin())]
+    e = e - (e @ a) * a
+    return e / e.norm()
+
+
 def so3_exp(w: torch.Tensor) -> torch.Tensor:
     """Exact rotation matrix exp(S(w)) of a rotation vector.  w: (..., 3) -> (..., 3, 3).
 

@@ -32,7 +32,7 @@ def implausible_units(fitted: list, rows: dict, robot, frames: dict, warn, thres
     nominal residual far above the fleet's (:data:`NOMINAL_FLEET_RATIO`), which a badly damaged gearbox also
     gives; the caller judges them against the fleet's joint features (:func:`~torchcal.identify.fleet_outliers.
     judge_against`) and calls "another robot" only the ones no joint explains."""
-    from ..identify.fleet_outliers import MAD_FLOOR
+    from ..identify.fleet_outliers import scores_from_values
     from .common import NOMINAL_IMPLAUSIBLE_MM
 
     hint = ("" if frames else "; measurement_frame: estimate when the tracker was not at the robot base")
@@ -52,13 +52,14 @@ def implausible_units(fitted: list, rows: dict, robot, frames: dict, warn, thres
                          f"({mean:.3f} mm after it): {check}")
     for name, why in out.items():
         warn(f"unit {name}: {why}; not scored for outliers, left out of the fleet prior")
-    rest = torch.tensor([v for k, v in nominal.items() if k not in out], dtype=torch.float64)
-    if rest.numel() >= 3:  # judged against the units the absolute bound let through, as the features are
-        med = float(rest.median())
-        mad = max(float((rest - med).abs().median()), MAD_FLOOR * med, 1e-12)
-        for u, _ in fitted:
-            name, nom = u["name"], nominal[u["name"]]
-            if name not in out and nom > NOMINAL_FLEET_RATIO * med and 0.6745 * (nom - med) / mad > threshold:
+    rest = [name for name in nominal if name not in out]
+    if len(rest) >= 3:  # judged against the units the absolute bound let through, as the features are
+        sc = scores_from_values({"nominal": torch.tensor([[nominal[name]] for name in rest], dtype=torch.float64)},
+                                ["nominal"])
+        med = float(sc.median["nominal"][0])
+        for k, name in enumerate(rest):
+            nom = nominal[name]
+            if float(sc.ratio["nominal"][k, 0]) > NOMINAL_FLEET_RATIO and float(sc.z["nominal"][k, 0]) > threshold:
                 short = f"nominal residual {nom:.2f} mm, {nom / med:.1f}x the fleet's median"
                 suspects[name] = (short, (
                     f"the nominal robot misses its identification points by {nom:.2f} mm (mean), {nom / med:.1f}x the "

@@ -88,15 +88,19 @@ MAD_FLOOR = 0.01
 """The least spread (a fraction of the fleet median) a feature's MAD is taken to have."""
 
 
-def scores_from_values(values: dict, joints: list) -> FeatureScores:
-    """Per feature name (M, n) values of M units, each standardized by the units' median and MAD (per column)."""
+def scores_from_values(values: dict, joints: list, against: FeatureScores | None = None) -> FeatureScores:
+    """Per feature name (M, n) values of M units, each standardized by the units' median and MAD (per column), or
+    by those of ``against`` (another fleet's scores, which these units then do not move)."""
     out = FeatureScores(list(joints), {}, {}, {}, {}, {})
     for key, F in values.items():
         F = F.detach().cpu().clamp(min=1e-15)  # (M, n)
-        med = F.median(0).values
-        # a spread of at least 1 % of the median: units with equal values (a file given twice, a fleet of three)
-        # have no MAD, and a z-score divided by nothing says 1e12 where a ratio says 1.2
-        mad = torch.maximum((F - med).abs().median(0).values, MAD_FLOOR * med.abs()).clamp(min=1e-15)
+        if against is not None:
+            med, mad = against.median[key], against.mad[key]
+        else:
+            med = F.median(0).values
+            # a spread of at least 1 % of the median: units with equal values (a file given twice, a fleet of
+            # three) have no MAD, and a z-score divided by nothing says 1e12 where a ratio says 1.2
+            mad = torch.maximum((F - med).abs().median(0).values, MAD_FLOOR * med.abs()).clamp(min=1e-15)
         out.value[key], out.median[key], out.mad[key] = F, med, mad
         out.z[key] = 0.6745 * (F - med) / mad
         out.ratio[key] = F / med
@@ -142,15 +146,12 @@ def judge_against(scores: FeatureScores, model, threshold: float = 5.0,
 
     For a unit held out of the fleet's own scoring (its nominal residual says it may be another robot): a damaged
     gearbox also raises the nominal residual, and is then named at its joint rather than called another robot."""
-    feats = joint_features(model)
+    mine = scores_from_values({k: v[None] for k, v in joint_features(model).items()}, scores.joints, scores)
     score, found = float("-inf"), []
-    for key, value in feats.items():
-        v = value.detach().cpu().clamp(min=1e-15)
-        med, mad = scores.median[key], scores.mad[key]
-        z = 0.6745 * (v - med) / mad
-        ratio = v / med
+    for key in mine.value:
+        z, ratio = mine.z[key][0], mine.ratio[key][0]
         score = max(score, float(z.max()))
-        for j in ((z > threshold) & (ratio >= min_ratio)).nonzero()[:, 0].tolist():
+        for j in mine.flagged(key, threshold, min_ratio)[0].nonzero()[:, 0].tolist():
             found.append(Outlier(-1, scores.joints[j], key, float(ratio[j]), float(z[j])))
     found.sort(key=lambda o: -o.z)
     return score, found

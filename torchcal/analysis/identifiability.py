@@ -231,7 +231,9 @@ def reduced_jacobian(A: torch.Tensor, C: torch.Tensor, w_v: torch.Tensor, f: tor
     return At, (Linv @ f[..., None])[..., 0]
 
 
-def _pin(problem: CalibrationProblem, names) -> list[str]:
+def pin_entries(problem: CalibrationProblem, names) -> list[str]:
+    """Hold the named entries (a fit's ``FitResult.pinned``) out of ``problem``'s layout; its prior follows
+    (:meth:`CalibrationProblem.set_layout`). Raises ValueError naming any that is not a free entry."""
     names = list(names)
     have = problem.layout.names()
     missing = [n for n in names if n not in have]
@@ -285,7 +287,7 @@ def identifiability(
     full_names = problem.layout.names()
     full_prec, full_mean = problem.prior_precision, problem.prior_mean
     if pinned is not None:
-        pinned = _pin(problem, pinned)
+        pinned = pin_entries(problem, pinned)
     elif gauge:
         pinned = fix_gauge(problem)
     else:

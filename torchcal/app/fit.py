@@ -467,17 +467,13 @@ def identify_model(cfg, inp: FitInputs, model, orders, run_dir: Path, progress: 
 def _prior_tension(inp: FitInputs, model, result: FitResult, fleet, opts: dict):
     """How far the unit lies from the fleet prior against its data (:func:`torchcal.identify.fleet_prior.
     prior_tension`), or None where it cannot be judged (logged: a diagnostic must not cost the run)."""
+    from ..analysis.identifiability import pin_entries
     from ..identify import CalibrationProblem
     from ..identify.fleet_prior import prior_tension
 
     try:
         problem = CalibrationProblem(model, inp.ident, inp.noise, inp.prior, opts.get("fixed", ()))
-        if result.pinned:  # the pinned entries out, the prior's precision kept by name (as identifiability does)
-            names, prec = problem.layout.names(), problem.prior_precision
-            pinned = set(result.pinned)
-            drop = torch.tensor([n in pinned for n in names], dtype=torch.bool)
-            problem.set_layout(problem.layout.without(drop))
-            problem.prior_precision = prec[~drop.to(prec.device)]
+        pin_entries(problem, result.pinned)
         return prior_tension(fleet.block, problem, problem.layout.get().to(model.device), result.v)
     except Exception as exc:
         log.warning("fleet prior tension skipped: %s: %s", type(exc).__name__, exc)

@@ -90,6 +90,7 @@ def refuse_radian_orientations(model, path: Path, df, seeds: torch.Tensor) -> No
     from ..compensate.targets import target_poses
     from ..io.csv import TARGET_RPY, DataError, Problem, read_targets
     from ..io.unit_checks import OVERRIDE
+    from ..measure.pose import rotation_error
 
     kind, pos, ori = read_targets(df, path)
     ok = torch.isfinite(seeds).all(1)
@@ -99,9 +100,8 @@ def refuse_radian_orientations(model, path: Path, df, seeds: torch.Tensor) -> No
         R = model.nominal_flange(seeds[ok].to(model.device, model.dtype))[:, :3, :3].cpu().to(torch.float64)
 
     def off_deg(rpy):
-        T = target_poses(pos[ok], rpy[ok])[:, :3, :3]
-        c = (((R.transpose(1, 2) @ T).diagonal(dim1=1, dim2=2).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
-        return float(units.rad_to_deg(torch.acos(c)).median())
+        turn = rotation_error(target_poses(pos[ok], rpy[ok])[:, :3, :3], R).norm(dim=-1)
+        return float(units.rad_to_deg(turn).median())
 
     as_deg, as_rad = off_deg(ori), off_deg(units.rad_to_deg(ori))  # the file's numbers read as radians
     far, share = RADIAN_RPY_DEG

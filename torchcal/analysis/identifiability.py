@@ -283,9 +283,6 @@ def identifiability(
 
     noise = resolve_noise(model, noise)  # the robot's repeatability unless given
     problem = CalibrationProblem(model, data, noise, prior, fixed)
-    # prior by name: CalibrationProblem.set_layout mis-indexes it when a whole group gets pinned
-    full_names = problem.layout.names()
-    full_prec, full_mean = problem.prior_precision, problem.prior_mean
     if pinned is not None:
         pinned = pin_entries(problem, pinned)
     elif gauge:
@@ -298,9 +295,7 @@ def identifiability(
     if v.shape != problem.data.q.shape:
         raise ValueError(f"identifiability: v has shape {tuple(v.shape)}, the data need {tuple(problem.data.q.shape)}")
     f, A, C = problem.linearize(x, v)
-    where = {name: i for i, name in enumerate(full_names)}
-    idx = torch.tensor([where[name] for name in layout.names()], dtype=torch.long, device=full_prec.device)
-    prior_precision, prior_mean = full_prec[idx], full_mean[idx]
+    prior_precision, prior_mean = problem.prior_precision, problem.prior_mean  # set_layout re-indexed them
     Ared3, fred = reduced_jacobian(A, C, problem.w_v, f - (C @ v[..., None])[..., 0])
     Ared = Ared3.reshape(-1, layout.size)
     dx = x - prior_mean

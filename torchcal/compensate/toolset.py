@@ -34,7 +34,7 @@ import math
 import torch
 
 from ..core.exceptions import InputError
-from ..kinematics.transforms import orthogonal_unit, so3_exp
+from ..kinematics.transforms import kabsch, orthogonal_unit, so3_exp
 
 TOOL_SET_MAX_DEG = 30.0
 """deg: a tool set whose identified vectors are its nominal ones turned further than this is not these tools
@@ -68,9 +68,7 @@ def tool_set_frame(nominal: torch.Tensor, identified: torch.Tensor) -> torch.Ten
     R = torch.eye(3, dtype=torch.float64, device=a.device)
     spread = torch.linalg.svdvals(A) if a.shape[0] >= 2 else torch.zeros(3, dtype=torch.float64, device=a.device)
     if a.shape[0] >= 3 and float(spread[1]) > LINE_TOL:
-        U, _, Vh = torch.linalg.svd(A.T @ Bc)
-        d = torch.sign(torch.linalg.det(Vh.T @ U.T))
-        R = Vh.T @ torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d])) @ U.T
+        R = kabsch(a, b)[0]
     elif float(spread[0]) > LINE_TOL:
         if float(torch.linalg.svdvals(Bc)[0]) <= LINE_TOL:
             raise InputError("the identified tools coincide where their nominal vectors do not: the data measured one "

@@ -232,6 +232,12 @@ def test_one_field_header_says_what_separates_fields(tmp_path, fanuc):
     with pytest.raises(DataError) as err:
         read_measurements(write(tmp_path, lines, "spaces.csv"), fanuc, 2)
     assert "the contract separates fields with ','" in str(err.value) and "missing" not in str(err.value)
+    assert "whitespace" in str(err.value) and "decimal comma" not in str(err.value)
+    # space-separated with decimal commas: changing the separators alone would not read it, so it says both
+    lines[1] = lines[1].replace(" 100 ", " 100,5 ")
+    with pytest.raises(DataError) as err:
+        read_measurements(write(tmp_path, lines, "spaces_commas.csv"), fanuc, 2)
+    assert "whitespace" in str(err.value) and "decimal commas (e.g. '100,5')" in str(err.value)
 
 
 def test_data_error_is_a_torchcal_error():

@@ -185,6 +185,26 @@ def _scan(path: Path, delimiter: str = ",") -> tuple[list[str], list[int], list[
     return [h.strip() for h in header], starts, widths, padded
 
 
+def _whitespace_hint(path: Path, header: str) -> str:
+    """What else a whitespace-separated file needs: its rows' decimal commas (e.g. '1,5') are what made them
+    look like several ','-separated fields, so changing the separators alone would not read them."""
+    if len(header.split()) < 2:
+        return ""
+    try:
+        with path.open(encoding="utf-8-sig") as fh:
+            fh.readline()
+            sample = [fh.readline() for _ in range(20)]
+    except (OSError, UnicodeDecodeError):
+        return ""
+    tokens = [t for line in sample for t in line.split()]
+    commas = [t for t in tokens if _DECIMAL_COMMA.match(t)]
+    hint = " (this file separates them with whitespace)"
+    if commas:
+        hint += (f", and its numbers use decimal commas (e.g. {commas[0]!r}): write '.' as the decimal mark, or "
+                 "';' between fields, which is read as a European spreadsheet export")
+    return hint
+
+
 def _blank_rows(df: pd.DataFrame) -> np.ndarray:
     """(R,) bool: the rows whose every cell is empty text. On the cells as one object array (pandas' own
     comparison of a frame of strings took 4x as long)."""
@@ -225,7 +245,8 @@ def read_raw_table(path: Path) -> pd.DataFrame:
     elif sep == "," and len(names) == 1 and (len(names[0].split()) > 1 or any(w > 1 for w in widths)):
         # e.g. a space-separated file: say so once instead of "column missing" for every column, or one line per row
         problems = [Problem(None, None, f"the header has one field ({names[0][:60]!r}) and the rows up to "
-                                        f"{max(widths, default=0)}: the contract separates fields with ','")] + problems[:3]
+                                        f"{max(widths, default=0)}: the contract separates fields with ','"
+                                        + _whitespace_hint(path, names[0]))] + problems[:3]
     if problems:
         raise DataError(path, problems)
     try:

@@ -55,8 +55,8 @@ def tool_set_frame(nominal: torch.Tensor, identified: torch.Tensor) -> torch.Ten
         >>> import torch
         >>> t = torch.tensor([[0.0, 0.0, 0.1], [0.05, 0.0, 0.1], [0.0, 0.05, 0.1]], dtype=torch.float64)
         >>> G = tool_set_frame(t, t + torch.tensor([0.0, 0.0, 0.002], dtype=torch.float64))
-        >>> [round(float(v), 6) for v in G[:3, 3]]
-        [0.0, 0.0, 0.002]
+        >>> torch.allclose(G[:3, 3], torch.tensor([0.0, 0.0, 0.002], dtype=torch.float64))
+        True
     """
     if nominal.shape != identified.shape or nominal.ndim != 2 or nominal.shape[1] != 3:
         raise InputError(f"tool_set_frame: nominal and identified must both be (T, 3), got {tuple(nominal.shape)} "

@@ -24,14 +24,17 @@ from .targets_input import has_flags, refuse_radian_orientations, refuse_targets
 
 
 def _refuse_radians(path, data: Measurements, model, units_checked: bool) -> None:
-    """Commands that look like radians would be driven as degrees: refuse unless the user says they are degrees,
-    the file's measured points fit degrees, or the run was itself identified on such commands (near-home)."""
+    """Commands that look like radians would be driven as degrees (a rail in metres as mm): refuse unless the user
+    says they are degrees, the file's measured points fit degrees, or the run was itself identified on such
+    commands (near-home)."""
     if units_checked:
         return
     from ..io.unit_checks import (OVERRIDE, RADIAN_BOUND, UnitsError, check_radians, degrees_confirmed,
-                                  radian_columns, radian_message)
+                                  metre_columns, metre_message, radian_columns, radian_message)
 
     robot = model.robot
+    if metres := metre_columns(data.q, robot):  # a rail in metres would be driven a thousandth of the way
+        raise UnitsError(metre_message(path, data.q, robot, metres))
     rad = radian_columns(data.q, robot)
     if not rad:
         return

@@ -22,7 +22,7 @@ from torch import nn
 
 from ..core.basis import chebyshev, normalize
 from ..kinematics.transforms import twist_to_transform
-from ..core.params import ANGLE, ParamGroup, term_kinds
+from ..core.params import ANGLE, LENGTH, ParamGroup, term_kinds
 
 TERMS = ("eps_x", "eps_y", "eps_z", "delta_x", "delta_y", "delta_z")
 """The six error terms of (20), in twist order: rotations (rad) then translations (m)."""
@@ -96,9 +96,12 @@ class JointErrors(nn.Module):
         torch.Size([5, 2, 4, 4])
     """
 
-    def __init__(self, ranges: torch.Tensor, orders=6, backlash=None, joint_names: Sequence[str] | None = None):
+    def __init__(self, ranges: torch.Tensor, orders=6, backlash=None, joint_names: Sequence[str] | None = None,
+                 prismatic: Sequence[bool] | None = None):
         super().__init__()
         n = ranges.shape[0]
+        # a prismatic joint's backlash is lost motion along it: a length (m), labelled mm, not deg
+        self.prismatic_joints = [bool(b) for b in prismatic] if prismatic is not None else [False] * n
         table = _order_table(orders, n)
         K = int(table.max().clamp(min=0)) + 1
         k = torch.arange(K)
@@ -174,7 +177,9 @@ class JointErrors(nn.Module):
                                torch.tensor(BACKLASH_VARIATION_SIGMA, dtype=torch.float64))
         return [
             ParamGroup(f"{prefix}.coef", "joint", coef_names, kinds, sigma, self.mask.expand_as(self.coef).clone()),
-            ParamGroup(f"{prefix}.backlash", "backlash", bl_names, [ANGLE] * nb, bl_sigma, self.backlash_mask.clone()),
+            ParamGroup(f"{prefix}.backlash", "backlash", bl_names,
+                       [LENGTH if self.prismatic_joints[i] else ANGLE for i in range(n) for _ in range(self.backlash.shape[1])],
+                       bl_sigma, self.backlash_mask.clone()),
         ]
 
     def parameter_names(self) -> tuple[list[str], list[str]]:

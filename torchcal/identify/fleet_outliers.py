@@ -37,9 +37,20 @@ def axis_errors(model, samples: int = 101) -> tuple[torch.Tensor, torch.Tensor]:
         t = torch.linspace(0.0, 1.0, samples, dtype=lo.dtype, device=lo.device)[:, None]
         u = lo + t * (hi - lo)
         ones = torch.ones_like(u)
-        fwd, bwd = je.twists(u, ones), je.twists(u, -ones)  # (S, n, 6): rotation, translation
         prismatic = model.prismatic.to(u.device)[None, :]
-        return torch.where(prismatic, fwd[..., 5], fwd[..., 2]), torch.where(prismatic, bwd[..., 5], bwd[..., 2])
+        axes = model.axes.to(u)
+
+        def along(tw):  # (S, n, 6) twists -> (S, n): the turn about, or the move along, each joint's own axis
+            return torch.where(prismatic, (tw[..., 3:] * axes).sum(-1), (tw[..., :3] * axes).sum(-1))
+
+        coupling = getattr(model, "backlash_coupling", lambda: None)()
+        if coupling is None:  # backlash on eps_z, each joint's turn (Paper II (13), joints about +z)
+            return along(je.twists(u, ones)), along(je.twists(u, -ones))
+        # backlash moves the joint variables (a rail, a ROS-style axis, backlash_on: command): it is the joint's
+        # own lost motion, which eps_z (a turn about the frame's z) does not hold
+        axis = along(je.twists(u, None))
+        b = je.backlash_values(u, ones) if je.has_backlash else torch.zeros_like(axis)
+        return axis + b, axis - b
 
 
 def joint_features(model, samples: int = 101) -> dict[str, torch.Tensor]:

@@ -151,7 +151,7 @@ class RobotStructure:
             return False
         if model.extended():  # a subclass's own terms: this path's closed-form columns would leave them out
             return False
-        if model.backlash_on != "joint":  # its backlash columns are the joint axis's (Paper II (13))
+        if model.backlash_coupling() is not None:  # its backlash columns are eps_z's (Paper II (13) about +z)
             return False
         if not isinstance(instrument, PointTargets) or getattr(instrument.weight, "sigma", None) is None:
             return False

@@ -57,6 +57,43 @@ def radian_columns(q: torch.Tensor, robot) -> list[str]:
     return [f"q{j + 1}" for j in wide]
 
 
+WIDE_TRAVEL_MM = 100.0
+"""A linear axis at least this long (mm) would rarely be used only within its travel read as metres."""
+
+
+def metre_columns(q: torch.Tensor, robot) -> list[str]:
+    """Linear (prismatic) joint columns that look like metres: every long joint stays within its travel / 1000 mm.
+
+    q: (R, n) controller commands as read (SI). -> ['q1', ...] or []. A 4 m rail written in metres
+    (0..3.9) is a valid-looking file that drives the carriage 3.9 mm."""
+    jm = robot.joint_map
+    if q.shape[0] < MIN_ROWS:
+        return []
+    mm = units.joints_from_si(q.detach().cpu(), jm.prismatic.cpu()).numpy()
+    span = units.joints_from_si(jm.limits.cpu().T, jm.prismatic.cpu()).T.numpy()  # (n, 2) deg / mm
+    out = []
+    for j in range(jm.n):
+        if not bool(jm.prismatic[j]) or span[j, 1] - span[j, 0] < WIDE_TRAVEL_MM:
+            continue
+        a = np.abs(mm[:, j])
+        reach = 1.05e-3 * float(np.abs(span[j]).max())
+        if np.isfinite(a).all() and 0.05 * reach < a.max() <= reach:  # all zeros (home) is no evidence
+            out.append(f"q{j + 1}")
+    return out
+
+
+def metre_message(path, q: torch.Tensor, robot, cols: list[str]) -> str:
+    """One line naming the file and the linear joint columns that look like metres."""
+    jm = robot.joint_map
+    span = units.joints_from_si(jm.limits.cpu().T, jm.prismatic.cpu()).T.numpy()
+    j = int(cols[0][1:]) - 1
+    top = float(units.joints_from_si(q.detach().cpu(), jm.prismatic.cpu())[:, j].abs().max())
+    return (f"{path}: linear joint columns {', '.join(cols)} all stay within {top:.4g} over {q.shape[0]} rows, while "
+            f"'{robot.name}' moves e.g. {cols[0]} over [{span[j, 0]:.6g}, {span[j, 1]:.6g}] mm: they look like "
+            f"metres; the contract is mm (mm = m * 1000); convert them, or pass {OVERRIDE} (fit, fleet, sweep: "
+            "data.units_checked=true) if they really are mm")
+
+
 def radian_message(path, q: torch.Tensor, robot, cols: list[str]) -> str:
     """One line naming the file and columns: what was seen against the robot's range."""
     jm = robot.joint_map
@@ -220,6 +257,8 @@ def check_units(data, robot, tools_m: torch.Tensor | None = None, path=None) -> 
     radians read as degrees say nothing about the points' unit), the rest to :func:`check_point_scale`.
     Raises :class:`UnitsError` on a slip. -> (the columns that look like radians, :func:`check_radians`' scales),
     for the caller's note."""
+    if metres := metre_columns(data.q, robot):
+        raise UnitsError(metre_message(path or data.source, data.q, robot, metres))
     rad = radian_columns(data.q, robot)
     if rad:
         return rad, check_radians(data, robot, tools_m, path)
@@ -266,5 +305,5 @@ def scale_guess(s: float) -> str:
 
 
 __all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "check_units", "degrees_confirmed",
-           "path_scale", "point_scale", "radian_columns", "radian_message", "radian_scales", "scale_guess", "tool_scales",
+           "metre_columns", "metre_message", "path_scale", "point_scale", "radian_columns", "radian_message", "radian_scales", "scale_guess", "tool_scales",
            "units_note"]

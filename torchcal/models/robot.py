@@ -113,7 +113,15 @@ class RobotModel(ChainBuffers, nn.Module):
         self.register_buffer("error_offset", b_u.clone(), persistent=False)
         # a joint whose errors follow θ_i also sees the gravity deflection of θ_i; one on the command does not
         self.register_buffer("error_follows_joint", jm.follows_joint().to(torch.float64), persistent=False)
-        self.joint_errors = JointErrors(jm.error_ranges(), orders, backlash, chain.joint_names)
+        self.joint_errors = JointErrors(jm.error_ranges(), orders, backlash, chain.joint_names,
+                                        prismatic=self.prismatic.tolist())
+        # Paper II (13) turns joint i about its own axis; E_i's eps_z is that turn only for a revolute joint about +z
+        # (every bundled robot). A ROS-style axis (0 1 0) or a prismatic rail would get a turn about the frame's z
+        # (a rail's backlash became a yaw of its carriage), so there backlash moves theta_i itself, the same motion
+        # wherever eps_z is the joint's turn.
+        carries = self.joint_errors.backlash_orders >= 0
+        on_z = ~self.prismatic & (self.axes - self.axes.new_tensor([0.0, 0.0, 1.0])).abs().amax(-1).le(1e-12)
+        self._backlash_on_theta = bool((carries & ~on_z).any())
         self.base = FrameCorrection(base_nominal)
         self.tools = ToolSet(tools)
         self.compliance = build_compliance(robot, compliance)
@@ -124,6 +132,19 @@ class RobotModel(ChainBuffers, nn.Module):
         self.measured_tools = None  # the tool indices the identification data measured (fit()); None: not known
 
     # -------------------------------------------------------------- kinematics
+    def backlash_coupling(self) -> torch.Tensor | None:
+        """(n, n) map from the backlash terms s_j Δq_jb to the URDF joint variables θ, or None where they add to
+        E_i's eps_z (Paper II (13) on joints turning about +z: the fast backends' form).
+
+        'command': the joint map's coupling (a parallelogram's motor-side backlash also turns θ3); 'joint' on a
+        chain with a prismatic joint or an axis other than +z among those carrying backlash: the identity (each
+        joint moves about, or along, its own axis)."""
+        if self.backlash_on == "command":
+            return self.coupling
+        if self._backlash_on_theta:
+            return torch.eye(self.n, dtype=self.coupling.dtype, device=self.coupling.device)
+        return None
+
     def joint_variables(self, q: torch.Tensor) -> torch.Tensor:
         """Controller commands (B, n) -> URDF joint variables (B, n)."""
         return q @ self.coupling.T + self.offset
@@ -182,10 +203,10 @@ class RobotModel(ChainBuffers, nn.Module):
         base: include T_0^m (measurement frame) or work in the robot's nominal base frame.
         """
         theta, u, _ = self._variables(q, v)
-        if self.backlash_on == "command":
+        if (Mb := self.backlash_coupling()) is not None:
             E = self.joint_errors(u, None)
             if direction is not None and self.joint_errors.has_backlash:
-                theta = theta + self.joint_errors.backlash_values(u, direction) @ self.coupling.T
+                theta = theta + self.joint_errors.backlash_values(u, direction) @ Mb.T
         else:
             E = self.joint_errors(u, direction)
         T0 = self.base() if base else self.base.correction()
@@ -219,7 +240,7 @@ class RobotModel(ChainBuffers, nn.Module):
                 prismatic=self.prismatic.detach().clone(), tip=self.tip.detach().clone(),
                 base=self.base.correction().detach().clone(),
                 live=self if (self.compliance is not None or self.fine is not None
-                              or self.backlash_on == "command" or self.extended()) else None)
+                              or self.backlash_coupling() is not None or self.extended()) else None)
 
     def closed_form(self) -> bool:
         """Whether :meth:`point_jacobians` / :meth:`flange_jacobian` hold every term of this model: not for an
@@ -269,8 +290,8 @@ class RobotModel(ChainBuffers, nn.Module):
         if je.has_backlash and direction is not None:
             s = direction.to(u)
             bl = je.backlash * je.backlash_mask
-            if self.backlash_on == "command":  # β on the commands, to θ through the coupling; its slope kept apart
-                theta = theta + ((basis[..., :Kb] * bl).sum(-1) * s) @ self.coupling.T
+            if (Mb := self.backlash_coupling()) is not None:  # β moves θ (through the coupling); its slope apart
+                theta = theta + ((basis[..., :Kb] * bl).sum(-1) * s) @ Mb.T
                 db = (dbasis[..., :Kb] * bl).sum(-1) * s
             else:
                 zpad = (2, 3)
@@ -316,8 +337,8 @@ class RobotModel(ChainBuffers, nn.Module):
         Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, p)[:, :rows, :]  # per θ_i
         slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, rows, n): through E_i's series
         J = {"joint_errors.coef": torch.einsum("bnct,bnk->bcntk", Je, d["basis"][..., : d["K"]])}
-        if d["s"] is not None and d["db"] is not None:  # backlash on the commands: it moves θ = A β
-            Jcmd = Jax @ self.coupling  # (B, rows, n) per command
+        if d["s"] is not None and d["db"] is not None:  # backlash moving θ = M β (backlash_coupling)
+            Jcmd = Jax @ self.backlash_coupling()  # (B, rows, n) per backlash term
             J["joint_errors.backlash"] = torch.einsum("bcj,bjk->bcjk", Jcmd * d["s"][:, None, :],
                                                       d["basis"][..., : d["Kb"]])
             slope = slope + Jcmd * d["db"][:, None, :]
@@ -357,8 +378,8 @@ class RobotModel(ChainBuffers, nn.Module):
         Je = twist_jacobian(d["jR"], d["jp"], d["e"], o[:, None, :], d.get("ER"))  # (B, n, 6, 6)
         Jax = joint_axis_jacobian(d["jR"], d["jp"], self.axes, self.prismatic, o)  # (B, 6, n) per θ_i
         slope = torch.einsum("bnct,bnt->bcn", Je, d["de"])  # (B, 6, n) per u_i
-        if d["db"] is not None:  # backlash on the commands: its slope moves θ through the coupling
-            slope = slope + (Jax @ self.coupling) * d["db"][:, None, :]
+        if d["db"] is not None:  # backlash moving θ: its slope moves θ through backlash_coupling
+            slope = slope + (Jax @ self.backlash_coupling()) * d["db"][:, None, :]
         Rt = F[:, :3, :3].transpose(1, 2)
 
         def body(Js):

@@ -793,3 +793,22 @@ def test_predict_says_what_it_changes(e2e, tmp_path):
     r = invoke("predict", e2e["run"], tmp_path / "commands.csv", tmp_path / "p2.csv")
     assert r.exit_code == 0 and "predicted for every one of the run's 3 tools (15 rows" in r.output, r.output
     assert "replaced" not in r.output
+
+
+def test_commands_using_a_fit_that_did_not_converge_say_so(e2e, tmp_path):
+    """A fit stopped by solver.max_iter is a finished run, but its model is the solver's last iterate: predict,
+    compensate and export-urdf used it without a word (0.03 deg off the converged model's commands)."""
+    out = tmp_path / "run"
+    r = invoke("fit", e2e["sim"] / "fit.yaml", *_quick("model.order=2", "solver.max_iter=2", f"out={out}"), "-q")
+    assert r.exit_code == 0, r.output
+    assert json.loads((out / "fit.json").read_text())["converged"] is False
+    cmds = tmp_path / "cmds.csv"
+    cmds.write_text("q1,q2,q3,q4,q5,q6\n10,20,30,40,50,60\n-10,10,20,-30,40,-50\n")
+    for args in (("predict", out, cmds, tmp_path / "p.csv"), ("compensate", out, cmds, tmp_path / "c.csv"),
+                 ("export-urdf", out, tmp_path / "cal.urdf")):
+        r = invoke(*args)
+        assert r.exit_code == 0, r.output
+        assert "did not converge" in " ".join(r.output.split()), (args[0], r.output)
+    good = e2e["run"]  # the module's converged fit says nothing of the kind
+    r = invoke("predict", good, cmds, tmp_path / "p_good.csv")
+    assert r.exit_code == 0 and "did not converge" not in r.output

@@ -633,11 +633,13 @@ def export_tables_cmd(
 
     with _user_errors(), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        from .app.commands import export_tables
+        from .app.commands import export_tables, run_notes
 
         _check_table_outputs(run_dir, out, format, force)
         with _progress(_console(stderr=True), f"exporting the compensation tables of {run_dir} ({format})"):
             written = export_tables(run_dir, out, format, points, max_points)
+    for note in run_notes(run_dir):
+        typer.echo(f"warning: {note}", err=True)
     seen = set()
     for w in caught:  # the end-slope warnings, once each (every writer checks them)
         if str(w.message) not in seen:
@@ -687,7 +689,7 @@ def export_urdf_cmd(
 ):
     """A calibrated URDF: the constant part of a robot model in the joint origins, compared on the run's data (mm)."""
     with _user_errors():
-        from .app.commands import export_urdf
+        from .app.commands import export_urdf, run_notes
         from .app.config import ConfigError
 
         if base not in ("joint", "link"):
@@ -697,6 +699,8 @@ def export_urdf_cmd(
         _check_output(output, force, *_run_files(run_dir))
         with _progress(_console(stderr=True), f"exporting the calibrated URDF of {run_dir}"):
             res, which = export_urdf(run_dir, output, base, measurement_frame, constants, force)
+        for note in run_notes(run_dir):
+            typer.echo(f"warning: {note}", err=True)
     exp = res.export
     typer.echo(f"wrote {exp.urdf}")
     if exp.joint_map is not None:

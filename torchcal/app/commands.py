@@ -172,6 +172,14 @@ def export_urdf(run_dir, out, base: str = "joint", measurement_frame: bool = Fal
     return export_run_urdf(run_dir, out, base, measurement_frame, constants, data, force, fit_data), which
 
 
+def run_notes(run_dir) -> list[str]:
+    """What a command using the run's model must say (:func:`torchcal.io.rundir.run_model_notes`): a fit that did
+    not converge, a fleet unit its data did not determine."""
+    from ..io.rundir import run_model_notes
+
+    return run_model_notes(run_dir)
+
+
 def write_report(run_dir, out=None) -> Path:
     """``torchcal report``: the run directory's self-contained ``report.html`` (:mod:`torchcal.report`)."""
     from ..report import write_report as _write
@@ -179,5 +187,5 @@ def write_report(run_dir, out=None) -> Path:
     return _write(run_dir, out)
 
 
-__all__ = ["export_tables", "export_urdf", "import_tmac_file", "import_tracker_file", "plan_poses_file", "table_output_names",
-           "write_report"]
+__all__ = ["export_tables", "export_urdf", "import_tmac_file", "import_tracker_file", "plan_poses_file", "run_notes",
+           "table_output_names", "write_report"]

@@ -92,7 +92,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     -> :class:`PredictFile`. Raises RunDirError / DataError naming the folder or file.
     """
     from ..io.csv import points_to_file, read_table
-    from ..io.rundir import RunDirError, load_model, require_finished
+    from ..io.rundir import RunDirError, load_model, require_finished, run_model_notes
 
     require_finished(run_dir, "torchcal predict")
     with progress_task(f"loading the run {run_dir}"):
@@ -125,7 +125,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
     data = data.to(model.device)
     # a file of commands only (e.g. from `torchcal plan-poses`): every row for every tool of the run, tool-major
     tools = range(T) if per_tool else [None]
-    said = _undetermined_note(run_dir) + _input_warnings(model, input, df, data, targets=False)
+    said = run_model_notes(run_dir) + _input_warnings(model, input, df, data, targets=False)
     outside = _outside_data_column(model, data.q)
     parts = []
     with torch.no_grad(), progress_task(f"predicting {len(df) * len(tools)} rows"):
@@ -191,23 +191,6 @@ def _input_warnings(model, input, df, data, targets: bool) -> list[str]:
         out.append(f"{input}: no 'tool' column: every target is for tool 0 ({t0} mm in the flange frame, the run's "
                    f"identified tool 0), not the flange; add a 'tool' column (0..{model.tools.count - 1}) to choose")
     return out
-
-
-def _undetermined_note(run_dir) -> list[str]:
-    """A fleet unit whose data could not determine its model (``determined: false`` in its metrics.json: fewer
-    equations than parameters, the prior's values held): its predictions and commands are the prior's, which
-    predict and compensate used without a word (a 5-pose unit: 0.46 mm off, as far as the nominal robot)."""
-    import json
-
-    try:
-        m = json.loads((Path(run_dir) / "metrics.json").read_text())
-    except (OSError, ValueError):
-        return []
-    if not isinstance(m, dict) or m.get("determined") is not False:
-        return []
-    why = m.get("findings") or "its data could not determine its model"
-    return [f"{run_dir}: this unit's model is not determined by its data ({why}): its error terms are mostly the "
-            "prior's, not the robot's; measure more poses and fit it again before relying on these rows"]
 
 
 def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
@@ -313,7 +296,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     from ..io.rundir import load_model
 
     from ..core.contract import require
-    from ..io.rundir import RunDirError, require_finished
+    from ..io.rundir import RunDirError, require_finished, run_model_notes
 
     require_finished(run_dir, "torchcal compensate")
     with progress_task(f"loading the run {run_dir}"):
@@ -342,7 +325,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         if unseeded is None and not freedom.get("position_only"):  # seeds from the file: they tell the unit
             refuse_radian_orientations(model, Path(input), df, data.q)
 
-    said = _undetermined_note(run_dir) + _input_warnings(model, input, df, data, targets=targets)
+    said = run_model_notes(run_dir) + _input_warnings(model, input, df, data, targets=targets)
     if dof_note is not None:
         said.insert(0, dof_note)
     if targets:  # Cartesian targets: q1..qN are the controller's seeds (its branch)

@@ -59,7 +59,7 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
     x, y, z in mm after any registration, nominal_mm / modeled_mm and, for sensors, nominal_deg / modeled_deg).
     Raises RunDirError / DataError / ConfigError naming the folder, file or key."""
     from ..io.csv import write_table
-    from ..io.rundir import load_model, require_finished
+    from ..io.rundir import load_model, require_finished, run_model_notes
     from .config import run_config
 
     run_dir, data_path = Path(run_dir), Path(data_path)
@@ -69,7 +69,7 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
     sensor = hasattr(model, "sensor_pose")  # a 6-DOF sensor rig (Paper III) reads the sensor contract
     if not units_checked and (run_dir / "config.yaml").is_file():
         units_checked = bool(run_config(run_dir).data.units_checked)
-    said: list[str] = []
+    said: list[str] = run_model_notes(run_dir)
     with progress_task(f"reading {data_path}"):
         if sensor:
             from .sensor import read_sensor_set

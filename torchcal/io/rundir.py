@@ -276,6 +276,36 @@ def require_finished(run_dir, what: str) -> None:
                           f"delete {path / PARTIAL_FILE} if you have checked that the model is complete")
 
 
+def run_model_notes(run_dir) -> list[str]:
+    """What a command that uses a finished run's model must say first (read from its fit.json and metrics.json;
+    [] for a model file given directly, or nothing to say): a fit that did not converge (its model is the solver's
+    last iterate: predict, compensate and export-urdf used one 0.03 deg off the converged model without a word),
+    and a fleet unit whose data could not determine its model (its terms are the prior's: a 5-pose unit was used
+    0.46 mm off)."""
+    path = Path(run_dir)
+    if not path.is_dir():
+        return []
+    out = []
+    try:
+        fitted = read_json(path / "fit.json")
+    except (OSError, ValueError):
+        fitted = None
+    if isinstance(fitted, dict) and fitted.get("converged") is False:
+        why = str(fitted.get("message") or "").strip()
+        out.append(f"{path}: this run's fit did not converge ({why + ', ' if why else ''}{fitted.get('iterations', '?')} "
+                   "iterations): its model is the solver's last iterate, not a calibration; fit again (a larger "
+                   "solver.max_iter, or see its run.log) before relying on these results")
+    try:
+        m = read_json(path / "metrics.json")
+    except (OSError, ValueError):
+        m = None
+    if isinstance(m, dict) and m.get("determined") is False:
+        why = m.get("findings") or "its data could not determine its model"
+        out.append(f"{path}: this unit's model is not determined by its data ({why}): its error terms are mostly the "
+                   "prior's, not the robot's; measure more poses and fit it again before relying on these rows")
+    return out
+
+
 def load_model(run_dir, device=None, robot=None):
     """Rebuild the identified :class:`torchcal.models.robot.RobotModel` of a run (a run folder or its model.pt).
 
@@ -407,6 +437,7 @@ __all__ = [
     "make_run_dir",
     "read_json",
     "require_finished",
+    "run_model_notes",
     "run_log",
     "save_model",
     "write_json",

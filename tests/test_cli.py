@@ -812,3 +812,42 @@ def test_commands_using_a_fit_that_did_not_converge_say_so(e2e, tmp_path):
     good = e2e["run"]  # the module's converged fit says nothing of the kind
     r = invoke("predict", good, cmds, tmp_path / "p_good.csv")
     assert r.exit_code == 0 and "did not converge" not in r.output
+
+
+def test_a_rerun_of_a_runs_config_names_the_inputs_changed_since(e2e, tmp_path):
+    """Re-running a run directory's own config.yaml on an edited file fitted it without a word; the truth (Table
+    7's 'Compensated' row) and a robot file were not hashed at all."""
+    import shutil
+
+    sim = tmp_path / "sim"
+    shutil.copytree(e2e["sim"], sim)
+    first = tmp_path / "first"
+    r = invoke("fit", sim / "fit.yaml", "model.order=0", "plots=false", f"out={first}", "-q")
+    assert r.exit_code == 0, r.output
+    recorded = json.loads((first / "data_hashes.json").read_text())
+    assert {"data.identification", "data.validation", "data.truth"} <= set(recorded)
+    r = invoke("fit", first / "config.yaml", f"out={tmp_path / 'same'}", "-q")
+    assert r.exit_code == 0 and "has changed since" not in r.output
+    lines = (sim / "identification.csv").read_text().splitlines()
+    f = lines[10].split(",")
+    f[-3] = str(float(f[-3]) + 0.5)  # one measured x moved by 0.5 mm
+    lines[10] = ",".join(f)
+    (sim / "identification.csv").write_text("\n".join(lines) + "\n")
+    r = invoke("fit", first / "config.yaml", f"out={tmp_path / 'again'}", "-q")
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    assert "data.identification" in text and "has changed since the run" in text and "data.validation (" not in text
+    assert "has changed since" in (tmp_path / "again" / "run.log").read_text()
+
+
+def test_a_truth_of_another_robot_is_named(e2e, tmp_path):
+    """Table 7's compensated row is measured on data.truth: another seed's truth.json gave 1.3 mm there (0.05 mm
+    with its own) without a word."""
+    other = tmp_path / "other"
+    r = invoke("simulate", other, "--identification", 20, "--validation", 20, "--seed", 4)
+    assert r.exit_code == 0, r.output
+    r = invoke("fit", e2e["sim"] / "fit.yaml", "model.order=0", "plots=false", f"data.truth={other / 'truth.json'}",
+               f"out={tmp_path / 'run'}", "-q")
+    assert r.exit_code == 0, r.output
+    assert "does not describe the validation rows" in " ".join(r.output.split())
+    assert "does not describe" not in e2e["fit_output"]  # its own truth: nothing to say

@@ -279,12 +279,43 @@ def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
     files["config"] = run_dir / "config.yaml"
     atomic_write_text(files["config"], to_yaml(cfg))
     files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
-    hashes = {}
-    for key in ("identification", "validation"):
-        p = getattr(cfg.data, key)
-        if p and Path(p).is_file():
-            hashes[f"data.{key}"] = {"path": str(p), "sha256": file_sha256(p)}
-    files["data_hashes"] = write_json(run_dir / DATA_HASH_FILE, hashes)
+    files["data_hashes"] = write_json(run_dir / DATA_HASH_FILE, input_hashes(cfg))
+
+
+def _input_files(cfg) -> dict[str, str]:
+    """The files a run reads, by config key: its data, the truth its compensation check measures on (Table 7's
+    'Compensated' row is the truth's), and the robot when given as a file."""
+    out = {f"data.{key}": getattr(cfg.data, key) for key in ("identification", "validation", "truth")}
+    out["robot"] = cfg.robot
+    return {k: str(p) for k, p in out.items() if p and Path(str(p)).is_file()}
+
+
+def input_hashes(cfg) -> dict:
+    """{key: {'path', 'sha256'}} of every input file of ``cfg`` (:func:`_input_files`): data_hashes.json."""
+    return {key: {"path": p, "sha256": file_sha256(p)} for key, p in _input_files(cfg).items()}
+
+
+def changed_inputs(cfg) -> list[str]:
+    """Warnings for a config that is a run directory's own config.yaml (a re-run): each input whose file differs
+    from what that run recorded in its data_hashes.json. The re-run fitted an edited file without a word, and
+    its parameters moved by as much as the edit."""
+    if not cfg.config_file:
+        return []
+    recorded_file = Path(cfg.config_file).parent / DATA_HASH_FILE
+    if not recorded_file.is_file():
+        return []
+    try:
+        recorded = read_json(recorded_file)
+    except (OSError, ValueError):
+        return []
+    out = []
+    for key, p in _input_files(cfg).items():
+        was = recorded.get(key) if isinstance(recorded, dict) else None
+        if isinstance(was, dict) and was.get("sha256") and was["sha256"] != file_sha256(p):
+            out.append(f"{key} ({p}) has changed since the run {recorded_file.parent} recorded it (sha256 "
+                       f"{was['sha256'][:12]}..., now {file_sha256(p)[:12]}...): this re-run does not reproduce it; "
+                       "restore the file to reproduce the run, or give the new file its own config")
+    return out
 
 
 
@@ -352,4 +383,6 @@ __all__ = [
     "solver_options",
     "tools_text",
     "write_preamble_files",
+    "changed_inputs",
+    "input_hashes",
 ]

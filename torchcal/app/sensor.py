@@ -103,6 +103,9 @@ def load_sensor_inputs(cfg) -> SensorInputs:
         for d in (ident, val):
             if d is not None and (note := units_note(d, robot, *check_units(d, robot), "data.units_checked=true")):
                 notes.append(note)
+    from .common import changed_inputs
+
+    notes.extend(changed_inputs(cfg))  # a re-run of a run's own config.yaml on edited files
     return SensorInputs(robot, ident, val, noise, joint_variance_source(cfg, robot), config_prior(cfg),
                         solver_options(cfg), device, label, notes)
 

@@ -2,6 +2,7 @@
 
 import json
 import logging
+from pathlib import Path
 
 import pytest
 import torch
@@ -61,6 +62,10 @@ def test_model_round_trip(tmp_path, fanuc, tools_m):
     # the loaded values are not the all-zero defaults of from_spec
     assert back.joint_errors.coef.abs().max() > 0
     assert torch.equal(load_model(tmp_path / "model.pt").base.twist, model.base.twist)
+    # the same model saved again is the same bytes (a deliverable's hash must not change when nothing did)
+    first = (tmp_path / "model.pt").read_bytes()
+    save_model(tmp_path / "again", model, orders=[1, 2, 0, 3, 1, 2])
+    assert (tmp_path / "again" / "model.pt").read_bytes() == first
 
 
 def test_load_model_errors(tmp_path):
@@ -81,6 +86,29 @@ def test_json_is_strict_and_versions_complete(tmp_path):
     from importlib import metadata
 
     assert v["numba"] == metadata.version("numba")  # the compiled kernels' version is part of what produced a run
+
+
+def test_versions_record_what_changes_the_bits(monkeypatch, tmp_path):
+    """Threads, the environment choosing them, the command line, and which source ran (the version string is the
+    same for every commit, and a plain install has no git checkout)."""
+    import hashlib
+    import sys
+
+    import torchcal
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    monkeypatch.delenv("MKL_NUM_THREADS", raising=False)
+    monkeypatch.setattr(sys, "argv", ["torchcal", "fit", "my config.yaml", "seed=3"])
+    v = collect_versions("cpu")
+    assert v["environment"]["OMP_NUM_THREADS"] == "1" and "MKL_NUM_THREADS" not in v["environment"]
+    assert v["command"] == "torchcal fit 'my config.yaml' seed=3"
+    assert v["torch_threads"] == torch.get_num_threads() and v["cpus_available"] >= 1
+    # the source hash, recomputed independently over the package's files
+    root = Path(torchcal.__file__).resolve().parent
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*.py")):
+        h.update(p.relative_to(root).as_posix().encode() + p.read_bytes())
+    assert v["torchcal_source_sha256"] == h.hexdigest() and v["torchcal_source"] == str(root)
 
 
 def test_run_log_records_failures(tmp_path):

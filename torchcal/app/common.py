@@ -278,7 +278,8 @@ def write_preamble_files(run_dir: Path, cfg, device, files: dict) -> None:
     """config.yaml (the resolved config), versions.json and data_hashes.json: what every run directory starts with."""
     files["config"] = run_dir / "config.yaml"
     atomic_write_text(files["config"], to_yaml(cfg))
-    files["versions"] = write_json(run_dir / "versions.json", collect_versions(device))
+    # the folder written (config.yaml's 'out' is the one asked for: a second run there went to runs-2)
+    files["versions"] = write_json(run_dir / "versions.json", {**collect_versions(device), "run_dir": str(run_dir)})
     files["data_hashes"] = write_json(run_dir / DATA_HASH_FILE, input_hashes(cfg))
 
 

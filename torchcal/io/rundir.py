@@ -194,12 +194,64 @@ def git_commit(folder=None) -> dict | None:
         return None
 
 
+THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS", "OMP_WAIT_POLICY",
+              "TORCHCAL_BLAS", "CUDA_VISIBLE_DEVICES")
+"""Environment variables that change a run's last bits (thread counts, the BLAS a product goes through) or its
+device: recorded when set (OMP_NUM_THREADS=1 alone changed 42 values of a metrics.json)."""
+
+
 def collect_versions(device=None) -> dict:
-    """What produced a run: interpreter, platform, package versions, git commit, compute device."""
+    """What produced a run: interpreter, platform, package versions, git commit and a hash of torchcal's own
+    source, compute device and CPU, the threads and the environment that choose them, the command line."""
+    import os
+    import shlex
+
+    from ..core.blas import numpy_blas
+
     dev = torch.device(device or "cpu")
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count()
     return {**_process_versions(), "device": str(dev),
-            "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or platform.machine(),
+            "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else _cpu_name(),
+            "host": platform.node(), "cpus_available": cpus, "torch_threads": torch.get_num_threads(),
+            "cpu_products": _cpu_products(numpy_blas),
+            "environment": {k: os.environ[k] for k in THREAD_ENV if k in os.environ},
+            "command": shlex.join(sys.argv),
             "created": datetime.now().astimezone().isoformat(timespec="seconds")}
+
+
+def _cpu_products(numpy_blas) -> str:
+    try:
+        return "numpy BLAS" if numpy_blas() else "torch"
+    except ValueError as exc:  # a bad TORCHCAL_BLAS: the run that uses it says so; the record says what was set
+        return f"unknown ({exc})"
+
+
+def _cpu_name() -> str:
+    """The CPU's model name (/proc/cpuinfo), else what platform knows."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def source_sha256() -> str:
+    """sha256 over torchcal's own source files (paths and contents): which code ran, where a plain install has no
+    git checkout and the version string is the same for every commit."""
+    import hashlib
+
+    root = Path(__file__).resolve().parent.parent
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*.py")):
+        h.update(p.relative_to(root).as_posix().encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
 
 
 @functools.cache
@@ -222,6 +274,8 @@ def _process_versions() -> dict:
         "numba": _version("numba"),
         "ray": _version("ray"),
         "git": git_commit(),
+        "torchcal_source": str(Path(__file__).resolve().parent.parent),
+        "torchcal_source_sha256": source_sha256(),
     }
 
 
@@ -238,9 +292,11 @@ def save_model(run_dir, model, **meta) -> Path:
     from .atomic import atomic_path
 
     # atomic: a full disk used to leave a truncated model.pt that later loads fail on
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        # through a file object: torch.save names the archive inside after a path it is given (the random
+        # temporary here), so the same model gave different bytes run to run
         torch.save({"format": MODEL_FORMAT, "format_version": MODEL_FORMAT_VERSION, "spec": spec,
-                    "state_dict": state, "meta": _jsonable(meta)}, tmp)
+                    "state_dict": state, "meta": _jsonable(meta)}, fh)
     return path
 
 

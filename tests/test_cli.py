@@ -851,3 +851,29 @@ def test_a_truth_of_another_robot_is_named(e2e, tmp_path):
     assert r.exit_code == 0, r.output
     assert "does not describe the validation rows" in " ".join(r.output.split())
     assert "does not describe" not in e2e["fit_output"]  # its own truth: nothing to say
+
+
+def test_deliverables_carry_their_provenance(e2e, tmp_path):
+    """Compensated commands, predictions, a planned pose list and a calibrated URDF each get a sidecar naming the
+    run and model (by sha256), the input, the options and the code: a file loaded on a controller named none."""
+    from torchcal.io.rundir import file_sha256
+
+    run = e2e["run"]
+    cmds = tmp_path / "cmds.csv"
+    cmds.write_text("q1,q2,q3,q4,q5,q6\n10,20,30,40,50,60\n-10,10,20,-30,40,-50\n")
+    calls = {"c.csv": ("compensate", run, cmds, tmp_path / "c.csv", "--tol-deg", "1e-7"),
+             "p.csv": ("predict", run, cmds, tmp_path / "p.csv"),
+             "plan.csv": ("plan-poses", "fanuc_lrmate200i", 12, tmp_path / "plan.csv", "--seed", 5),
+             "cal.urdf": ("export-urdf", run, tmp_path / "cal.urdf")}
+    for name, args in calls.items():
+        r = invoke(*args)
+        assert r.exit_code == 0, (name, r.output)
+        prov = json.loads((tmp_path / (name + ".provenance.json")).read_text())
+        assert prov["sha256"] == file_sha256(tmp_path / name), name
+        assert prov["written_by"]["torchcal_source_sha256"]
+        if name == "plan.csv":
+            assert prov["run_dir"] is None and prov["options"]["seed"] == 5 and prov["options"]["count"] == 12
+        else:
+            assert prov["run_dir"] == str(run.resolve()) and prov["model_sha256"] == file_sha256(run / "model.pt")
+    c = json.loads((tmp_path / "c.csv.provenance.json").read_text())
+    assert c["options"]["tol_deg"] == 1e-7 and c["options"]["input"]["sha256"] == file_sha256(cmds)

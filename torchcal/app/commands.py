@@ -78,6 +78,13 @@ def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=No
                                         "plain_predicted_rms_mm": units.m_to_mm(float(plain[-1])),
                                         "prior_rms_mm": units.m_to_mm(float(rms[0]))}})
     plan.to_csv(output, rob)
+    from ..io.rundir import write_provenance
+
+    # the plan is drawn from a seed: what it took to draw it again
+    write_provenance(output, None, command="plan-poses", robot=str(robot), count=count, seed=seed, order=order,
+                     tracker_mm=None if tracker_mm is None else [float(v) for v in tracker_mm],
+                     min_distance_mm=min_distance_mm, min_height_mm=min_height_mm, max_incidence_deg=max_incidence_deg,
+                     fleet=None if fleet is None else str(fleet), candidates=candidates if fleet is not None else None)
     return plan, rob
 
 
@@ -169,7 +176,12 @@ def export_urdf(run_dir, out, base: str = "joint", measurement_frame: bool = Fal
             break
     ident = cfg.data.identification
     fit_data = Path(ident) if ident and Path(ident).is_file() else None  # the constants fitted where the model is known
-    return export_run_urdf(run_dir, out, base, measurement_frame, constants, data, force, fit_data), which
+    res = export_run_urdf(run_dir, out, base, measurement_frame, constants, data, force, fit_data)
+    from ..io.rundir import write_provenance
+
+    write_provenance(out, run_dir, command="export-urdf", base=base, measurement_frame=measurement_frame,
+                     constants=constants, joint_map=None if res.export.joint_map is None else str(res.export.joint_map))
+    return res, which
 
 
 def run_notes(run_dir) -> list[str]:

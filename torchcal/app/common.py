@@ -24,7 +24,7 @@ from ..analysis.stats import ResidualStats, percent_decrease
 from ..identify import FitResult, NoiseModel, Prior
 from ..io.atomic import atomic_write_text
 from .config import ConfigError, to_yaml
-from ..io.rundir import collect_versions, read_json, write_json
+from ..io.rundir import collect_versions, file_sha256, read_json, write_json
 from ..models.robot import RobotModel
 from ..core.progress import task as progress_task
 
@@ -255,14 +255,6 @@ DATA_HASH_FILE = "data_hashes.json"
 re-reads the identification file and refuses one that changed since)."""
 
 
-def file_sha256(path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def fitted_hash(run_dir) -> str | None:

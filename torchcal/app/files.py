@@ -103,7 +103,9 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
         from .sensor import predict_pose_file  # a sensor run (Paper III): modeled x, y, z, r11..r33
 
         with progress_task(f"predicting the sensor poses of {input}"):
-            return PredictFile(predict_pose_file(run_dir, input, output, model))
+            done = PredictFile(predict_pose_file(run_dir, input, output, model))
+        _provenance(output, run_dir, input, "predict sensor poses")
+        return done
     try:
         require(model, "predict points", f"torchcal predict {run_dir}")
     except TypeError as exc:
@@ -155,6 +157,7 @@ def predict_file(run_dir, input, output, device=None, units_checked: bool = Fals
                     f"{', '.join(str(r + 1) for r in rows[:5])}{', ...' if rows.size > 5 else ''}): predicted there "
                     "all the same (the model extrapolates) and marked within_limits=False")
     write_table(output, out)
+    _provenance(output, run_dir, input, "predict")
     return PredictFile(len(out), count, said)
 
 
@@ -191,6 +194,18 @@ def _input_warnings(model, input, df, data, targets: bool) -> list[str]:
         out.append(f"{input}: no 'tool' column: every target is for tool 0 ({t0} mm in the flange frame, the run's "
                    f"identified tool 0), not the flange; add a 'tool' column (0..{model.tools.count - 1}) to choose")
     return out
+
+
+def _provenance(output, run_dir, input, what: str, **options) -> None:
+    """output's provenance sidecar (:func:`torchcal.io.rundir.write_provenance`): the run, its model and the
+    input file by sha256, the options as given (None: the run's config or the default)."""
+    from ..io.rundir import file_sha256, write_provenance
+
+    axis = options.get("free_tool_axis")
+    if axis is not None:
+        options["free_tool_axis"] = [float(v) for v in axis]
+    write_provenance(output, run_dir, command=what, input={"path": str(Path(input).resolve()),
+                                                          "sha256": file_sha256(input)}, **options)
 
 
 def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
@@ -332,6 +347,8 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
         done = _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, max_iter, max_correction_deg,
                                         freedom, unseeded)
         done.warnings[:0] = said
+        _provenance(output, run_dir, input, "compensate targets", tol_deg=tol_deg, max_iter=max_iter,
+                    max_correction_deg=max_correction_deg, dof=dof, free_tool_axis=free_tool_axis)
         return done
     data = data.to(model.device)
     opts = run_compensation_options(run_dir, tol_deg, max_iter, max_correction_deg, robot.joint_map.prismatic)
@@ -358,6 +375,8 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     _mark_outside_data(out, _outside_data_column(model, res.q), input, said)
     out["reason"] = res.reasons(opts.get("max_correction"), robot.joint_map.prismatic)
     write_table(output, out)
+    _provenance(output, run_dir, input, "compensate commands", tol_deg=tol_deg, max_iter=max_iter,
+                max_correction_deg=max_correction_deg, dof=dof, free_tool_axis=free_tool_axis)
     nc, ol = int((~res.converged).sum()), int((~res.within_limits).sum())
     return CompensationFile(len(df), nc, ol, int((~res.converged | ~res.within_limits).sum()),
                             0 if res.direction_outside is None else int(res.direction_outside.sum()), res, said)

@@ -241,6 +241,38 @@ def _cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def file_sha256(path) -> str:
+    """sha256 (hex) of a file's bytes."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+PROVENANCE_SUFFIX = ".provenance.json"
+
+
+def write_provenance(output, run_dir=None, **details) -> Path:
+    """``<output>.provenance.json`` beside a deliverable (compensated commands, predictions, a planned pose list,
+    a calibrated URDF): the file's own sha256, the run and model it came from, the options it was made with
+    (``details``, as given) and the code and command that wrote it. A compensated file loaded on a controller
+    named neither its run nor its options."""
+    out = Path(output)
+    run = Path(run_dir) if run_dir is not None else None
+    model = run / MODEL_FILE if run is not None and run.is_dir() else run
+    v = collect_versions()
+    blob = {"file": out.name, "sha256": file_sha256(out),
+            "run_dir": str(run.resolve()) if run is not None else None,
+            "model_sha256": file_sha256(model) if model is not None and model.is_file() else None,
+            "options": details,
+            "written_by": {k: v.get(k) for k in ("torchcal", "git", "torchcal_source_sha256", "torch", "command", "host")},
+            "created": v["created"]}
+    return write_json(out.with_name(out.name + PROVENANCE_SUFFIX), blob)
+
+
 def source_sha256() -> str:
     """sha256 over torchcal's own source files (paths and contents): which code ran, where a plain install has no
     git checkout and the version string is the same for every commit."""
@@ -493,6 +525,8 @@ __all__ = [
     "make_run_dir",
     "read_json",
     "require_finished",
+    "write_provenance",
+    "file_sha256",
     "run_model_notes",
     "run_log",
     "save_model",

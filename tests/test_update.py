@@ -63,6 +63,12 @@ def test_update_writes_a_run_directory_with_its_lineage(runs):
     assert u2["lineage"] == [str((root / "run").resolve()), str((root / "run1").resolve())]
     assert u2["history"] == "online state" and u2["strategy"] == "information"
     assert (u1["rows"], u1["new_rows"]) == (3 * SECOND, 3 * (SECOND - FIRST))
+    # the new rows are hashed with the parent's inputs: a chained update reads them as this run's
+    from torchcal.io.rundir import file_sha256
+
+    h2 = json.loads((root / "run2" / "data_hashes.json").read_text())
+    assert h2["update.new"]["sha256"] == file_sha256(root / "b2.csv")
+    assert h2["data.identification"]["sha256"] == file_sha256(root / "first.csv")
     assert (u2["rows"], u2["new_rows"]) == (3 * POSES, 3 * (POSES - SECOND))
     metrics = json.loads((root / "run2" / "metrics.json").read_text())
     assert metrics["parent"] == u2["parent"] and set(metrics["sets"]) == {"update", "validation"}

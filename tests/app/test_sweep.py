@@ -39,6 +39,10 @@ def test_sweep_cells_equal_their_own_fits(sim, tmp_path):
     assert len(res.rows) == 4
     assert (res.run_dir / "results.csv").exists() and (res.run_dir / "plots" / "sweep.png").exists()
     assert json.loads((res.run_dir / "sweep.json").read_text())["cells"] == 4
+    from torchcal.io.rundir import file_sha256
+
+    hashes = json.loads((res.run_dir / "data_hashes.json").read_text())  # what its cells read
+    assert hashes["data.identification"]["sha256"] == file_sha256(hashes["data.identification"]["path"])
     assert (res.run_dir / "cells" / "03" / "model.pt").exists()
     # a stacked cell's model keeps the span of its own first N poses' commands (what extrapolation is judged by)
     import pandas as pd

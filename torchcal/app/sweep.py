@@ -178,7 +178,10 @@ def run_sweep(config, specs: list[str], out=None, console=None) -> SweepResult:
     atomic_write_text(run_dir / "config.yaml", to_yaml(base))
     write_json(run_dir / "sweep.json", {"config": str(config), "overrides": plain, "axes": {k: v for k, v in axes},
                                         "cells": len(cells)})
-    write_json(run_dir / "versions.json", collect_versions(torch.device(base.device)))
+    write_json(run_dir / "versions.json", {**collect_versions(torch.device(base.device)), "run_dir": str(run_dir)})
+    from .common import DATA_HASH_FILE, input_hashes
+
+    write_json(run_dir / DATA_HASH_FILE, input_hashes(base))  # the cells read the base's files (grids over data.*: the base's)
     result = SweepResult(run_dir, keys, warnings=notes)
     # the independent groups an engine runs: one per model structure of the stacked cells (each its own batched
     # solve; backlash: true may still split a group by what each cell's data choose), one per cell fitted alone

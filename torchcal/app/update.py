@@ -373,7 +373,13 @@ def _write_update(parent, cfg, new_path, run, new, instrument, online, history, 
         header = (f"# torchcal update: parent run {parent}\n# new data {new_path.resolve()}; the parent's config "
                   f"follows unchanged (its data.* name the parent's files)\n")
         atomic_write_text(files["config"], header + to_yaml(cfg))
-        files["versions"] = write_json(run / "versions.json", collect_versions(dev))
+        files["versions"] = write_json(run / "versions.json", {**collect_versions(dev), "run_dir": str(run)})
+        from .common import DATA_HASH_FILE, file_sha256, input_hashes
+
+        # the parent's inputs as they are now (update checked its identification file against the parent's record)
+        # and the new rows, which a chained update reads as this run's
+        hashes = {**input_hashes(cfg), "update.new": {"path": str(Path(new_path).resolve()), "sha256": file_sha256(new_path)}}
+        files["data_hashes"] = write_json(run / DATA_HASH_FILE, hashes)
         progress.info(f"run directory {run}{placed}; parent {parent}")
         for note in notes:
             if history == "synthetic":

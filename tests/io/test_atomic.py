@@ -70,7 +70,7 @@ def test_a_failed_write_leaves_the_earlier_file_and_no_temporary(tmp_path):
 
 def test_save_model_on_a_full_disk_leaves_no_truncated_model(tmp_path, fanuc, tools_m, monkeypatch):
     def full_disk(obj, f, *args, **kwargs):
-        open(f, "wb").write(b"PK\x03\x04truncated")
+        f.write(b"PK\x03\x04truncated")  # save_model hands torch.save an open file
         raise RuntimeError("[enforce fail at inline_container.cc:626] . unexpected pos 64 vs 0")
 
     monkeypatch.setattr(torch, "save", full_disk)
@@ -123,7 +123,8 @@ def test_predict_replaces_an_existing_output_only_with_force(robot_run, tmp_path
     assert out.read_text() == "earlier result\n"
     r = invoke("predict", run, src, out, "--force")
     assert r.exit_code == 0, r.output
-    assert len(pd.read_csv(out)) == 5 and sorted(os.listdir(tmp_path)) == ["in.csv", "pred.csv", "run"]
+    assert len(pd.read_csv(out)) == 5
+    assert sorted(os.listdir(tmp_path)) == ["in.csv", "pred.csv", "pred.csv.provenance.json", "run"]
 
 
 def test_predict_into_a_read_only_folder_is_one_line(robot_run, tmp_path):

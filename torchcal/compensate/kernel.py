@@ -142,9 +142,9 @@ class FlangeKernel:
         from . import fused as _fused
 
         if fused and (not _fused.available(self.device, self.dtype) or self.model is not None):
-            raise ValueError(f"FlangeKernel: the fused kernel needs numba, the CPU, float64 and no gravity compliance "
+            raise ValueError(f"FlangeKernel: the fused kernel needs numba, the CPU, float64 and a model it can freeze "
                              f"(numba {'found' if _fused.HAVE_NUMBA else 'missing'}, {self.device}, {self.dtype}, "
-                             f"compliance {'on' if self.model is not None else 'off'})")
+                             f"{'a live model: gravity compliance, fine tables, backlash moving the joint variables or a subclass' if self.model is not None else 'a frozen model'})")
         use = _fused.available(self.device, self.dtype) and self.model is None if fused is None else bool(fused)
         self.fused = _fused.FusedFlange(self) if use else None
 

@@ -84,6 +84,13 @@ def test_fixed_joints_fold_and_prismatic():
          '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>', "zero vector"),
         ('<joint name="j1" type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 0 1"/>'
          '<limit lower="1" upper="-1" effort="1" velocity="1"/></joint>', "lower limit"),
+        # NaN passed: a zero-vector test is False for it, and the chain crashed the fit's Cholesky
+        ('<joint name="j1" type="revolute"><parent link="a"/><child link="b"/><origin xyz="nan 0 0"/>'
+         '<axis xyz="0 0 1"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>', "<origin> .*finite"),
+        ('<joint name="j1" type="revolute"><parent link="a"/><child link="b"/><axis xyz="0 nan 1"/>'
+         '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>', "<axis> .*finite"),
+        ('<joint name="j1" type="prismatic"><parent link="a"/><child link="b"/><axis xyz="0 0 1"/>'
+         '<limit lower="0" upper="inf" effort="1" velocity="1"/></joint>', "<limit> .*finite"),
     ],
 )
 def test_validation_names_the_joint(joint, needle):

@@ -12,9 +12,11 @@ import importlib
 import importlib.util
 import io
 import logging
+import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..core.exceptions import TorchcalError
@@ -86,11 +88,16 @@ def _validated_marker(xml: str) -> Path | None:
     if root.lower() == "off":
         return None
     try:
-        versions = f"{version('torchcal')}|{version('yourdfpy')}"
+        versions = f"{version('torchcal')}|{version('yourdfpy')}|rules {VALIDATION_RULES}"
     except PackageNotFoundError:
         return None
     key = hashlib.sha256((versions + "\0" + xml).encode()).hexdigest()
     return Path(root) / "urdf-valid" / key
+
+
+VALIDATION_RULES = 2
+"""Raised when :func:`_validate_urdf` checks more, so that texts validated under the older rules are checked again
+(2: finite origins, axes and limits)."""
 
 
 def validate_urdf(xml: str, label: str = "<urdf string>") -> list[str]:
@@ -125,6 +132,15 @@ def _validate_urdf(xml: str) -> list[str]:
         model._errors = []
         model._validate_joint(joint)
         problems += [f"joint '{joint.name}': {err}" for err in model._errors]
+        # a NaN origin or axis passed (a zero-vector test is False for NaN) and made a chain that planned poses
+        # and crashed the fit in a Cholesky factorization
+        if joint.origin is not None and not np.isfinite(np.asarray(joint.origin, dtype=float)).all():
+            problems.append(f"joint '{joint.name}': <origin> holds a value that is not a finite number")
+        if joint.axis is not None and not np.isfinite(np.asarray(joint.axis, dtype=float)).all():
+            problems.append(f"joint '{joint.name}': <axis> holds a value that is not a finite number")
+        if joint.limit is not None and any(v is not None and not math.isfinite(float(v))
+                                             for v in (joint.limit.lower, joint.limit.upper)):
+            problems.append(f"joint '{joint.name}': <limit> lower / upper must be finite numbers")
         if joint.type in ("revolute", "prismatic", "continuous") and joint.axis is not None:
             if float(sum(a * a for a in joint.axis)) < 1e-24:
                 problems.append(f"joint '{joint.name}': axis is the zero vector")

@@ -230,6 +230,38 @@ def test_comment_lines_shift_line_not_row(tmp_path):
         read_rows(p, ["x", "y", "z"])
 
 
+def test_a_reading_commented_out_in_one_file_only_is_refused(tmp_path, session):
+    """Rows pair across files by position: a reading commented out in the joints file and another in a target file
+    paired pose k's joints with pose k + 1's point from there on, written with rc 0."""
+    j, t, _ = files(tmp_path, session["q"], session["targets"])
+    lines = j.read_text().splitlines()
+    lines[9] = "# " + lines[9]
+    j.write_text("# exported by the robot\n" + "\n".join(lines) + "\n")  # a header comment is fine
+    tl = t[0].read_text().splitlines()
+    tl[4] = "# " + tl[4]
+    t[0].write_text("\n".join(tl) + "\n")
+    with pytest.raises(DataError) as err:
+        import_tracker(j, t)
+    msg = " ".join(str(err.value).split())
+    assert f"{j} line 11 is commented out after data row 9" in msg and f"{t[0]} line 5" in msg
+    assert "missing" not in msg  # not the row count's message, which blamed the end of the file
+    for f in t:  # the same reading left out everywhere: the poses stay paired
+        fl = f.read_text().splitlines()
+        fl[4] = fl[4] if fl[4].startswith("#") else "# " + fl[4]
+        fl[9] = "# " + fl[9]
+        f.write_text("\n".join(fl) + "\n")
+    jl = j.read_text().splitlines()
+    jl[5] = "# " + jl[5]  # data row 5 (line 6 after the header comment)
+    j.write_text("\n".join(jl) + "\n")
+    table = import_tracker(j, t).table
+    assert len(table) == 3 * (P - 2)
+    q = table[[f"q{i}" for i in range(1, 7)]].to_numpy()
+    idx = np.abs(q[:, None, :] - session["q"][None]).max(-1).argmin(1)  # each row's pose in the session
+    assert np.abs(q - session["q"][idx]).max() < 1e-9 and set(range(P)) - set(idx.tolist()) == {4, 9}
+    xyz = session["targets"][table["tool"].to_numpy(), idx]
+    assert np.abs(table[["x", "y", "z"]].to_numpy() - xyz).max() < 1e-8  # every point with its own pose's joints
+
+
 def test_unequal_length_and_never_reading(tmp_path, session):
     j, t, _ = files(tmp_path, session["q"], session["targets"])
     write(t[2], session["targets"][2][:-2])

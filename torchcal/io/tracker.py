@@ -66,6 +66,9 @@ class RowFile:
     path: str
     values: np.ndarray
     lines: list[int]
+    commented: list[tuple[int, int]] = field(default_factory=list)
+    """Lines commented out between data rows: (data rows before it, file line). Rows are paired across files by
+    position, so a reading left out of one file only shifts every later pose onto the next one's row."""
 
     @property
     def rows(self) -> int:
@@ -86,9 +89,12 @@ def read_rows(path, columns: list[str]) -> RowFile:
     except UnicodeDecodeError as exc:
         raise DataError(path, [Problem(None, None, f"not a UTF-8 text file ({exc.reason} at byte {exc.start})")]) from None
     records: list[tuple[int, str]] = []
+    commented: list[tuple[int, int]] = []
     for ln, raw in enumerate(text.splitlines(), start=1):
         s = raw.strip()
         if s.startswith("#"):
+            if any(r for _, r in records):  # after the first data row: a reading left out, not a header comment
+                commented.append((len(records), ln))
             continue
         records.append((ln, s))
     while records and not records[-1][1]:
@@ -124,7 +130,22 @@ def read_rows(path, columns: list[str]) -> RowFile:
         problems.append(Problem(None, None, "no data rows"))
     if problems:
         raise DataError(path, problems)
-    return RowFile(str(path), values, lines)
+    # a comment after the last data row says nothing about pairing
+    return RowFile(str(path), values, lines, [(k, ln) for k, ln in commented if k < len(records)])
+
+
+def check_same_comments(files: list[RowFile]) -> None:
+    """Refuse files whose readings were commented out at different places: their rows are paired by position, so
+    pose k's joints met pose k + 1's point from there on (a 249-row import, rc 0, 5 poses mispaired)."""
+    where = [{k for k, _ in f.commented} for f in files]
+    if all(w == where[0] for w in where):
+        return
+    problems = [Problem(None, None, f"{f.path} line {ln} is commented out after data row {k}, where "
+                                    f"{', '.join(o.path for o, wo in zip(files, where) if k not in wo)} leave(s) no reading out")
+                for f in files for k, ln in f.commented if any(k not in wo for wo in where)]
+    problems.append(Problem(None, None, "rows are paired across the joints and reflector files by position: comment "
+                                        "out the same reading in every file (a missed reading can stay as 0 0 0)"))
+    raise DataError(files[0].path, problems)
 
 
 @dataclass
@@ -290,6 +311,7 @@ def import_tracker(
         out = []
         for p in paths:
             f = read_rows(p, list(XYZ))
+            check_same_comments([jf, f])  # before the row counts: a reading left out of one file changes its count
             if f.rows != P:
                 first = min(f.rows, P) + 1
                 what = f"rows {first}..{max(f.rows, P)} are missing here" if f.rows < P else f"rows {first}..{f.rows} have no pose"

@@ -741,11 +741,15 @@ def evaluate_sets(inp: FitInputs, model, progress: Progress) -> tuple[dict, dict
                           f"few poses for the orders (model.order), or a solver that did not converge{pulled}")
     nominal = evaluations["Identification"]["nominal_stats"].mean
     if nominal > NOMINAL_IMPLAUSIBLE_MM:
+        from ..io.unit_checks import scale_hint
+
+        hint = scale_hint(inp.ident.to("cpu"), inp.robot, model.tools.nominal.detach().cpu())
         progress.warn(f"the nominal residual (identification mean {nominal:.1f} mm) is far beyond any plausible calibration "
-                      f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm): the robot description may not be the robot, and the percent "
-                      f"decrease means little. Check the URDF of '{inp.robot.name}' (joint axes: a joint without <axis> turns "
-                      "about x; origins), the joint map (offsets, coupling, units), the tool vectors and the measurement "
-                      "frame (measurement_frame: estimate when the tracker is not at the robot base)")
+                      f"error (> {NOMINAL_IMPLAUSIBLE_MM:g} mm){hint}: the robot description may not be the robot, and the "
+                      f"percent decrease means little. Check the x, y, z units, the URDF of '{inp.robot.name}' (joint axes: a "
+                      "joint without <axis> turns about x; origins), the joint map (offsets, coupling, units), the tool "
+                      "vectors and the measurement frame (measurement_frame: estimate when the tracker is not at the robot "
+                      "base)")
     return sets, evaluations, table6(evaluations)
 
 

@@ -32,6 +32,12 @@ WIDE_RANGE_DEG = 8 * RADIAN_BOUND
 SCALE_BOUNDS = (0.02, 50.0)
 """Measured / nominal distance ratios outside these are a unit slip (mm vs m: 1e-3, mm vs um: 1e3)."""
 
+SUSPECT_SCALE = (0.5, 2.0)
+"""Ratios outside these, inside :data:`SCALE_BOUNDS`, are named where a fit's nominal residual is implausible: points
+in centimetres (0.1) or inches (0.039) 'calibrated' a robot ten times too small, 677 -> 0.019 mm, said only as a
+robot description that may not be the robot. Not refused: real data of single-joint motions measured off the
+flange sit at 0.15 (the UR10's T-Mac series A and B)."""
+
 
 class UnitsError(TorchcalError, ValueError):
     """A file whose numbers look like another unit than the contract's (mm, deg)."""
@@ -299,11 +305,29 @@ def check_point_scale(data, robot, tools_m: torch.Tensor | None = None, path=Non
         f"data.units_checked=true) if they really are mm")
 
 
+def scale_hint(data, robot, tools_m: torch.Tensor | None = None) -> str:
+    """'' or a clause naming a suspect point scale (:data:`SUSPECT_SCALE`) and the unit it suggests, for a
+    warning about a nominal residual beyond any calibration error."""
+    s = point_scale(data, robot, tools_m)
+    if s is None or SUSPECT_SCALE[0] <= s <= SUSPECT_SCALE[1]:
+        return ""
+    return (f"; the distances between the measured points are {s:.3g} times the nominal robot's: they look like "
+            f"{scale_guess(s)} (the contract is mm)")
+
+
+UNIT_RATIOS = {"metres": 1e-3, "centimetres": 0.1, "inches": 1 / 25.4, "micrometres": 1e3}
+"""The measured / nominal distance ratio of points written in each unit instead of mm."""
+
+
 def scale_guess(s: float) -> str:
-    """The unit a measured / nominal distance ratio ``s`` suggests for points that should be mm."""
-    return "metres" if s < 1 else "micrometres" if s > 300 else "another unit"
+    """The unit a measured / nominal distance ratio ``s`` suggests for points that should be mm: the nearest of
+    :data:`UNIT_RATIOS` within a factor 4, else 'another unit'."""
+    if not (s > 0 and math.isfinite(s)):
+        return "another unit"
+    name, ratio = min(UNIT_RATIOS.items(), key=lambda kv: abs(math.log(s / kv[1])))
+    return name if abs(math.log(s / ratio)) < math.log(4.0) else "another unit"
 
 
 __all__ = ["OVERRIDE", "UnitsError", "check_point_scale", "check_radians", "check_units", "degrees_confirmed",
-           "metre_columns", "metre_message", "path_scale", "point_scale", "radian_columns", "radian_message", "radian_scales", "scale_guess", "tool_scales",
+           "metre_columns", "metre_message", "path_scale", "scale_hint", "point_scale", "radian_columns", "radian_message", "radian_scales", "scale_guess", "tool_scales",
            "units_note"]

@@ -138,6 +138,12 @@ def config_backlash(cfg):
     return list(b) if not isinstance(b, int) else int(b)
 
 
+def missing_directions_note(source, n: int) -> str:
+    """Why a file without approach directions misleads a backlash model: every joint's direction is taken as 0."""
+    return (f"{source}: no dir1..dir{n} columns: the model's backlash terms are left out (direction 0 for every "
+            f"joint), so each row is off by the lost motion; give each row's approach directions (+1 / -1)")
+
+
 def solver_options(cfg) -> dict:
     """Keyword arguments for :func:`torchcal.identify.fit` from solver.*."""
     opts = {"method": cfg.solver.method, "ftol": float(cfg.solver.ftol)}
@@ -366,6 +372,7 @@ __all__ = [
     "STAT_KEYS",
     "RunResult",
     "config_backlash",
+    "missing_directions_note",
     "config_compliance",
     "config_error_variable",
     "config_noise",

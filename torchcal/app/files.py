@@ -185,9 +185,9 @@ def _input_warnings(model, input, df, data, targets: bool) -> list[str]:
     out = []
     je = getattr(model, "joint_errors", None)
     if je is not None and je.has_backlash and not data.has_direction:
-        n = model.robot.joint_map.n
-        out.append(f"{input}: no dir1..dir{n} columns: the model's backlash terms are left out (direction 0 for every "
-                   f"joint), so each row is off by the lost motion; give each row's approach directions (+1 / -1)")
+        from .common import missing_directions_note
+
+        out.append(missing_directions_note(input, model.robot.joint_map.n))
     if targets and "tool" not in df.columns:
         tools = units.m_to_mm(model.tools().detach().cpu())
         t0 = ", ".join(f"{float(v):.3f}" for v in tools[0])

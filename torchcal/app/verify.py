@@ -87,6 +87,11 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
         if note:
             said.append(note)
     inner = getattr(model, "model", model)  # a sensor rig's robot model
+    je = getattr(inner, "joint_errors", None)
+    if je is not None and je.has_backlash and not data.has_direction:  # the modeled residual was 2x, unsaid
+        from .common import missing_directions_note
+
+        said.append(missing_directions_note(data_path, model.robot.joint_map.n))
     outside = inner.outside_data(data.q) if hasattr(inner, "outside_data") else None
     if outside is not None and bool(outside.any()):
         said.append(f"{int(outside.any(-1).sum())} of {len(data)} rows command a joint beyond the identification "

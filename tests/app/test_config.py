@@ -414,3 +414,12 @@ def test_overrides_of_another_commands_section_are_named():
     assert len(fit) == 2 and "'fleet.cell=10'" in fit[0] and "'sweep.engine=ray'" in fit[1]
     assert [w.split("'")[1] for w in unused_overrides(items, "fleet")] == ["sweep.engine=ray"]
     assert [w.split("'")[1] for w in unused_overrides(items, "sweep")] == ["fleet.cell=10"]
+
+
+@pytest.mark.parametrize("seed", ["-1", "99999999999999999999999"])
+def test_a_seed_no_generator_takes_is_refused_by_key(cfg_file, seed):
+    """numpy's generators take no negative seed and torch none above 2**64: both were tracebacks (one after the
+    data were read)."""
+    with pytest.raises(ConfigError, match=r"key 'seed': .*give a whole number from 0"):
+        check_config(load_config(cfg_file, [f"seed={seed}"]))
+    check_config(load_config(cfg_file, ["seed=0"]))

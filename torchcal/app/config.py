@@ -772,6 +772,10 @@ def _check_frame(frame: dict, key: str, fail) -> None:
             fail(f"{key}.{sub}", f"{v!r}: give {what}")
 
 
+MAX_SEED = 2**63 - 1
+"""The largest seed: every random draw (torch, numpy) takes it."""
+
+
 def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = None, check_device: bool = True) -> None:
     """Values that the types alone do not pin down; ``n_joints`` (once the robot is loaded) checks per-joint lists.
 
@@ -794,6 +798,8 @@ def check_config(cfg: FitConfig, label: str = "config", n_joints: int | None = N
         fail("fleet.threshold", f"must be positive, got {fleet.threshold}")
     if not 0 < float(fleet.ftol) < 1:
         fail("fleet.ftol", f"must be between 0 and 1 (a relative cost reduction), got {fleet.ftol}")
+    if not 0 <= int(cfg.seed) <= MAX_SEED:  # numpy's generators take no negative seed, torch none above 2**64
+        fail("seed", f"{cfg.seed}: give a whole number from 0 to {MAX_SEED}")
     n_poses = cfg.data.n_poses
     if n_poses is not None and (not _is_int(n_poses) or n_poses < 1):
         fail("data.n_poses", f"{n_poses!r}: give a positive number of poses (or null for all)")

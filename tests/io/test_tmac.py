@@ -91,6 +91,11 @@ def test_missing_column_and_joint_limits(tmp_path):
     (tmp_path / "n.csv").write_bytes(text.encode())
     with pytest.raises(DataError, match="column 'measurement_rz': column missing"):
         read_tmac(tmp_path / "n.csv")
+    # a column name given twice: header.index took the first one's values silently
+    text = p.read_bytes().decode().replace("Goal x", "measurement_x", 1)
+    (tmp_path / "d.csv").write_bytes(text.encode())
+    with pytest.raises(DataError, match=r"column 'measurement_x': appears 2 times in the header"):
+        read_tmac(tmp_path / "d.csv")
     import torchcal
 
     q[1, 2] = 7.0  # beyond +-360 deg

@@ -90,6 +90,11 @@ def read_tmac_table(path) -> tuple[list[str], dict[str, torch.Tensor], torch.Ten
     if missing:
         raise DataError(path, [Problem(None, c, "column missing (is this a ';'-separated T-Mac export?)") for c in missing])
     wanted = [c for c in TMAC_JOINTS + TMAC_XYZ + TMAC_ANGLES + TMAC_STD + (TMAC_TEMPERATURE,) if c in header]
+    twice = [c for c in wanted if header.count(c) > 1]
+    if twice:  # header.index would take the first silently (x = the first column's values on every row)
+        raise DataError(path, [Problem(None, c, f"appears {header.count(c)} times in the header (fields "
+                                                f"{', '.join(str(i + 1) for i, h in enumerate(header) if h == c)})")
+                               for c in twice])
     idx = {c: header.index(c) for c in wanted}
     cols: dict[str, list[float]] = {c: [] for c in wanted}
     rows = []

@@ -99,6 +99,8 @@ BAD_CELLS = [
     ("tool", "-1", "tool -1 is not configured"),
     ("tool", "0.5", "'0.5' is not an integer"),
     ("pose", "x7", "'x7' is not a finite number"),
+    ("pose", "1e308", "'1e308' is beyond the exact integers"),  # became -2**63 silently
+    ("pose", "1732800000123456789", "is beyond the exact integers"),  # a ns timestamp: two could merge
     ("x", "1e300", "1e+300 mm is beyond any tracker's range"),  # finite: once overflowed the solver
     ("z", "-1e30", "-1e+30 mm is beyond any tracker's range"),  # a lost-beam code
 ]

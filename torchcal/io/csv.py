@@ -312,6 +312,10 @@ def parse_numbers(df: pd.DataFrame, column: str, problems: list[Problem]) -> np.
     return values
 
 
+MAX_EXACT_ID = 2**53
+"""The largest pose / tool id read exactly (ids are read as float64 first)."""
+
+
 def _integers(df: pd.DataFrame, column: str, problems: list[Problem]) -> tuple[np.ndarray, np.ndarray]:
     """Column as int64 (R,) and (R,) bool valid; non-integer values become Problems (value 0, invalid)."""
     values = parse_numbers(df, column, problems)
@@ -319,7 +323,12 @@ def _integers(df: pd.DataFrame, column: str, problems: list[Problem]) -> tuple[n
     frac = ok & (values != np.round(values))
     for r in np.flatnonzero(frac):
         problems.append(Problem(int(r) + 1, column, f"{df[column].iloc[r]!r} is not an integer"))
-    ok &= ~frac
+    # read through float64: beyond 2**53 two ids can merge (ns timestamps), beyond int64 one became -2**63
+    huge = ok & ~frac & (np.abs(values) > MAX_EXACT_ID)
+    for r in np.flatnonzero(huge):
+        problems.append(Problem(int(r) + 1, column, f"{df[column].iloc[r]!r} is beyond the exact integers "
+                                                    f"(|id| <= {MAX_EXACT_ID}); number the rows with smaller ids"))
+    ok &= ~frac & ~huge
     return np.where(ok, values, 0.0).astype(np.int64), ok
 
 
@@ -608,7 +617,8 @@ def _read_clean(path: Path, robot, n_tools: int) -> Measurements | None:
     if has_direction and (np.abs(direction) != 1.0).any():
         return None
     tool, pose = num["tool"], num["pose"]
-    if (tool != np.round(tool)).any() or (pose != np.round(pose)).any() or (tool < 0).any() or (tool >= n_tools).any():
+    if ((tool != np.round(tool)).any() or (pose != np.round(pose)).any() or (tool < 0).any() or (tool >= n_tools).any()
+            or (np.abs(pose) > MAX_EXACT_ID).any()):  # the careful path names such an id
         return None
     tool, pose = tool.astype(np.int64), pose.astype(np.int64)
     if pd.DataFrame({"pose": pose, "tool": tool}).duplicated().any():

@@ -893,3 +893,16 @@ def test_rows_without_directions_on_a_backlash_model_are_named(e2e, tmp_path):
     r = invoke("fit", e2e["sim"] / "fit.yaml", *_quick(f"data.validation={nodir}", f"out={tmp_path / 'run'}"), "-q")
     assert r.exit_code == 0, r.output
     assert "validation set" in r.output and "no dir1..dir6 columns" in " ".join(r.output.split())
+
+
+def test_verify_names_a_gross_row(e2e, tmp_path):
+    """A 50 mm gross error in a verification file showed only as the max; fit names such rows, update refuses them."""
+    df = pd.read_csv(e2e["sim"] / "validation.csv")
+    df.loc[7, "x"] += 50.0
+    df.to_csv(tmp_path / "v.csv", index=False)
+    r = invoke("verify", e2e["run"], tmp_path / "v.csv")
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    assert "lie far beyond the rest" in text and "row 8 (" in text and "after the fit" not in text
+    r = invoke("verify", e2e["run"], e2e["sim"] / "validation.csv")
+    assert "far beyond" not in r.output

@@ -171,18 +171,21 @@ def far_rows(residuals: torch.Tensor, factor: float = FAR_ROW_FACTOR) -> torch.T
     return idx[r[idx].argsort(descending=True)]
 
 
-def far_rows_message(residuals: torch.Tensor, data: Measurements, what: str) -> str | None:
-    """One warning naming ``what`` (the set and its file) and its far rows by their file row, or None."""
+def far_rows_message(residuals: torch.Tensor, data: Measurements, what: str, fitted: bool = True) -> str | None:
+    """One warning naming ``what`` (the set and its file) and its far rows by their file row, or None.
+    fitted: the residuals are a fit's (else a finished model's on new rows, ``torchcal verify``)."""
     idx = far_rows(residuals)
     if idx.numel() == 0:
         return None
     mm = units.m_to_mm(residuals.detach().cpu())
     rows = data.rows.cpu()[idx].tolist()
     shown = ", ".join(f"row {r} ({v:.3f} mm)" for r, v in zip(rows[:5], mm[idx][:5].tolist()))
-    return (f"{what}: {idx.numel()} row(s) lie far beyond the rest after the fit (>= {FAR_ROW_FACTOR:g}x the median "
-            f"residual {float(mm.median()):.4f} mm): {shown}{', ...' if idx.numel() > 5 else ''}; a gross "
-            "measurement error (a reflector off its nest, a beam break), a pose number used twice, or an error the "
-            "model lacks there (does a higher model.order fit them)? They are fitted as they are")
+    return (f"{what}: {idx.numel()} row(s) lie far beyond the rest{' after the fit' if fitted else ''} (>= "
+            f"{FAR_ROW_FACTOR:g}x the median residual {float(mm.median()):.4f} mm): {shown}"
+            f"{', ...' if idx.numel() > 5 else ''}; a gross measurement error (a reflector off its nest, a beam break), "
+            "a pose number used twice, or an error the model lacks there"
+            + (" (does a higher model.order fit them)? They are fitted as they are" if fitted else
+               "? They are counted in the statistics as they are"))
 
 
 def percent_decrease(before: float, after: float) -> float:

@@ -111,6 +111,10 @@ def verify_file(run_dir, data_path, output=None, device=None, new_frame: bool = 
     res_m, res_n = (xyz - pm).norm(dim=-1), (xyz - pn).norm(dim=-1)
     if not new_frame and (note := moved_frame_note(pm, xyz, "--new-frame takes the measurement frame from these rows")):
         said.append(note)
+    from ..analysis.stats import far_rows_message
+
+    if far := far_rows_message(res_m, data, f"{data_path}: the run's model", fitted=False):  # it showed only as the max
+        said.append(far)
     ps = [residual_stats(units.m_to_mm(x.cpu())) for x in (res_n, res_m)]
     table = [stats_row("Verification", "Nominal", ps[0], None), stats_row("Verification", "Modeled", ps[1], ps[0])]
     stats = {"position_mm": {"nominal": vars(ps[0]), "modeled": vars(ps[1]),

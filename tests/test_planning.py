@@ -89,6 +89,35 @@ def test_errors(fanuc):
         plan_poses(fanuc, 0)
 
 
+def test_the_keep_out_sphere_moves_with_a_rail(tmp_path):
+    """Around the rail's origin, a planned flange could sit inside the arm's own column once the carriage moved;
+    the sphere is centred on the carried base (a fixed base: unchanged)."""
+    import torchcal
+    from torchcal.analysis.planning import _carried_base
+
+    path = tmp_path / "rail.urdf"
+    path.write_text(
+        '<robot name="r"><link name="a"/><link name="b"/><link name="c"/><link name="d"/><link name="e"/>'
+        '<joint name="rail" type="prismatic"><parent link="a"/><child link="b"/><axis xyz="1 0 0"/>'
+        '<limit lower="0" upper="3" effort="1" velocity="1"/></joint>'
+        '<joint name="j1" type="revolute"><parent link="b"/><child link="c"/><origin xyz="0 0 0.4"/><axis xyz="0 0 1"/>'
+        '<limit lower="-3" upper="3" effort="1" velocity="1"/></joint>'
+        '<joint name="j2" type="revolute"><parent link="c"/><child link="d"/><origin xyz="0.1 0 0.3"/><axis xyz="0 1 0"/>'
+        '<limit lower="-1.5" upper="1.5" effort="1" velocity="1"/></joint>'
+        '<joint name="j3" type="revolute"><parent link="d"/><child link="e"/><origin xyz="0 0 0.6"/><axis xyz="0 1 0"/>'
+        '<limit lower="-2" upper="2" effort="1" velocity="1"/></joint></robot>')
+    robot = torchcal.load_robot(str(path))
+    theta = torch.tensor([[2.5, 0.3, 0.2, -0.4], [0.7, -1.0, 0.5, 0.1]], dtype=torch.float64)
+    assert torch.allclose(_carried_base(robot.chain, theta), torch.tensor([[2.5, 0.0, 0.0], [0.7, 0.0, 0.0]],
+                                                                        dtype=torch.float64), atol=1e-15)
+    fixed = torchcal.load_robot("fanuc_lrmate200i")
+    assert _carried_base(fixed.chain, torch.rand(5, 6, dtype=torch.float64)).abs().max() == 0
+    plan = plan_poses(robot, 60, seed=2, min_tool_distance=0.5)
+    F = robot.chain.fk(robot.joint_map.to_joint(plan.q))
+    base = torch.stack([plan.q[:, 0], torch.zeros(60, dtype=torch.float64), torch.zeros(60, dtype=torch.float64)], 1)
+    assert float((F[:, :3, 3] - base).norm(dim=1).min()) >= 0.5
+
+
 def test_csv_round_trip(fanuc, tmp_path):
     plan = plan_poses(fanuc, 40, seed=1)
     path = plan.to_csv(tmp_path / "plan.csv", fanuc)
@@ -118,6 +147,10 @@ def test_cli_plan_poses(fanuc, tmp_path):
     (["--tracker", "1,2"], "--tracker"),
     (["--order", "sorted"], "plan-poses: --order must be one of"),
     (["--min-height-mm", "5000"], "relax --min-height-mm / --min-distance-mm / --max-incidence-deg"),
+    # NaN passed every check: a NaN incidence bound switched the visibility test off silently
+    (["--max-incidence-deg", "nan"], "--max-incidence-deg nan: give an angle in (0, 180]"),
+    (["--max-incidence-deg", "-5"], "--max-incidence-deg -5.0: give an angle"),
+    (["--min-distance-mm", "-100"], "--min-distance-mm -100.0: give a distance >= 0"),
 ])
 def test_cli_plan_poses_bad_inputs(tmp_path, args, message):
     """Each message names the option the user typed, not the library function's argument."""

@@ -198,6 +198,25 @@ def _parse_tracker(tracker) -> torch.Tensor | None:
     return t
 
 
+def _carried_base(chain, theta: torch.Tensor) -> torch.Tensor:
+    """(B, 3) how far the joints before the first revolute one (a rail, a gantry) carry the arm's base from where it
+    stands with them at zero; zeros for a fixed base. The keep-out sphere around the base moves with it: around
+    the rail's origin, 17 of 300 planned poses put the flange inside the arm's own column."""
+    lead = 0
+    while lead < chain.prismatic.numel() and bool(chain.prismatic[lead]):
+        lead += 1
+    out = torch.zeros(theta.shape[0], 3, dtype=torch.float64)
+    if lead == 0 or lead == chain.prismatic.numel():
+        return out
+    from ..kinematics.fk import chain_frames
+
+    home = torch.zeros_like(theta)
+    home[:, lead:] = theta[:, lead:]
+    at = chain_frames(chain.origins, chain.axes, chain.prismatic, theta)[1][:, lead]
+    at0 = chain_frames(chain.origins, chain.axes, chain.prismatic, home)[1][:, lead]
+    return (at - at0).to("cpu", torch.float64)
+
+
 def plan_poses(
     robot,
     count: int,
@@ -251,6 +270,13 @@ def plan_poses(
                             f"hundreds to a few thousand; larger plans exhaust memory and the O(N^2) ordering)")
     if not 0.0 <= margin < 0.5:
         raise PlanningError(f"plan_poses: margin must be in [0, 0.5), got {margin}")
+    # NaN compares false everywhere: a NaN incidence bound switched the visibility test off silently
+    if not (math.isfinite(min_tool_distance) and min_tool_distance >= 0.0):
+        raise PlanningError(f"plan_poses: min_tool_distance must be a distance >= 0, got {min_tool_distance}")
+    if not math.isfinite(min_height):
+        raise PlanningError(f"plan_poses: min_height must be a finite height, got {min_height}")
+    if not 0.0 < max_incidence_deg <= 180.0:
+        raise PlanningError(f"plan_poses: max_incidence_deg must be in (0, 180], got {max_incidence_deg}")
     lim = robot.joint_map.limits.detach().to("cpu", torch.float64)
     width = lim[:, 1] - lim[:, 0]
     box = torch.stack([lim[:, 0] + margin * width, lim[:, 1] - margin * width], 1)
@@ -273,7 +299,7 @@ def plan_poses(
                 F = chain.fk(robot.joint_map.to_joint(qc.to(device, dtype))).to("cpu", torch.float64)
             p, z_axis = F[:, :3, 3], F[:, :3, 2]
             below = p[:, 2] < min_height
-            near = p.norm(dim=1) < min_tool_distance
+            near = (p - _carried_base(chain, robot.joint_map.to_joint(qc.to(device, dtype)))).norm(dim=1) < min_tool_distance
             ok = ~below & ~near
             hidden = torch.zeros_like(ok)
             if trk is not None:

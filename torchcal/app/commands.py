@@ -60,6 +60,15 @@ def plan_poses_file(robot: str, count: int, output, seed: int = 0, tracker_mm=No
         raise PlanningError(f"COUNT {count}: plan between 1 and {MAX_POSES} poses")
     if fleet is not None and not count < candidates <= MAX_POSES:
         raise PlanningError(f"--candidates {candidates}: give more candidates than poses ({count}) to design from")
+    import math
+
+    for flag, value, ok in (("--min-distance-mm", min_distance_mm, math.isfinite(min_distance_mm) and min_distance_mm >= 0),
+                            ("--min-height-mm", min_height_mm, math.isfinite(min_height_mm)),
+                            ("--max-incidence-deg", max_incidence_deg, 0 < max_incidence_deg <= 180)):
+        if not ok:  # NaN passes every comparison's negation: a NaN incidence bound switched visibility off
+            raise PlanningError(f"{flag} {value}: give "
+                                + ("a distance >= 0 (mm)" if flag == "--min-distance-mm" else "a finite height (mm)"
+                                   if flag == "--min-height-mm" else "an angle in (0, 180] degrees"))
     rob = load_robot(robot)
     tracker = None if tracker_mm is None else [units.mm_to_m(float(v)) for v in tracker_mm]
     kw = dict(seed=seed, tracker=tracker, min_tool_distance=units.mm_to_m(min_distance_mm),

@@ -467,3 +467,19 @@ def test_a_file_for_another_robot_says_so_before_its_cells(tmp_path, fanuc):
     with pytest.raises(DataError) as err:
         read_measurements(write(tmp_path, few, "few.csv"), fanuc, n_tools=2)
     assert "another robot" not in str(err.value) and len(err.value.problems) == 2
+
+
+def test_marked_commands_past_the_range_but_not_beyond_any_joint(tmp_path, fanuc):
+    """predict / compensate mark a command past the controller range (and go on); one beyond any joint (1e300)
+    was marked too and predicted NaN, written as empty cells with rc 0."""
+    from torchcal.io.csv import read_table
+
+    cells = GOOD[2].split(",")
+    cells[2] = "175"  # q1 past its 170 deg limit: marked
+    path = write(tmp_path, [HEADER, GOOD[0], GOOD[1], ",".join(cells)])
+    data, _ = read_table(path, fanuc, 2, outside_limits="mark")
+    assert data.extra["outside_limits"].tolist() == [False, False, True]
+    cells[2] = "1e300"
+    path = write(tmp_path, [HEADER, GOOD[0], GOOD[1], ",".join(cells)], "huge.csv")
+    with pytest.raises(DataError, match=r"row 3 \(line 4\), column 'q1': 1e\+300 deg is far beyond any command"):
+        read_table(path, fanuc, 2, outside_limits="mark")

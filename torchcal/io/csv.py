@@ -312,6 +312,10 @@ def parse_numbers(df: pd.DataFrame, column: str, problems: list[Problem]) -> np.
     return values
 
 
+MARK_BOUND = 100.0
+"""A command beyond this many times its joint's largest limit is refused even where commands past the range are
+only marked (predict, compensate): no joint turns or travels that far."""
+
 MAX_EXACT_ID = 2**53
 """The largest pose / tool id read exactly (ids are read as float64 first)."""
 
@@ -461,7 +465,12 @@ def parse_table(
         lo, hi = limits[i]
         outside = np.isfinite(q[:, i]) & ((q[:, i] < lo - LIMIT_TOL) | (q[:, i] > hi + LIMIT_TOL))
         if outside_limits == "mark":
-            beyond |= outside
+            # marked, not refused: a command a little past the range; one beyond any joint (1e300) predicted NaN
+            absurd = outside & (np.abs(q[:, i]) > MARK_BOUND * max(abs(lo), abs(hi), 1.0))
+            for r in np.flatnonzero(absurd):
+                problems.append(Problem(int(r) + 1, c, f"{q[r, i]:.6g} {unit[i]} is far beyond any command of "
+                                                        f"'{robot.name}' (range [{lo:.6g}, {hi:.6g}] {unit[i]})"))
+            beyond |= outside & ~absurd
             continue
         refused |= outside
         for r in np.flatnonzero(outside):

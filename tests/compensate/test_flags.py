@@ -135,6 +135,17 @@ def test_a_targets_file_with_flags_instead_of_seeds(tmp_path, fanuc, tools_m):
     df.to_csv(tmp_path / "bad.csv", index=False)
     r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "bad.csv"), str(tmp_path / "out2.csv")])
     assert r.exit_code != 0 and "bad.csv" in r.output and "elbow" in r.output and "row 4" in r.output
+    # seeds and flags both: the seeds give the branch, and that is said (flags contradicting the seeds ran silently)
+    assert "flags are not read" not in " ".join(
+        CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "targets.csv"), str(tmp_path / "o3.csv")]).output.split())
+    df.loc[3, "elbow"] = -1
+    both = df.copy()
+    for j in range(6):
+        both[f"q{j + 1}"] = np.degrees(q[:, j].numpy())
+    both.to_csv(tmp_path / "both.csv", index=False)
+    r = CliRunner().invoke(app, ["compensate", str(run), str(tmp_path / "both.csv"), str(tmp_path / "out4.csv")])
+    assert r.exit_code == 0, r.output
+    assert "both seed commands" in " ".join(r.output.split()) and "flags are not read" in " ".join(r.output.split())
 
 
 def test_a_target_with_no_solution_for_its_flags_has_no_command_and_no_numbers(tmp_path, fanuc, tools_m):

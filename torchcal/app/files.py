@@ -20,7 +20,8 @@ from ..core import units
 from ..core.measurements import Measurements
 from ..core.progress import task as progress_task
 from ..io.csv import write_table
-from .targets_input import has_flags, refuse_radian_orientations, refuse_targets_without_orientation, seeds_from_flags
+from .targets_input import (has_flags, ignored_flags_note, refuse_radian_orientations, refuse_targets_without_orientation,
+                            seeds_from_flags)
 
 
 def _refuse_radians(path, data: Measurements, model, units_checked: bool) -> None:
@@ -327,6 +328,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     with progress_task(f"reading {input}"):
         df = read_raw_table(Path(input))
         refuse_targets_without_orientation(Path(input), df)
+        flags_note = ignored_flags_note(df, robot, input) if target_kind(df) is not None else None  # before seeding
         unseeded = None
         if target_kind(df) is not None and has_flags(df, robot):  # the controller's branch by configuration flags
             df, unseeded = seeds_from_flags(model, Path(input), df)
@@ -341,6 +343,8 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
             refuse_radian_orientations(model, Path(input), df, data.q)
 
     said = run_model_notes(run_dir) + _input_warnings(model, input, df, data, targets=targets)
+    if flags_note is not None:
+        said.append(flags_note)
     if dof_note is not None:
         said.insert(0, dof_note)
     if targets:  # Cartesian targets: q1..qN are the controller's seeds (its branch)

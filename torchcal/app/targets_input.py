@@ -28,6 +28,20 @@ def has_flags(df, robot) -> bool:
     return set(FLAG_NAMES) <= cols and not set(joint_columns(robot.joint_map.n)) & cols
 
 
+def ignored_flags_note(df, robot, path) -> str | None:
+    """A targets table with both seed commands and flag columns: the seeds give the branch and the flags are not
+    read. Said, since a file whose flags contradicted 29 of 30 seeds ran silently on the seeds' branches."""
+    from ..compensate.flags import FLAG_NAMES
+    from ..io.csv import joint_columns
+
+    cols = set(df.columns)
+    given = [c for c in FLAG_NAMES if c in cols]
+    if not given or not set(joint_columns(robot.joint_map.n)) & cols:
+        return None
+    return (f"{path}: both seed commands q1..q{robot.joint_map.n} and flag columns ({', '.join(given)}): the seeds "
+            "give each row's branch and the flags are not read; leave out the seeds to choose the branch by flags")
+
+
 def seeds_from_flags(model, path, df):
     """q1..qN seed columns (file units) for a targets table with flag columns (:mod:`torchcal.compensate.flags`);
     -> (the table with them, (R,) bool rows for which no nominal IK solution with the flags was found).

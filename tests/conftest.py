@@ -139,6 +139,38 @@ def assert_reachable_alike(a, b, model, q):
     assert (a.iterations[clear] - b.iterations[clear]).abs().max() <= 1
 
 
+def assert_compensation_reaches_the_goal(model, q, s, least_converged: int):
+    """compensate() on commands q (B, n), directions s: at least ``least_converged`` rows converge, and each
+    converged row's modeled flange lands on the compensation goal to 1e-9 m. -> the result."""
+    from torchcal.compensate import compensate, compensation_goal
+
+    res = compensate(model, q, s)
+    assert int(res.converged.sum()) >= least_converged
+    with torch.no_grad():
+        Fa = model.flange(res.q, s, base=False)
+        goal = compensation_goal(model, q)
+    ok = res.converged
+    assert float((Fa[ok, :3, 3] - goal[ok, :3, 3]).norm(dim=-1).max()) < 1e-9
+    return res
+
+
+def assert_flange_jacobian_matches_finite_differences(model, q, s, h: float = 1e-6, atol: float = 1e-8):
+    """RobotModel.flange_jacobian (body frame, per command) against central differences of RobotModel.flange."""
+    n = q.shape[1]
+    with torch.no_grad():
+        F, J = model.flange_jacobian(q, s)
+        Rt = F[:, :3, :3].transpose(1, 2)
+        for j in range(n):
+            dq = torch.zeros(n, dtype=torch.float64)
+            dq[j] = h
+            Fp, Fm = model.flange(q + dq, s, base=False), model.flange(q - dq, s, base=False)
+            v = Rt @ ((Fp[:, :3, 3] - Fm[:, :3, 3]) / (2 * h))[..., None]
+            dR = Rt @ (Fp[:, :3, :3] - Fm[:, :3, :3]) / (2 * h)
+            w = torch.stack([dR[:, 2, 1], dR[:, 0, 2], dR[:, 1, 0]], -1)
+            assert torch.allclose(v[..., 0], J[:, :3, j], atol=atol), j
+            assert torch.allclose(w, J[:, 3:, j], atol=atol), j
+
+
 def assert_point_jacobians_match_autograd(model, q, tool, s, v):
     """RobotModel.point_jacobians against torch.func.jacrev, every parameter group and v.
 

@@ -10,8 +10,8 @@ import math
 import pytest
 import torch
 
-from tests.conftest import assert_point_jacobians_match_autograd
-from torchcal.compensate import compensate, compensation_goal
+from tests.conftest import (assert_compensation_reaches_the_goal, assert_flange_jacobian_matches_finite_differences,
+                            assert_point_jacobians_match_autograd)
 from torchcal.core.measurements import Measurements
 from torchcal.core.params import LENGTH, ANGLE
 from torchcal.identify import NoiseModel, fit
@@ -88,25 +88,23 @@ def test_a_rails_backlash_is_a_length_and_an_arms_an_angle(track):
     assert group.kinds[0] == LENGTH and set(group.kinds[1:]) == {ANGLE}
 
 
-def test_jacobians_match_autograd_and_finite_differences(track):
+def _random_model(track, orders, seed, lost_motion):
+    """A model with random error terms and a visible lost motion on every joint (m on the rail, rad elsewhere)."""
     from tests.conftest import randomize
 
-    model = randomize(RobotModel(track, TOOLS, orders=2, backlash=1), 3, rot=1e-4, trans=1e-5)
+    model = randomize(RobotModel(track, TOOLS, orders=orders, backlash=orders - 1), seed, rot=1e-4, trans=1e-5)
     with torch.no_grad():
-        model.joint_errors.backlash[:, 0] += 3e-4
+        model.joint_errors.backlash[:, 0] += lost_motion
+    return model
+
+
+def test_jacobians_match_autograd_and_finite_differences(track):
+    model = _random_model(track, 2, 3, 3e-4)
     q = _commands(track, 6, 1)
     s = _directions(6, 7, 2)
     v = torch.randn(6, 7, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 1e-4
     assert_point_jacobians_match_autograd(model, q, torch.arange(6) % 3, s, v)
-    with torch.no_grad():
-        F, J = model.flange_jacobian(q, s)
-        h = 1e-6
-        for j in range(7):
-            dq = torch.zeros(7, dtype=torch.float64)
-            dq[j] = h
-            Fp, Fm = model.flange(q + dq, s, base=False), model.flange(q - dq, s, base=False)
-            lin = F[:, :3, :3].transpose(1, 2) @ ((Fp[:, :3, 3] - Fm[:, :3, 3]) / (2 * h))[..., None]
-            assert torch.allclose(lin[..., 0], J[:, :3, j], atol=1e-8)
+    assert_flange_jacobian_matches_finite_differences(model, q, s)
 
 
 def test_fit_finds_the_lost_motion_of_a_rail_and_of_y_axis_joints(track):
@@ -136,20 +134,8 @@ def test_fit_finds_the_lost_motion_of_a_rail_and_of_y_axis_joints(track):
 
 
 def test_compensation_reaches_the_goal(track):
-    from tests.conftest import randomize
-
-    model = randomize(RobotModel(track, TOOLS, orders=1, backlash=0), 8, rot=1e-4, trans=1e-5)
-    with torch.no_grad():
-        model.joint_errors.backlash[:, 0] += 2e-4
-    q = _commands(track, 60, 9)
-    s = _directions(60, 7, 10)
-    res = compensate(model, q, s)
-    assert int(res.converged.sum()) >= 55
-    with torch.no_grad():
-        Fa = model.flange(res.q, s, base=False)
-        goal = compensation_goal(model, q)
-    ok = res.converged
-    assert float((Fa[ok, :3, 3] - goal[ok, :3, 3]).norm(dim=-1).max()) < 1e-9
+    model = _random_model(track, 1, 8, 2e-4)
+    assert_compensation_reaches_the_goal(model, _commands(track, 60, 9), _directions(60, 7, 10), 55)
 
 
 def test_robots_turning_about_z_keep_the_papers_eps_z_form(fanuc, tools_m):

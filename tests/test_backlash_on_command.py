@@ -7,8 +7,8 @@ and a truth written with the command-side reading (the fit that shares it is ~se
 import pytest
 import torch
 
-from tests.conftest import assert_point_jacobians_match_autograd, random_commands, randomize
-from torchcal.compensate import compensate
+from tests.conftest import (assert_compensation_reaches_the_goal, assert_flange_jacobian_matches_finite_differences,
+                            assert_point_jacobians_match_autograd, random_commands, randomize)
 from torchcal.identify import NoiseModel, fit
 from torchcal.models.robot import RobotModel
 from torchcal.sim import simulate
@@ -39,18 +39,7 @@ def test_flange_jacobian_matches_finite_differences(fanuc, tools_m):
     model = _model(fanuc, tools_m)
     q = random_commands(fanuc, 5, 6)
     s = _directions(5, 6, 7)
-    with torch.no_grad():
-        F, J = model.flange_jacobian(q, s)
-        h = 1e-6
-        for j in range(6):
-            dq = torch.zeros(6, dtype=torch.float64)
-            dq[j] = h
-            Fp, Fm = model.flange(q + dq, s, base=False), model.flange(q - dq, s, base=False)
-            v = F[:, :3, :3].transpose(1, 2) @ ((Fp[:, :3, 3] - Fm[:, :3, 3]) / (2 * h))[..., None]
-            dR = F[:, :3, :3].transpose(1, 2) @ (Fp[:, :3, :3] - Fm[:, :3, :3]) / (2 * h)
-            w = torch.stack([dR[:, 2, 1], dR[:, 0, 2], dR[:, 1, 0]], -1)
-            assert torch.allclose(v[..., 0], J[:, :3, j], atol=1e-8)
-            assert torch.allclose(w, J[:, 3:, j], atol=1e-8)
+    assert_flange_jacobian_matches_finite_differences(model, q, s)
 
 
 def test_coupled_joint_turns_with_the_backlash_of_the_joint_that_drives_it(fanuc, tools_m):
@@ -98,17 +87,7 @@ def test_identity_coupling_agrees_with_the_papers_reading(tmp_path):
 
 def test_compensation_reaches_the_goal(fanuc, tools_m):
     model = _model(fanuc, tools_m)
-    q = random_commands(fanuc, 300, 11)
-    s = _directions(300, 6, 12)
-    res = compensate(model, q, s)
-    assert int(res.converged.sum()) > 280
-    from torchcal.compensate import compensation_goal
-
-    with torch.no_grad():
-        Fa = model.flange(res.q, s, base=False)
-        goal = compensation_goal(model, q)
-    ok = res.converged
-    assert float((Fa[ok, :3, 3] - goal[ok, :3, 3]).norm(dim=-1).max()) < 1e-9
+    assert_compensation_reaches_the_goal(model, random_commands(fanuc, 300, 11), _directions(300, 6, 12), 281)
 
 
 def test_spec_round_trip(fanuc, tools_m):

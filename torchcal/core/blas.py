@@ -26,16 +26,21 @@ import torch
 ENV = "TORCHCAL_BLAS"
 
 
-def _vendor() -> str:
-    """The CPU's vendor string (``GenuineIntel``, ``AuthenticAMD``, ...), '' where it cannot be read."""
+def cpu_info(key: str) -> str:
+    """A field of the first CPU in /proc/cpuinfo (``vendor_id``, ``model name``), '' where it cannot be read."""
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
-                if line.startswith("vendor_id"):
+                if line.startswith(key):
                     return line.split(":", 1)[1].strip()
     except OSError:
         pass
     return ""
+
+
+def _vendor() -> str:
+    """The CPU's vendor string (``GenuineIntel``, ``AuthenticAMD``, ...), '' where it cannot be read."""
+    return cpu_info("vendor_id")
 
 
 @functools.cache
@@ -72,4 +77,4 @@ def limit(n: int):
     return _controller().limit(limits=int(n)) if numpy_blas() else nullcontext()
 
 
-__all__ = ["ENV", "bmm", "limit", "numpy_blas"]
+__all__ = ["ENV", "bmm", "cpu_info", "limit", "numpy_blas"]

@@ -72,15 +72,10 @@ def _cpu_products(numpy_blas) -> str:
 
 
 def _cpu_name() -> str:
-    """The CPU's model name (/proc/cpuinfo), else what platform knows."""
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    """The CPU's model name, else what platform knows."""
+    from ..core.blas import cpu_info
+
+    return cpu_info("model name") or platform.processor() or platform.machine()
 
 
 def file_sha256(path) -> str:

@@ -169,7 +169,6 @@ class JointErrors(nn.Module):
         coef_names, bl_names = self.parameter_names()
         kinds = [k for _ in range(n) for k in term_kinds(TERMS) for _ in range(K)]
         sigma = torch.tensor([1e-2 if k == ANGLE else 1e-3 for k in kinds], dtype=torch.float64)
-        nb = self.backlash.numel()
         k = torch.arange(self.backlash.shape[1]).expand_as(self.backlash).flatten()
         # float64 from the start: python scalars in torch.where take the default dtype (float32 unless a user
         # changed it), which rounded these sigmas and made a fit depend on torch.get_default_dtype()

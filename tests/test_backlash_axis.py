@@ -2,8 +2,9 @@
 
 Bundled robots turn every joint about +z, where E_i's eps_z is that turn. A ROS-style URDF (axes along y or x)
 and a robot on a linear track (a prismatic joint) are not: there backlash used to be a turn about the joint
-frame's z (a rail's lost motion became a yaw of its carriage). The reference here is the physical meaning: a
-lost motion b of joint i is the chain with joint i moved by b."""
+frame's z (a rail's lost motion became a yaw of its carriage). It now adds the turn about (move along) the
+joint's own axis to E_i, and the compiled backends carry it. The reference here is the physical meaning: a lost
+motion b of joint i is the chain with joint i moved by b."""
 
 import math
 
@@ -64,7 +65,7 @@ def _directions(count, n, seed):
 @pytest.mark.parametrize("joint", range(len(JOINTS)))
 def test_backlash_moves_the_joint_about_or_along_its_own_axis(track, joint):
     model = RobotModel(track, TOOLS, orders=0, backlash=0)
-    assert model.backlash_coupling() is not None  # the eps_z form is not this chain's
+    assert model.flange_snapshot().live is None  # the compiled backends evaluate it themselves
     b = 1e-3  # m on the rail, rad elsewhere
     with torch.no_grad():
         model.joint_errors.backlash[joint, 0] = b
@@ -139,10 +140,32 @@ def test_compensation_reaches_the_goal(track):
 
 
 def test_robots_turning_about_z_keep_the_papers_eps_z_form(fanuc, tools_m):
-    """Every bundled robot: backlash stays on eps_z, which the fast backends (snapshot, factored fits) read."""
+    """Every bundled robot: backlash stays on eps_z, the factored fits' form."""
+    from torchcal.compensate.kernel import FlangeKernel
+    from torchcal.identify.structured import RobotStructure
+    from torchcal.identify.layout import ParameterLayout
+    from torchcal.measure import PointTargets
+
     model = RobotModel(fanuc, tools_m, orders=2, backlash=True)
-    assert model.backlash_coupling() is None and model.flange_snapshot().live is None
+    ez = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    assert torch.equal(model.joint_errors.screw, ez.expand(6, 6)) and FlangeKernel(model).bl_code == 1
+    instrument = PointTargets(torch.zeros(2, 3, dtype=torch.float64), sigma=1e-5)
+    assert RobotStructure.supports(model, instrument, ParameterLayout(model))
     assert RobotModel(fanuc, tools_m, orders=2, backlash=True, backlash_on="command").backlash_coupling() is not None
+
+
+def test_the_factored_fit_leaves_a_rail_to_the_generic_path(track):
+    """The factored (fleet) solver's backlash columns are eps_z's: a chain whose backlash acts on another axis
+    takes the generic path, which has the screw."""
+    from torchcal.identify.structured import RobotStructure
+    from torchcal.identify.layout import ParameterLayout
+    from torchcal.measure import PointTargets
+
+    instrument = PointTargets(torch.zeros(2, 3, dtype=torch.float64), sigma=1e-5)
+    assert not RobotStructure.supports(RobotModel(track, TOOLS, orders=1, backlash=0), instrument,
+                                       ParameterLayout(RobotModel(track, TOOLS, orders=1, backlash=0)))
+    assert RobotStructure.supports(RobotModel(track, TOOLS, orders=1), instrument,
+                                   ParameterLayout(RobotModel(track, TOOLS, orders=1)))
 
 
 def test_fleet_features_read_each_joints_own_axis(track):

@@ -65,17 +65,13 @@ def test_nominal_jacobian_is_the_zero_model_jacobian(fanuc, tools_m, use_fused):
 
 @pytest.mark.parametrize("use_fused", BACKENDS)
 def test_kernel_matches_model_with_a_prismatic_joint(tmp_path, use_fused):
-    """Travel along a prismatic axis after E_i, non-z revolute axes, and the Jacobian's linear columns. Backlash on
-    such a chain moves the joint variables (not eps_z): the model is evaluated live, which the fused kernel
-    refuses, so it is checked without backlash there."""
+    """Travel along a prismatic axis after E_i, non-z revolute axes, backlash about (along) each joint's own axis,
+    and the Jacobian's linear columns."""
     path = tmp_path / "rpr.urdf"
     path.write_text(PRISMATIC_URDF)
     robot = load_robot(path)
-    tool = torch.tensor([[0.0, 0.0, 0.05]], dtype=torch.float64)
-    if use_fused:
-        with pytest.raises(ValueError, match="backlash moving the joint variables"):
-            FlangeKernel(RobotModel(robot, tool, orders=4, backlash=True), fused=True)
-    model = randomize(RobotModel(robot, tool, orders=4, backlash=None if use_fused else True), 3, rot=2e-2, trans=5e-3)
+    model = randomize(RobotModel(robot, torch.tensor([[0.0, 0.0, 0.05]], dtype=torch.float64), orders=4, backlash=True),
+                      3, rot=2e-2, trans=5e-3)
     q = random_commands(robot, 300, 9)
     s = torch.sign(torch.randn(300, 3, generator=torch.Generator().manual_seed(1)))
     k = FlangeKernel(model, fused=use_fused)

@@ -299,8 +299,12 @@ def _flange_pose(qT, b, sT, use_s, errors, model, chain, baseR, basep, outR, out
         if errors:
             lam = 2.0 * (ue[i] - lo[i]) / width[i] - 1.0
             w0, w1, w2, d0, d1, d2, bl = series(table, i, lam, Km, has_bl, False)
-            if has_bl and use_s:
+            if has_bl == 1 and use_s:
                 w2 += bl * sT[i, b]
+            elif has_bl == 2 and use_s:  # along the joint's own screw (table rows 7-12, FlangeKernel.bl_code)
+                g = bl * sT[i, b]
+                w0, w1, w2 = w0 + g * table[i, 7, 0], w1 + g * table[i, 8, 0], w2 + g * table[i, 9, 0]
+                d0, d1, d2 = d0 + g * table[i, 10, 0], d1 + g * table[i, 11, 0], d2 + g * table[i, 12, 0]
             o = row9(oR, i)
             M = mul(o, exp_so3(w0, w1, w2))
             tx, ty, tz = vec(o, (d0, d1, d2))
@@ -317,8 +321,12 @@ def _flange_pose(qT, b, sT, use_s, errors, model, chain, baseR, basep, outR, out
             if errors:
                 scale = 2.0 / width[i]
                 v0, v1, v2, u0, u1, u2, vb = series(table, i, lam, Km, has_bl, True)
-                if has_bl and use_s:
+                if has_bl == 1 and use_s:
                     v2 += vb * sT[i, b]
+                elif has_bl == 2 and use_s:
+                    g = vb * sT[i, b]
+                    v0, v1, v2 = v0 + g * table[i, 7, 0], v1 + g * table[i, 8, 0], v2 + g * table[i, 9, 0]
+                    u0, u1, u2 = u0 + g * table[i, 10, 0], u1 + g * table[i, 11, 0], u2 + g * table[i, 12, 0]
                 jw = right_jacobian_apply(w0, w1, w2, v0 * scale, v1 * scale, v2 * scale)
                 ws[i, 0], ws[i, 1], ws[i, 2] = vec(R, vec(M, jw))
                 ds[i, 0], ds[i, 1], ds[i, 2] = vec(R, vec(o, (u0 * scale, u1 * scale, u2 * scale)))
@@ -403,7 +411,7 @@ class FusedFlange:
         self.n = k.n
         self.model = (np_(k.coupling), np_(k.offset[:, 0]), np_(k.error_coupling), np_(k.error_offset[:, 0]),
                       np_(k.lo[:, 0]), np_(k.width[:, 0]), np_(k.table),
-                      bool(k.has_backlash))
+                      int(k.bl_code))
         self.chain = (np_(k.oR), np_(k.op), np_(k.axes), np_(k.Ka), np_(k.Ka2), np_(k.prismatic), bool(k.z_axes),
                       np_(k.tipR), np_(k.tipp))
         self.base = (np_(k.baseR), np_(k.basep))

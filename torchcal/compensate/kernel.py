@@ -117,11 +117,20 @@ class FlangeKernel:
             self.has_backlash = snap.backlash is not None
             self.Kb = snap.backlash.shape[-1] if self.has_backlash else 0
             self.Km = max(self.K, self.Kb, 1)
+            # backlash adds to eps_z (code 1: joints about +z, the paper's DH frames) or along each joint's own
+            # screw (code 2: a ROS-style axis, a rail), whose six components ride in rows 7-12, column 0 of the
+            # table (a constant series: the product with the basis gives them back, their slope 0)
+            screw = snap.backlash_screw
+            ez = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=self.dtype, device=self.device)
+            self.bl_code = 0 if not self.has_backlash else 1 if screw is None or bool((screw == ez).all()) else 2
             # one series product for all terms: rows 0-5 the six error terms, row 6 the backlash amplitude
-            table = torch.zeros(self.n, 7 if self.has_backlash else 6, self.Km, dtype=self.dtype, device=self.device)
+            rows = (6, 7, 13)[self.bl_code]
+            table = torch.zeros(self.n, rows, self.Km, dtype=self.dtype, device=self.device)
             table[:, :6, : self.K] = coef
             if self.has_backlash:
                 table[:, 6, : self.Kb] = snap.backlash
+            if self.bl_code == 2:
+                table[:, 7:13, 0] = screw.to(self.dtype)
             self.table = table
             self.oR = snap.origins[:, :3, :3].clone()  # (n, 3, 3)
             self.op = snap.origins[:, :3, 3].clone()  # (n, 3)
@@ -176,8 +185,10 @@ class FlangeKernel:
         et = torch.bmm(self.table, basis)  # (n, 6 or 7, B)
         use_bl = self.has_backlash and sT is not None
         e = et[:, :6]
-        if use_bl:
+        if use_bl and self.bl_code == 1:
             e[:, 2] += et[:, 6] * sT
+        elif use_bl:
+            e += et[:, 7:13] * (et[:, 6] * sT)[:, None]
         if not slopes:
             return e
         dbasis = torch.empty_like(basis)
@@ -189,8 +200,10 @@ class FlangeKernel:
         dbasis *= (2.0 / self.width)[:, :, None]
         edt = torch.bmm(self.table, dbasis)
         ed = edt[:, :6]
-        if use_bl:
+        if use_bl and self.bl_code == 1:
             ed[:, 2] += edt[:, 6] * sT
+        elif use_bl:
+            ed += et[:, 7:13] * (edt[:, 6] * sT)[:, None]
         return e, ed
 
     @staticmethod

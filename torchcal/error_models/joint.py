@@ -51,19 +51,38 @@ def joint_error_twists(
     backlash_coef: torch.Tensor | None = None,
     backlash_basis: torch.Tensor | None = None,
     direction: torch.Tensor | None = None,
+    screw: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Six error terms per pose and joint, eq. (23) plus backlash (13).
 
     coef: (n, 6, K) Chebyshev coefficients (K = max order + 1; unused orders are zero);
     basis: (B, n, K) Chebyshev values at each normalized joint variable;
-    backlash_coef: (n, Kb); backlash_basis: (B, n, Kb); direction: (B, n) in {-1, 0, +1}.
+    backlash_coef: (n, Kb); backlash_basis: (B, n, Kb); direction: (B, n) in {-1, 0, +1};
+    screw: (n, 6) the twist one unit of each joint's backlash adds (:func:`backlash_screws`), default eps_z.
     -> (B, n, 6) = (eps_x, eps_y, eps_z, delta_x, delta_y, delta_z).
     """
     e = torch.einsum("bnk,ntk->bnt", basis, coef)
     if backlash_coef is not None and direction is not None and backlash_coef.shape[-1] > 0:
         b = (backlash_basis * backlash_coef).sum(-1) * direction
-        e = e + torch.nn.functional.pad(b[..., None], (2, 3))
+        e = e + (torch.nn.functional.pad(b[..., None], (2, 3)) if screw is None else b[..., None] * screw)
     return e
+
+
+def backlash_screws(axes: torch.Tensor, prismatic: torch.Tensor) -> torch.Tensor:
+    """(n, 6) the error twist one unit of each joint's backlash adds: a turn about its own axis (revolute) or a
+    move along it (prismatic), Paper II (13), whose eps_z is that turn in DH frames. URDF axes need not be z: a
+    ROS-style (0 1 0) axis, or a rail, got a turn about the frame's z (a rail's backlash became a carriage yaw).
+
+    axes: (n, 3) unit joint axes; prismatic: (n,) bool.
+
+    Example:
+        >>> backlash_screws(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), torch.tensor([False, True])).tolist()
+        [[0.0, 0.0, 1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0, 0.0, 0.0]]
+    """
+    a = axes / axes.norm(dim=-1, keepdim=True)
+    p = prismatic.to(torch.bool)[:, None]
+    zero = torch.zeros_like(a)
+    return torch.cat([torch.where(p, zero, a), torch.where(p, a, zero)], -1)
 
 
 def _order_table(orders, n: int) -> torch.Tensor:
@@ -97,11 +116,15 @@ class JointErrors(nn.Module):
     """
 
     def __init__(self, ranges: torch.Tensor, orders=6, backlash=None, joint_names: Sequence[str] | None = None,
-                 prismatic: Sequence[bool] | None = None):
+                 prismatic: Sequence[bool] | None = None, axes: torch.Tensor | None = None):
         super().__init__()
         n = ranges.shape[0]
         # a prismatic joint's backlash is lost motion along it: a length (m), labelled mm, not deg
         self.prismatic_joints = [bool(b) for b in prismatic] if prismatic is not None else [False] * n
+        # the twist a unit of backlash adds (structure, rebuilt with the model: not in the state dict)
+        screw = (backlash_screws(axes.to(torch.float64), torch.tensor(self.prismatic_joints)) if axes is not None
+                 else torch.nn.functional.pad(torch.ones(n, 1, dtype=torch.float64), (2, 3)))
+        self.register_buffer("screw", screw, persistent=False)
         table = _order_table(orders, n)
         K = int(table.max().clamp(min=0)) + 1
         k = torch.arange(K)
@@ -142,7 +165,8 @@ class JointErrors(nn.Module):
         coef = self.coef * self.mask
         if self.has_backlash and direction is not None:
             bb = chebyshev(lam, self.backlash.shape[-1] - 1)
-            return joint_error_twists(coef, basis, self.backlash * self.backlash_mask, bb, direction.to(theta))
+            return joint_error_twists(coef, basis, self.backlash * self.backlash_mask, bb, direction.to(theta),
+                                      self.screw)
         return joint_error_twists(coef, basis)
 
     def backlash_values(self, theta: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:

@@ -153,6 +153,9 @@ class RobotStructure:
             return False
         if model.backlash_coupling() is not None:  # its backlash columns are eps_z's (Paper II (13) about +z)
             return False
+        je = model.joint_errors
+        if je.has_backlash and not bool((je.screw == je.screw.new_tensor([0.0, 0, 1, 0, 0, 0]))[je.backlash_orders >= 0].all()):
+            return False  # backlash about another axis (a ROS-style URDF, a rail): the generic path has it
         if not isinstance(instrument, PointTargets) or getattr(instrument.weight, "sigma", None) is None:
             return False
         if type(instrument).residual is not PointTargets.residual:

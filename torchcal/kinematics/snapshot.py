@@ -28,7 +28,9 @@ class ChainSnapshot:
     - error_coupling (n, n), error_offset (n,): q -> the error series' variable u (Paper II (24): the command)
     - ranges (n, 2): the interval of u each series is normalized on (λ = 2 (u - lo) / (hi - lo) - 1)
     - coef (n, 6, K): series coefficients of (ε_x, ε_y, ε_z, δ_x, δ_y, δ_z), masked (fixed terms are zero)
-    - backlash (n, Kb) or None: the backlash amplitude's series, masked; it adds s_i · Δq_ib(u_i) to ε_z (13)
+    - backlash (n, Kb) or None: the backlash amplitude's series, masked; it adds s_i · Δq_ib(u_i) times
+      ``backlash_screw`` (n, 6) to the six terms (13): the turn about (move along) the joint's own axis, ε_z for
+      a joint about +z (None: ε_z for every joint)
     - origins (n, 4, 4), axes (n, 3), prismatic (n,) bool: the nominal chain (URDF joint origins and axes)
     - tip (4, 4): last joint frame -> flange; base (4, 4): the identified base correction E_base (26)
     - live: a model whose modeled flange the backends must evaluate by itself (gravity compliance or fine
@@ -55,6 +57,7 @@ class ChainSnapshot:
     tip: torch.Tensor
     base: torch.Tensor
     live: Any = None
+    backlash_screw: torch.Tensor | None = None
 
     @property
     def n(self) -> int:

@@ -113,15 +113,10 @@ class RobotModel(ChainBuffers, nn.Module):
         self.register_buffer("error_offset", b_u.clone(), persistent=False)
         # a joint whose errors follow θ_i also sees the gravity deflection of θ_i; one on the command does not
         self.register_buffer("error_follows_joint", jm.follows_joint().to(torch.float64), persistent=False)
+        # backlash (13) adds a turn about (a move along) each joint's own axis to E_i: eps_z for a revolute joint
+        # about +z (every bundled robot), the axis' components otherwise (a ROS-style axis, a rail)
         self.joint_errors = JointErrors(jm.error_ranges(), orders, backlash, chain.joint_names,
-                                        prismatic=self.prismatic.tolist())
-        # Paper II (13) turns joint i about its own axis; E_i's eps_z is that turn only for a revolute joint about +z
-        # (every bundled robot). A ROS-style axis (0 1 0) or a prismatic rail would get a turn about the frame's z
-        # (a rail's backlash became a yaw of its carriage), so there backlash moves theta_i itself, the same motion
-        # wherever eps_z is the joint's turn.
-        carries = self.joint_errors.backlash_orders >= 0
-        on_z = ~self.prismatic & (self.axes - self.axes.new_tensor([0.0, 0.0, 1.0])).abs().amax(-1).le(1e-12)
-        self._backlash_on_theta = bool((carries & ~on_z).any())
+                                        prismatic=self.prismatic.tolist(), axes=self.axes)
         self.base = FrameCorrection(base_nominal)
         self.tools = ToolSet(tools)
         self.compliance = build_compliance(robot, compliance)
@@ -133,17 +128,10 @@ class RobotModel(ChainBuffers, nn.Module):
 
     # -------------------------------------------------------------- kinematics
     def backlash_coupling(self) -> torch.Tensor | None:
-        """(n, n) map from the backlash terms s_j Δq_jb to the URDF joint variables θ, or None where they add to
-        E_i's eps_z (Paper II (13) on joints turning about +z: the fast backends' form).
-
-        'command': the joint map's coupling (a parallelogram's motor-side backlash also turns θ3); 'joint' on a
-        chain with a prismatic joint or an axis other than +z among those carrying backlash: the identity (each
-        joint moves about, or along, its own axis)."""
-        if self.backlash_on == "command":
-            return self.coupling
-        if self._backlash_on_theta:
-            return torch.eye(self.n, dtype=self.coupling.dtype, device=self.coupling.device)
-        return None
+        """(n, n) map from the backlash terms s_j Δq_jb to the URDF joint variables θ ('command': the joint map's
+        coupling, a parallelogram's motor-side backlash also turning θ3), or None where they add to each E_i the
+        turn about (move along) the joint's own axis (Paper II (13), ``joint_errors.screw``)."""
+        return self.coupling if self.backlash_on == "command" else None
 
     def joint_variables(self, q: torch.Tensor) -> torch.Tensor:
         """Controller commands (B, n) -> URDF joint variables (B, n)."""
@@ -236,6 +224,7 @@ class RobotModel(ChainBuffers, nn.Module):
                 error_coupling=self.error_coupling.detach().clone(), error_offset=self.error_offset.detach().clone(),
                 ranges=je.ranges.detach().clone(), coef=(je.coef * je.mask).detach().clone(),
                 backlash=(je.backlash * je.backlash_mask).detach().clone() if je.has_backlash else None,
+                backlash_screw=je.screw.detach().clone(),
                 origins=self.origins.detach().clone(), axes=self.axes.detach().clone(),
                 prismatic=self.prismatic.detach().clone(), tip=self.tip.detach().clone(),
                 base=self.base.correction().detach().clone(),
@@ -293,10 +282,9 @@ class RobotModel(ChainBuffers, nn.Module):
             if (Mb := self.backlash_coupling()) is not None:  # β moves θ (through the coupling); its slope apart
                 theta = theta + ((basis[..., :Kb] * bl).sum(-1) * s) @ Mb.T
                 db = (dbasis[..., :Kb] * bl).sum(-1) * s
-            else:
-                zpad = (2, 3)
-                e = e + torch.nn.functional.pad(((basis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
-                de = de + torch.nn.functional.pad(((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None], zpad)
+            else:  # about (along) each joint's own axis: eps_z for a joint about +z
+                e = e + ((basis[..., :Kb] * bl).sum(-1) * s)[..., None] * je.screw
+                de = de + ((dbasis[..., :Kb] * bl).sum(-1) * s)[..., None] * je.screw
         # base=None: no base frame at all (Paper I's modeled error is taken in the robot's own base frame)
         T0 = None if base is None else (self.base() if base else self.base.correction())
         ER = so3_exp(e[..., :3])  # kept: the error twists' Jacobians need it again
@@ -343,7 +331,8 @@ class RobotModel(ChainBuffers, nn.Module):
                                                       d["basis"][..., : d["Kb"]])
             slope = slope + Jcmd * d["db"][:, None, :]
         elif d["s"] is not None:
-            J["joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", Je[..., 2] * d["s"][..., None], d["basis"][..., : d["Kb"]])
+            along = torch.einsum("bnct,nt->bnc", Je, self.joint_errors.screw)  # the joint's own turn / move
+            J["joint_errors.backlash"] = torch.einsum("bnc,bnk->bcnk", along * d["s"][..., None], d["basis"][..., : d["Kb"]])
         else:
             J["joint_errors.backlash"] = torch.zeros(B, rows, n, d["Kb"], dtype=q.dtype, device=q.device)
         T0 = d.get("T0")  # the corrected base, where _parts made it

@@ -44,10 +44,9 @@ def axis_errors(model, samples: int = 101) -> tuple[torch.Tensor, torch.Tensor]:
             return torch.where(prismatic, (tw[..., 3:] * axes).sum(-1), (tw[..., :3] * axes).sum(-1))
 
         coupling = getattr(model, "backlash_coupling", lambda: None)()
-        if coupling is None:  # backlash on eps_z, each joint's turn (Paper II (13), joints about +z)
+        if coupling is None:  # backlash in E_i about (along) each joint's own axis (Paper II (13))
             return along(je.twists(u, ones)), along(je.twists(u, -ones))
-        # backlash moves the joint variables (a rail, a ROS-style axis, backlash_on: command): it is the joint's
-        # own lost motion, which eps_z (a turn about the frame's z) does not hold
+        # backlash_on: command moves the joint variables through the coupling: each command's own lost motion
         axis = along(je.twists(u, None))
         b = je.backlash_values(u, ones) if je.has_backlash else torch.zeros_like(axis)
         return axis + b, axis - b

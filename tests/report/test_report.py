@@ -152,6 +152,21 @@ def test_missing_files_say_not_available(run, tmp_path):
     assert _cells(text)["validation.modeled.mean"][0] == metrics["sets"]["validation"]["modeled"]["mean"]
 
 
+def test_the_page_says_which_code_rendered_it(run, tmp_path):
+    """`torchcal report RUN_DIR` renders an archived run with the code installed now; the page showed only the
+    run's versions, so a report re-rendered by newer code looked like the original."""
+    from torchcal.io.provenance import source_sha256
+
+    text = html.unescape(write_report(run).read_text())
+    assert f"torchcal source sha256 {source_sha256()[:12]}... (the code that ran the fit)" in text
+    other = tmp_path / "other"
+    shutil.copytree(run, other)
+    v = json.loads((other / "versions.json").read_text())
+    v["torchcal_source_sha256"] = "0" * 64  # a run made by other code
+    (other / "versions.json").write_text(json.dumps(v))
+    assert "(other code than the run's)" in html.unescape(write_report(other).read_text())
+
+
 def test_without_metrics_json_the_warnings_are_unknown_not_absent(run, tmp_path):
     """The run's warnings live in metrics.json: a report regenerated without it must not say 'no warnings'."""
     bare = tmp_path / "nometrics"

@@ -232,7 +232,22 @@ def versions(run: RunFiles) -> str:
         if isinstance(v, dict):
             v = ", ".join(f"{a}: {b}" for a, b in v.items())
         pairs.append((k, "not installed" if v is None else v))
+    pairs.append(("page rendered by", _renderer(run.versions)))
     return kv(pairs)
+
+
+def _renderer(recorded: dict) -> str:
+    """Which code rendered this page, and whether it is the run's: `torchcal report RUN_DIR` renders an archived
+    run again with whatever is installed now, and the page showed only the run's versions."""
+    from datetime import datetime
+
+    from ..io.provenance import source_sha256
+
+    now = source_sha256()
+    ran = recorded.get("torchcal_source_sha256")
+    same = ("the code that ran the fit" if ran == now else "other code than the run's" if ran else
+            "code the run did not record")
+    return f"torchcal source sha256 {now[:12]}... ({same}), {datetime.now().astimezone().isoformat(timespec='seconds')}"
 
 
 def appendix(run: RunFiles) -> str:

@@ -202,3 +202,29 @@ def test_a_rail_written_in_metres_is_refused(track):
     assert metre_columns(bad.q, track) == ["q1"]
     with pytest.raises(UnitsError, match=r"q1 .*look like metres"):
         check_units(bad, track, TOOLS)
+
+
+def test_compensated_file_of_a_rail_robot_keeps_mm_and_deg_apart(track, tmp_path):
+    """max_dq took the larger of a rail's mm and an arm joint's deg in each row; now max_dq is the revolute
+    joints' (deg) and max_dq_mm the rail's (mm)."""
+    import numpy as np
+    import pandas as pd
+
+    from torchcal.app.files import compensate_file
+    from torchcal.io.rundir import save_model
+
+    model = _random_model(track, 1, 8, 2e-4)
+    save_model(tmp_path / "run", model)
+    q = _commands(track, 20, 12)
+    qf = q.numpy().copy()
+    qf[:, 0] *= 1000.0  # mm
+    qf[:, 1:] = np.degrees(qf[:, 1:])
+    cols = [f"q{i + 1}" for i in range(7)]
+    frame = pd.DataFrame(qf, columns=cols)
+    for i in range(7):
+        frame[f"dir{i + 1}"] = 1
+    frame.to_csv(tmp_path / "cmds.csv", index=False)
+    compensate_file(tmp_path / "run", tmp_path / "cmds.csv", tmp_path / "out.csv")
+    out = pd.read_csv(tmp_path / "out.csv")
+    moved = np.abs(out[cols].to_numpy() - qf)
+    assert np.allclose(out["max_dq_mm"], moved[:, 0]) and np.allclose(out["max_dq"], moved[:, 1:].max(1))

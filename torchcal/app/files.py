@@ -209,6 +209,19 @@ def _provenance(output, run_dir, input, what: str, **options) -> None:
                                                           "sha256": file_sha256(input)}, **options)
 
 
+def _set_max_dq(out, dq_file, robot) -> None:
+    """Column max_dq: each row's largest |q_new - q_nom| in file units; on a chain with both kinds of joint (an
+    arm on a rail) max_dq is the revolute joints' (deg) and max_dq_mm the prismatic ones' (mm): one column took
+    the larger of a mm and a deg number."""
+    d = abs(np.asarray(dq_file, dtype=float))
+    prismatic = robot.joint_map.prismatic.cpu().numpy().astype(bool)
+    if prismatic.any() and not prismatic.all():
+        out["max_dq"] = d[:, ~prismatic].max(axis=1)
+        out["max_dq_mm"] = d[:, prismatic].max(axis=1)
+    else:
+        out["max_dq"] = d.max(axis=1)
+
+
 def run_compensation_options(run_dir, tol_deg: float | None = None, max_iter: int | None = None,
                              max_correction_deg: float | None = None, prismatic=None) -> dict:
     """Keyword arguments for compensate(): the given values, else the run's config, else compensate()'s defaults.
@@ -303,7 +316,8 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     tool, 5-DOF for tools on one line, the point being each row's tool, else tool 0).
 
     Writes q1..qN compensated plus converged, iterations, within_limits,
-    max_dq (largest |q_new - q_nom|, deg / mm) [, direction_outside]; every
+    max_dq (largest |q_new - q_nom|, deg / mm; with both kinds of joint: revolute, deg, and max_dq_mm)
+    [, direction_outside]; every
     input row is kept, in order, other columns too. Raises RunDirError /
     DataError naming the folder or file.
     """
@@ -372,7 +386,7 @@ def compensate_file(run_dir, input, output, device=None, tol_deg: float | None =
     out["iterations"] = res.iterations.cpu().numpy()
     out["within_limits"] = res.within_limits.cpu().numpy()
     # largest correction in file units (deg / mm): a flagged or large one is visible per row
-    out["max_dq"] = abs(q_file - joints_to_file(data.q, robot)).max(axis=1)
+    _set_max_dq(out, q_file - joints_to_file(data.q, robot), robot)
     if res.direction_outside is not None:
         out["direction_outside"] = res.direction_outside.cpu().numpy()
     # judged where the model is evaluated: the compensated command
@@ -436,11 +450,12 @@ def _compensate_targets_file(model, run_dir, input, output, data, df, tol_deg, m
         out.loc[out.index[rows], cols] = np.nan  # no command on some other branch
     out["converged"] = converged.numpy()
     out["within_limits"] = comp.within_limits.cpu().numpy()
-    out["max_dq"] = abs(q_file - joints_to_file(res.q_nominal, robot)).max(axis=1)
+    _set_max_dq(out, q_file - joints_to_file(res.q_nominal, robot), robot)
     within = comp.within_limits.cpu()
     if unseeded is not None and bool(unseeded.any()):  # no command: nothing to measure against the limits
         out["within_limits"] = out["within_limits"].astype(object)
-        out.loc[out.index[unseeded.numpy()], ["within_limits", "max_dq"]] = [None, np.nan]
+        moved = ["max_dq"] + (["max_dq_mm"] if "max_dq_mm" in out.columns else [])
+        out.loc[out.index[unseeded.numpy()], ["within_limits", *moved]] = [None] + [np.nan] * len(moved)
         within = within | unseeded  # counted as not converged, not as outside the range
     outside_dirs = None if comp.direction_outside is None else comp.direction_outside.cpu().clone()
     if outside_dirs is not None:  # the console counts it: the rows must say which

@@ -228,3 +228,11 @@ def test_compensated_file_of_a_rail_robot_keeps_mm_and_deg_apart(track, tmp_path
     out = pd.read_csv(tmp_path / "out.csv")
     moved = np.abs(out[cols].to_numpy() - qf)
     assert np.allclose(out["max_dq_mm"], moved[:, 0]) and np.allclose(out["max_dq"], moved[:, 1:].max(1))
+
+
+def test_a_simulated_rails_magnitudes_say_mm(track):
+    """truth.json's describe lists angle-type terms under '_deg' names; a rail's are mm, which it now says."""
+    from torchcal.sim.truth import TruthRobot
+
+    d = TruthRobot.random(track, TOOLS, 0).describe()
+    assert d["angle_terms_unit"] == ["mm"] + ["deg"] * 6

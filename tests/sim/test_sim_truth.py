@@ -265,7 +265,7 @@ def test_fanuc_magnitudes_and_order6_representability(fanuc, tools_m):
     assert all(0.05 <= t <= 0.2 for t in d["tool_correction_mm"])
     assert max(d["wave_ptp_deg"][1:3]) > 0.1  # the paper's in-plane errors on joints 2-3
     assert all(0.01 < x < 0.6 for x in d["wave_ptp_deg"])
-    assert d["error_variable"] == ["command"] * 6
+    assert d["error_variable"] == ["command"] * 6 and d["angle_terms_unit"] == ["deg"] * 6
     fit_err = truth.chebyshev_fit_error(order=6)
     for name, e in fit_err.items():
         if name != "ripple":  # the modelled sources are sized to be representable

@@ -643,6 +643,8 @@ class TruthRobot(nn.Module):
         names = list(self.robot.chain.joint_names)
         return {
             "joints": names,
+            # the '_deg' entries of a prismatic joint (a rail) are mm: say so beside them, joint by joint
+            "angle_terms_unit": ["mm" if bool(p) else "deg" for p in pri],
             "error_variable": list(self.error_variable),
             "error_range": [r(x) for x in self._file_units(self.ranges.cpu())],
             "mastering_deg": r(self.mastering.cpu() * au),

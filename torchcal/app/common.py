@@ -310,9 +310,12 @@ def changed_inputs(cfg) -> list[str]:
     out = []
     for key, p in _input_files(cfg).items():
         was = recorded.get(key) if isinstance(recorded, dict) else None
-        if isinstance(was, dict) and was.get("sha256") and was["sha256"] != file_sha256(p):
+        if not (isinstance(was, dict) and was.get("sha256")):
+            continue
+        now = file_sha256(p)
+        if was["sha256"] != now:
             out.append(f"{key} ({p}) has changed since the run {recorded_file.parent} recorded it (sha256 "
-                       f"{was['sha256'][:12]}..., now {file_sha256(p)[:12]}...): this re-run does not reproduce it; "
+                       f"{was['sha256'][:12]}..., now {now[:12]}...): this re-run does not reproduce it; "
                        "restore the file to reproduce the run, or give the new file its own config")
     return out
 

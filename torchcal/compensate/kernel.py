@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import torch
 
+from ..error_models.joint import backlash_on_eps_z
 from ..kinematics.snapshot import ChainSnapshot
 from ..kinematics.transforms import skew
 
@@ -121,8 +122,7 @@ class FlangeKernel:
             # screw (code 2: a ROS-style axis, a rail), whose six components ride in rows 7-12, column 0 of the
             # table (a constant series: the product with the basis gives them back, their slope 0)
             screw = snap.backlash_screw
-            ez = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=self.dtype, device=self.device)
-            self.bl_code = 0 if not self.has_backlash else 1 if screw is None or bool((screw == ez).all()) else 2
+            self.bl_code = 0 if not self.has_backlash else 1 if backlash_on_eps_z(screw) else 2
             # one series product for all terms: rows 0-5 the six error terms, row 6 the backlash amplitude
             rows = (6, 7, 13)[self.bl_code]
             table = torch.zeros(self.n, rows, self.Km, dtype=self.dtype, device=self.device)

@@ -68,6 +68,15 @@ def joint_error_twists(
     return e
 
 
+def backlash_on_eps_z(screw: torch.Tensor | None, joints: torch.Tensor | None = None) -> bool:
+    """Whether backlash screws (n, 6) (of the ``joints`` (n,) bool given, default all) are eps_z, Paper II's DH
+    form, which the factored fits and the compiled kernels' plain path read (None: eps_z, as before screws)."""
+    if screw is None:
+        return True
+    s = screw if joints is None else screw[joints]
+    return bool((s == s.new_tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])).all())
+
+
 def backlash_screws(axes: torch.Tensor, prismatic: torch.Tensor) -> torch.Tensor:
     """(n, 6) the error twist one unit of each joint's backlash adds: a turn about its own axis (revolute) or a
     move along it (prismatic), Paper II (13), whose eps_z is that turn in DH frames. URDF axes need not be z: a

@@ -144,6 +144,7 @@ class RobotStructure:
     def supports(model, instrument, layout) -> bool:
         """Whether the factored path applies: a RobotModel without compliance and fine tables, isotropic point
         targets, and only the groups of :data:`GROUPS` free."""
+        from ..error_models.joint import backlash_on_eps_z
         from ..measure import PointTargets
         from ..models.robot import RobotModel
 
@@ -154,7 +155,7 @@ class RobotStructure:
         if model.backlash_coupling() is not None:  # its backlash columns are eps_z's (Paper II (13) about +z)
             return False
         je = model.joint_errors
-        if je.has_backlash and not bool((je.screw == je.screw.new_tensor([0.0, 0, 1, 0, 0, 0]))[je.backlash_orders >= 0].all()):
+        if je.has_backlash and not backlash_on_eps_z(je.screw, je.backlash_orders >= 0):
             return False  # backlash about another axis (a ROS-style URDF, a rail): the generic path has it
         if not isinstance(instrument, PointTargets) or getattr(instrument.weight, "sigma", None) is None:
             return False

@@ -71,8 +71,9 @@ def _cpu_products(numpy_blas) -> str:
         return f"unknown ({exc})"
 
 
+@functools.cache
 def _cpu_name() -> str:
-    """The CPU's model name, else what platform knows."""
+    """The CPU's model name, else what platform knows (read once a process: a fleet writes a record per unit)."""
     from ..core.blas import cpu_info
 
     return cpu_info("model name") or platform.processor() or platform.machine()
@@ -89,9 +90,11 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
+@functools.cache
 def source_sha256() -> str:
     """sha256 over torchcal's own source files (paths and contents): which code ran, where a plain install has no
-    git checkout and the version string is the same for every commit."""
+    git checkout and the version string is the same for every commit. Once a process, as :func:`_process_versions`:
+    what was imported is what runs (the report read every source file again per page)."""
     import hashlib
 
     root = Path(__file__).resolve().parent.parent
